@@ -1,0 +1,112 @@
+"""Benchmarks of the hot paths (`drake-grasp bench`). Not tests: they measure, not check.
+
+Keys:
+    rtf_isolation: real-time factor (sim time / wall time of the simulation loop) of a
+        scripted-grasp episode with one object, wrist depth frames at 10 Hz, one core.
+    rtf_clutter5: the same with 5 objects in a pile.
+    depth_frame_ms: render + post-process one 64x64 wrist depth frame (median).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH_SEED = 3
+
+
+def _machine() -> dict:
+    import pydrake
+
+    info = {"platform": platform.platform(), "python": platform.python_version(),
+            "cpus": os.cpu_count(), "drake": getattr(pydrake, "__version__", "unknown")}
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                info["cpu"] = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return info
+
+
+def _episode_rtf(scenario_name: str, text: str = "") -> dict:
+    from drake_grasp.episode import simulate_episode
+    from drake_grasp.scenario import load_scenario, replace
+
+    scenario = replace(load_scenario(scenario_name=scenario_name, scenario_text=text),
+                       seed=BENCH_SEED, visualize=False)
+    run = simulate_episode(scenario, scenario_name=scenario_name)
+    r = run.result
+    wall = r.details["simulation_wall_time_s"]
+    return {"rtf": r.sim_time_s / wall, "sim_time_s": r.sim_time_s, "wall_s": wall,
+            "success": r.success, "objects": len(r.object_ids)}
+
+
+def bench_rtf_isolation() -> dict:
+    out = _episode_rtf("isolation")
+    return {"rtf_isolation": round(out["rtf"], 3), "rtf_isolation_detail": out}
+
+
+def bench_rtf_clutter5() -> dict:
+    out = _episode_rtf("clutter", "{scene: {clutter_objects: 5}}")
+    return {"rtf_clutter5": round(out["rtf"], 3), "rtf_clutter5_detail": out}
+
+
+def bench_depth_frame_ms(repeats: int = 200) -> dict:
+    """Median time to render and post-process one frame at a new time (cache miss)."""
+    from drake_grasp.episode import build_episode_diagram
+    from drake_grasp.objects import load_library
+    from drake_grasp.scenario import load_scenario, replace
+    from drake_grasp.scene import make_scene
+
+    scenario = load_scenario(scenario_name="clutter")
+    scenario = replace(scenario, seed=BENCH_SEED)
+    scenario.depth_noise.enabled = True
+    library = load_library(None)
+    scene = make_scene(scenario.scene, scenario.seed, library)
+    diagram, station, *_ = build_episode_diagram(scenario, scene, library)
+    root = diagram.CreateDefaultContext()
+    station.set_initial_state(station.diagram.GetMyMutableContextFromRoot(root))
+    sc = station.diagram.GetMyMutableContextFromRoot(root)
+    port = station.diagram.GetOutputPort("depth_image")
+    port.Eval(sc)
+    times = []
+    for i in range(repeats):
+        root.SetTime(0.1 * (i + 1))  # invalidates the cached render
+        t0 = time.perf_counter()
+        port.Eval(sc)
+        times.append(time.perf_counter() - t0)
+    return {"depth_frame_ms": round(1000 * float(np.median(times)), 3)}
+
+
+BENCHMARKS = {
+    "rtf_isolation": bench_rtf_isolation,
+    "rtf_clutter5": bench_rtf_clutter5,
+    "depth_frame_ms": bench_depth_frame_ms,
+}
+
+
+def run_benchmarks(*, only: list[str] | None = None, out: str | Path | None = None) -> dict:
+    """Runs the named benchmarks (all by default); optionally writes JSON to `out`."""
+    keys = list(BENCHMARKS) if not only else only
+    unknown = [k for k in keys if k not in BENCHMARKS]
+    if unknown:
+        raise ValueError(f"--only: unknown benchmark keys {unknown}; known: {list(BENCHMARKS)}")
+    results: dict = {}
+    for key in keys:
+        results.update(BENCHMARKS[key]())
+    results["machine"] = _machine()
+    results["date"] = time.strftime("%Y-%m-%d")
+    if out is not None:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(results, indent=1))
+        tmp.replace(out)
+    return results

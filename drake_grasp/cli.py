@@ -1,0 +1,160 @@
+"""The `drake-grasp` command line. Thin: parses flags and calls library functions."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _add_scenario_flags(p: argparse.ArgumentParser, default: str = "isolation") -> None:
+    p.add_argument("--scenario-file", default=None,
+                   help="a *.scenarios.yaml file (default: the shipped diagrams/default.scenarios.yaml)")
+    p.add_argument("--scenario", default=default,
+                   help=f"name of the scenario in the scenarios file (default: {default})")
+    p.add_argument("--scenario-text", default="",
+                   help="inline YAML overriding keys of the named scenario, "
+                        "e.g. '{gripper: {grip_force_n: 5.0}}'")
+    p.add_argument("--objects", default=None, metavar="DIR",
+                   help="object library folder made by 'drake-grasp objects import' "
+                        "(default: the built-in procedural objects)")
+
+
+def _load(args, **overrides):
+    from drake_grasp.scenario import load_scenario, replace
+
+    scenario = load_scenario(scenario_name=args.scenario, scenario_file=args.scenario_file,
+                             scenario_text=args.scenario_text)
+    if args.objects:
+        overrides["objects_dir"] = str(args.objects)
+    return replace(scenario, **overrides) if overrides else scenario
+
+
+def _cmd_demo(args) -> int:
+    from drake_grasp.episode import run_episode
+
+    overrides = {"policy": args.policy}
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    scenario = _load(args, **overrides)
+    result = run_episode(scenario, out_dir=args.out, scenario_name=args.scenario,
+                         replay=not args.no_replay)
+    print(json.dumps({"success": result.success, "failure_reason": result.failure_reason,
+                      "object_ids": result.object_ids, "sim_time_s": round(result.sim_time_s, 3),
+                      "wall_time_s": round(result.wall_time_s, 2), "out": str(args.out)}))
+    return 0
+
+
+def _cmd_diagram(args) -> int:
+    from drake_grasp.graphviz import write_diagram
+
+    scenario = _load(args)
+    path = write_diagram(scenario, out=args.out, depth=args.depth)
+    print(path)
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from drake_grasp.bench import run_benchmarks
+
+    only = [k for k in args.only.split(",") if k] if args.only else None
+    results = run_benchmarks(only=only, out=args.out)
+    print(json.dumps(results, indent=1))
+    return 0
+
+
+def _cmd_objects_import(args) -> int:
+    from drake_grasp.objects import import_mesh
+
+    info = import_mesh(args.mesh, name=args.name, library_dir=args.library, scale=args.scale,
+                       density_kg_m3=args.density, overwrite=args.overwrite)
+    print(json.dumps({"id": info.id, "mass_kg": info.mass_kg,
+                      "extents_m": list(info.extents_m), "sdf": str(info.sdf_path)}))
+    return 0
+
+
+def _cmd_objects_list(args) -> int:
+    from drake_grasp.objects import load_library
+
+    library = load_library(args.objects)
+    for object_id in library.ids(split=args.split or None):
+        print(object_id)
+    return 0
+
+
+def _cmd_scenarios(args) -> int:
+    from drake_grasp.scenario import list_scenarios, scenario_file_path
+
+    print(f"# {scenario_file_path(args.scenario_file)}")
+    for name in list_scenarios(args.scenario_file):
+        print(name)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="drake-grasp",
+        description="Closed-loop visuomotor grasping (Viereck et al., CoRL 2017) as a Drake diagram.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="run one grasp episode and write episode.json, "
+                                    "replay.html and depth.png")
+    _add_scenario_flags(p)
+    p.add_argument("--policy", default="scripted", choices=["scripted"],
+                   help="scripted: grasp from above using the object's true pose")
+    p.add_argument("--seed", type=int, default=None,
+                   help="trial seed (scene and noise); default: the scenario's seed")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--no-replay", action="store_true",
+                   help="skip the Meshcat replay page (faster)")
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("diagram", help="write the station Diagram as Graphviz (SVG if 'dot' is "
+                                       "installed, else .dot)")
+    _add_scenario_flags(p)
+    p.add_argument("--out", required=True, help="output file (.svg, .png or .dot)")
+    p.add_argument("--depth", type=int, default=1,
+                   help="how many levels of nested diagrams to expand (default 1)")
+    p.set_defaults(func=_cmd_diagram)
+
+    p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")
+    p.add_argument("--only", default="", help="comma-separated benchmark keys "
+                                              "(rtf_isolation, rtf_clutter5, depth_frame_ms)")
+    p.add_argument("--out", default=None, help="also write the JSON (with the machine) here")
+    p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
+    p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")
+    p.set_defaults(func=_cmd_scenarios)
+
+    po = sub.add_parser("objects", help="object libraries")
+    osub = po.add_subparsers(dest="objects_command", required=True)
+    p = osub.add_parser("import", help="bring an OBJ/STL/PLY/glTF mesh into an object library")
+    p.add_argument("mesh", help="mesh file")
+    p.add_argument("--name", required=True, help="object id (letters, digits, _ and -)")
+    p.add_argument("--library", required=True, help="library folder (created if missing)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="multiply coordinates by this (e.g. 0.001 for millimetres)")
+    p.add_argument("--density", type=float, default=500.0, help="density in kg/m^3")
+    p.add_argument("--overwrite", action="store_true", help="replace an object of that name")
+    p.set_defaults(func=_cmd_objects_import)
+    p = osub.add_parser("list", help="list object ids")
+    p.add_argument("--objects", default=None, help="library folder (default: built-in)")
+    p.add_argument("--split", default="", choices=["", "train", "test"], help="only this split")
+    p.set_defaults(func=_cmd_objects_list)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        print(f"drake-grasp {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

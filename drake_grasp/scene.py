@@ -1,0 +1,335 @@
+"""What is on the table: serializable scene specs, sampled from a seed and settled by physics.
+
+A `SceneSpec` lists object ids with their poses. `sample_scene` draws one from a
+`SceneConfig` and a seed (objects placed in the air, not touching); `settle_scene`
+drops them onto the sheet on the table and simulates until every object is at rest,
+so no trial starts interpenetrating. The same seed always gives the same scene.
+
+Also here: the plant-building pieces shared by settling and the station (table,
+sheet, objects), so both use one implementation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drake_grasp.assets import make_parser
+from drake_grasp.objects import ObjectLibrary
+from drake_grasp.scenario import SceneConfig
+
+TABLE_URI = "package://drake_grasp/scene/table.sdf"
+SHEET_URI = "package://drake_grasp/scene/sheet.sdf"
+SHEET_THICKNESS_M = 0.002
+OBJECT_BODY_NAME = "body"
+
+
+@dataclass
+class ObjectPlacement:
+    """One object of a scene: its library id and its pose in the world."""
+
+    object_id: str
+    xyz: list[float]
+    quat_wxyz: list[float]
+
+    def pose(self):
+        """The pose as a Drake `RigidTransform` X_WO."""
+        from pydrake.common.eigen_geometry import Quaternion
+        from pydrake.math import RigidTransform, RotationMatrix
+
+        q = Quaternion(np.asarray(self.quat_wxyz, dtype=float))
+        return RigidTransform(RotationMatrix(q), np.asarray(self.xyz, dtype=float))
+
+
+@dataclass
+class SceneSpec:
+    """A scene: kind, seed, sheet placement and objects. `settled` once at rest."""
+
+    kind: str
+    seed: int
+    center_xy_m: list[float]
+    objects: list[ObjectPlacement] = field(default_factory=list)
+    settled: bool = False
+
+    def object_ids(self) -> list[str]:
+        return [o.object_id for o in self.objects]
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> SceneSpec:
+        try:
+            objects = [ObjectPlacement(**o) for o in data["objects"]]
+            return cls(
+                kind=data["kind"],
+                seed=int(data["seed"]),
+                center_xy_m=list(data["center_xy_m"]),
+                objects=objects,
+                settled=bool(data.get("settled", False)),
+            )
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"scene spec: missing or bad key ({e}); got keys {list(data)}") from None
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=1))
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> SceneSpec:
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+# ----------------------------------------------------------------------------
+# Plant building, shared with the station.
+
+
+def add_table_and_sheet(plant, center_xy_m) -> tuple:
+    """Adds the table (top surface at world z=0) and the movable sheet.
+
+    The sheet's root is welded at the workspace centre, so its three joints
+    (x, y, yaw) measure the sheet's displacement from there.
+
+    Returns:
+        (table_instance, sheet_instance)
+    """
+    from pydrake.math import RigidTransform
+
+    parser = make_parser(plant)
+    (table,) = parser.AddModels(url=TABLE_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("table_origin", table)
+                     if plant.HasFrameNamed("table_origin", table)
+                     else plant.get_body(plant.GetBodyIndices(table)[0]).body_frame())
+    (sheet,) = parser.AddModels(url=SHEET_URI)
+    sheet_root = plant.get_body(plant.GetBodyIndices(sheet)[0]).body_frame()
+    plant.WeldFrames(
+        plant.world_frame(), sheet_root,
+        RigidTransform([float(center_xy_m[0]), float(center_xy_m[1]), 0.0]),
+    )
+    return table, sheet
+
+
+def add_scene_objects(plant, spec: SceneSpec, library: ObjectLibrary) -> list:
+    """Adds the spec's objects as free bodies; returns their model instances in order."""
+    from pydrake.multibody.parsing import Parser
+
+    instances = []
+    for i, placement in enumerate(spec.objects):
+        info = library.get(placement.object_id)
+        parser = Parser(plant, f"object_{i}")
+        (instance,) = parser.AddModels(str(info.sdf_path))
+        instances.append(instance)
+    return instances
+
+
+def set_object_poses(plant, plant_context, spec: SceneSpec, instances) -> None:
+    """Puts each object body at its pose from the spec."""
+    for placement, instance in zip(spec.objects, instances):
+        body = plant.GetBodyByName(OBJECT_BODY_NAME, instance)
+        plant.SetFreeBodyPose(plant_context, body, placement.pose())
+
+
+def connect_sheet_hold(builder, plant, sheet_instance, name: str = "sheet_hold"):
+    """Holds the sheet where it is (PD target zero); every PD instance must be connected."""
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    n = plant.num_positions(sheet_instance) + plant.num_velocities(sheet_instance)
+    source = builder.AddNamedSystem(name, ConstantVectorSource(np.zeros(n)))
+    builder.Connect(source.get_output_port(), plant.get_desired_state_input_port(sheet_instance))
+    return source
+
+
+# ----------------------------------------------------------------------------
+# Sampling.
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Uniform random rotation matrix (from a uniform unit quaternion)."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_x(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rot_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _quat_wxyz(R: np.ndarray) -> list[float]:
+    from pydrake.math import RotationMatrix
+
+    q = RotationMatrix(R).ToQuaternion()
+    return [float(q.w()), float(q.x()), float(q.y()), float(q.z())]
+
+
+def _object_vertices(library: ObjectLibrary, object_id: str) -> np.ndarray:
+    import trimesh
+
+    info = library.get(object_id)
+    mesh = trimesh.load(str(Path(info.directory) / "visual.obj"), force="mesh", process=False)
+    return np.asarray(mesh.vertices, dtype=float)
+
+
+def _pick_ids(config: SceneConfig, library: ObjectLibrary, count: int,
+              rng: np.random.Generator) -> list[str]:
+    if config.object_ids:
+        missing = [i for i in config.object_ids if i not in set(library.ids())]
+        if missing:
+            raise ValueError(f"scene.object_ids: unknown object ids {missing}")
+        return list(config.object_ids[:count]) if count else list(config.object_ids)
+    pool = library.ids(split=config.split or None)
+    if len(pool) < count:
+        raise ValueError(
+            f"scene: need {count} objects but the library split {config.split!r} has {len(pool)}"
+        )
+    picked = rng.choice(len(pool), size=count, replace=False)
+    return [pool[int(i)] for i in picked]
+
+
+def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary) -> SceneSpec:
+    """Draws an unsettled scene from a config and a seed (deterministic).
+
+    isolation: one object, lying (rotated 90 deg about a horizontal axis) or upright,
+    random yaw; random: 1-5 objects with uniformly random orientation, spread over the
+    region; clutter: objects with random orientation stacked in a column above a small
+    region, so they pour into a pile when settled.
+    """
+    rng = np.random.default_rng([int(seed), 7919])
+    cx, cy = (float(v) for v in config.center_xy_m)
+    half = float(config.region_half_extent_m)
+    if config.kind == "isolation":
+        count = 1
+    elif config.kind == "random":
+        count = int(rng.integers(config.num_objects_min, config.num_objects_max + 1))
+    elif config.kind == "clutter":
+        count = int(config.clutter_objects)
+    else:
+        raise ValueError(f"scene.kind: got {config.kind!r}, expected isolation|random|clutter")
+    if config.object_ids and config.kind == "isolation":
+        count = 1
+    ids = _pick_ids(config, library, count, rng)
+
+    placements: list[ObjectPlacement] = []
+    stack_z = SHEET_THICKNESS_M + 0.003
+    occupied: list[tuple[float, float, float]] = []
+    for object_id in ids:
+        V = _object_vertices(library, object_id)
+        if config.kind == "isolation":
+            pose = config.pose
+            if pose == "any":
+                pose = "upright" if rng.random() < 0.25 else "lying"
+            R = _rot_z(rng.uniform(-np.pi, np.pi))
+            if pose == "lying":
+                tilt = _rot_x(np.pi / 2) if rng.random() < 0.5 else _rot_y(np.pi / 2)
+                R = R @ tilt
+        else:
+            R = _random_rotation(rng)
+        Vr = V @ R.T
+        center = 0.5 * (Vr.max(axis=0) + Vr.min(axis=0))
+        radius = float(np.linalg.norm((Vr - center)[:, :2], axis=1).max())
+        height = float(Vr[:, 2].max() - Vr[:, 2].min())
+        if config.kind == "clutter":
+            x = cx + rng.uniform(-half, half)
+            y = cy + rng.uniform(-half, half)
+            z_bottom = stack_z
+            stack_z += height + 0.01
+        else:
+            # Spread objects without overlap where possible; stack what does not fit.
+            for _ in range(100):
+                x = cx + rng.uniform(-half, half)
+                y = cy + rng.uniform(-half, half)
+                if all(np.hypot(x - ox, y - oy) > radius + orad for ox, oy, orad in occupied):
+                    z_bottom = SHEET_THICKNESS_M + 0.002
+                    break
+            else:
+                z_bottom = stack_z
+            stack_z = max(stack_z, z_bottom + height + 0.01)
+            occupied.append((x, y, radius))
+        # Object origin so that its rotated bounding box centre sits at (x, y) and its
+        # lowest point at z_bottom.
+        p = np.array([x - center[0], y - center[1], z_bottom - Vr[:, 2].min()])
+        placements.append(ObjectPlacement(object_id, [float(v) for v in p], _quat_wxyz(R)))
+    return SceneSpec(kind=config.kind, seed=int(seed), center_xy_m=[cx, cy], objects=placements)
+
+
+def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
+                 speed_tol_m_s: float = 0.005, max_time_s: float = 4.0) -> SceneSpec:
+    """Drops the objects onto the sheet and simulates until all are at rest.
+
+    Objects that end below the table top (fell off) are removed. Returns a new spec
+    with the resting poses and `settled=True`.
+    """
+    from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+
+    if plant_config is None:
+        plant_config = MultibodyPlantConfig(
+            time_step=0.002, contact_model="hydroelastic_with_fallback",
+            discrete_contact_approximation="lagged",
+        )
+    builder = DiagramBuilder()
+    plant, _ = AddMultibodyPlant(plant_config, builder)
+    _, sheet = add_table_and_sheet(plant, spec.center_xy_m)
+    instances = add_scene_objects(plant, spec, library)
+    plant.Finalize()
+    connect_sheet_hold(builder, plant, sheet)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    set_object_poses(plant, plant_context, spec, instances)
+    simulator.Initialize()
+    bodies = [plant.GetBodyByName(OBJECT_BODY_NAME, i) for i in instances]
+    t, dt = 0.0, 0.05
+    while t < max_time_s:
+        t += dt
+        simulator.AdvanceTo(t)
+        speeds = [
+            np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
+            for b in bodies
+        ]
+        if t >= 0.3 and max(speeds) < speed_tol_m_s:
+            break
+    settled = []
+    for placement, body in zip(spec.objects, bodies):
+        X = plant.EvalBodyPoseInWorld(plant_context, body)
+        if X.translation()[2] < -0.05:
+            continue  # fell off the table
+        q = X.rotation().ToQuaternion()
+        settled.append(ObjectPlacement(
+            placement.object_id,
+            [float(v) for v in X.translation()],
+            [float(q.w()), float(q.x()), float(q.y()), float(q.z())],
+        ))
+    return SceneSpec(kind=spec.kind, seed=spec.seed, center_xy_m=list(spec.center_xy_m),
+                     objects=settled, settled=True)
+
+
+def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None) -> SceneSpec:
+    """`sample_scene` then `settle_scene` with the config's settling tolerances."""
+    spec = sample_scene(config, seed, library)
+    return settle_scene(spec, library, plant_config=plant_config,
+                        speed_tol_m_s=config.settle_speed_tol_m_s,
+                        max_time_s=config.settle_max_time_s)

@@ -1,0 +1,276 @@
+"""The grasping station: UR5 + Robotiq 2F-85 + wrist depth camera + table, sheet, objects.
+
+`MakeGraspStation(scenario, scene, library)` returns a `GraspStation` whose `diagram`
+is a Drake Diagram with named subsystems and exported ports:
+
+Input ports:
+    X_WG_desired: desired pose of the grasp frame G (RigidTransform) -> differential IK.
+    gripper_command: [width_m, grip_force_n].
+    sheet_desired_state: [x, y, yaw, vx, vy, wz] of the sheet under the objects.
+Output ports:
+    depth_image: post-processed wrist depth image (ImageDepth32F, metres).
+    depth_image_raw: the renderer's depth image before noise and filling.
+    label_image: the wrist camera's label image (ImageLabel16I).
+    body_poses: every body's pose in the world (std::vector<RigidTransform>).
+    gripper_state: [q_left, q_right, v_left, v_right]; the opening is q_left + q_right.
+    arm_state: UR5 joint positions and velocities.
+    plant_state: the full plant state.
+
+Inside: MultibodyPlant + SceneGraph (hydroelastic with fallback, SAP-family solver),
+the UR5 held by its in-plant PD plus gravity feed-forward, a
+DifferentialInverseKinematicsIntegrator on a control plant (arm + lumped gripper), the
+force-limited gripper controller, the RGB-D sensor (VTK) and the depth post-processor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.geometry import (
+    ClippingRange,
+    DepthRange,
+    DepthRenderCamera,
+    MakeRenderEngineVtk,
+    RenderCameraCore,
+    RenderEngineVtkParams,
+)
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.multibody.inverse_kinematics import (
+    DifferentialInverseKinematicsIntegrator,
+    DifferentialInverseKinematicsParameters,
+    InverseKinematics,
+)
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
+from pydrake.multibody.tree import SpatialInertia, UnitInertia
+from pydrake.solvers import Solve
+from pydrake.systems.controllers import InverseDynamics
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import StateInterpolatorWithDiscreteDerivative
+from pydrake.systems.sensors import CameraInfo, RgbdSensor
+
+from drake_grasp.assets import make_parser
+from drake_grasp.grasps import topdown_rotation
+from drake_grasp.objects import ObjectLibrary
+from drake_grasp.scenario import Scenario
+from drake_grasp.scene import (
+    OBJECT_BODY_NAME,
+    SceneSpec,
+    add_scene_objects,
+    add_table_and_sheet,
+    set_object_poses,
+)
+from drake_grasp.systems.depth import DepthPostProcessor
+from drake_grasp.systems.gripper import GripperController
+
+UR5_URI = "package://drake_grasp/ur5/ur5.urdf"
+GRIPPER_URI = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
+RENDERER_NAME = "vtk"
+# A UR5 configuration with the tool pointing down over the workspace, elbow up; the
+# start pose is solved by IK from here.
+Q_HOME = np.array([0.0, -1.7, 1.9, -1.77, -1.5708, 0.0])
+
+
+@dataclass
+class GraspStation:
+    """A built station: the Diagram plus handles tests and runners need."""
+
+    diagram: object
+    plant: MultibodyPlant
+    scene_graph: object
+    arm: object
+    gripper: object
+    sheet: object
+    object_instances: list
+    scene: SceneSpec
+    q_start: np.ndarray
+    X_WG_start: RigidTransform
+    X_BG: RigidTransform  # grasp frame in the gripper base body
+    X_GC: RigidTransform  # camera in the grasp frame
+    # Helper plants must outlive the diagram (InverseDynamics does not keep them).
+    _keep_alive: list = field(default_factory=list)
+
+    def object_body(self, i: int):
+        return self.plant.GetBodyByName(OBJECT_BODY_NAME, self.object_instances[i])
+
+    def gripper_body(self):
+        return self.plant.GetFrameByName("grasp_frame", self.gripper).body()
+
+    def set_initial_state(self, root_context) -> None:
+        """Arm at the start configuration, gripper open, objects at their scene poses."""
+        plant_context = self.plant.GetMyMutableContextFromRoot(root_context)
+        self.plant.SetPositions(plant_context, self.arm, self.q_start)
+        self.plant.SetVelocities(plant_context, self.arm, np.zeros(6))
+        nq = self.plant.num_positions(self.gripper)
+        self.plant.SetPositions(plant_context, self.gripper, np.full(nq, 0.0425))
+        set_object_poses(self.plant, plant_context, self.scene, self.object_instances)
+        ik = self.diagram.GetSubsystemByName("diff_ik")
+        ik.SetPositions(ik.GetMyMutableContextFromRoot(root_context), self.q_start)
+        interp = self.diagram.GetSubsystemByName("arm_desired_state")
+        interp.set_initial_position(interp.GetMyMutableContextFromRoot(root_context), self.q_start)
+        grip = self.diagram.GetSubsystemByName("gripper_controller")
+        grip.set_width(grip.GetMyMutableContextFromRoot(root_context), 0.085)
+
+
+def _add_robot(plant: MultibodyPlant):
+    parser = make_parser(plant)
+    (arm,) = parser.AddModels(url=UR5_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("base_link", arm))
+    (gripper,) = parser.AddModels(url=GRIPPER_URI)
+    plant.WeldFrames(plant.GetFrameByName("tool0", arm),
+                     plant.GetFrameByName("robotiq_base", gripper))
+    return arm, gripper
+
+
+def _gripper_offsets(plant: MultibodyPlant, gripper) -> tuple[RigidTransform, RigidTransform, RigidTransform]:
+    """X_BG (grasp frame in the gripper's base body), X_TG (in tool0), X_GC (camera in G)."""
+    context = plant.CreateDefaultContext()
+    base = plant.GetFrameByName("robotiq_base", gripper)
+    G = plant.GetFrameByName("grasp_frame", gripper)
+    C = plant.GetFrameByName("camera_mount", gripper)
+    X_BG = G.CalcPose(context, G.body().body_frame())
+    X_TG = G.CalcPose(context, base)
+    X_GC = C.CalcPose(context, G)
+    return X_BG, X_TG, X_GC
+
+
+def make_control_plant(gripper_spatial_inertia_T: SpatialInertia, X_TG: RigidTransform):
+    """UR5 with the gripper lumped into one rigid body on tool0, plus the grasp frame.
+
+    Used by differential IK (6 positions only) and gravity compensation.
+    """
+    from pydrake.multibody.tree import FixedOffsetFrame
+
+    plant = MultibodyPlant(0.0)
+    parser = make_parser(plant)
+    (arm,) = parser.AddModels(url=UR5_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("base_link", arm))
+    tool0 = plant.GetFrameByName("tool0", arm)
+    lumped = plant.AddRigidBody("gripper_lumped", arm, gripper_spatial_inertia_T)
+    plant.WeldFrames(tool0, lumped.body_frame())
+    plant.AddFrame(FixedOffsetFrame("grasp_frame", tool0, X_TG))
+    plant.Finalize()
+    return plant
+
+
+def topdown_pose(xy, height: float, yaw: float = 0.0) -> RigidTransform:
+    """Grasp-frame pose at (x, y, height) approaching straight down."""
+    return RigidTransform(RotationMatrix(topdown_rotation(yaw)), [xy[0], xy[1], height])
+
+
+def solve_start_configuration(control_plant: MultibodyPlant, X_WG: RigidTransform,
+                              q_guess: np.ndarray = Q_HOME) -> np.ndarray:
+    """Joint angles that put the grasp frame at X_WG (within 0.1 mm, 1 mrad)."""
+    ik = InverseKinematics(control_plant)
+    G = control_plant.GetFrameByName("grasp_frame")
+    p = X_WG.translation()
+    ik.AddPositionConstraint(G, [0, 0, 0], control_plant.world_frame(), p - 1e-4, p + 1e-4)
+    ik.AddOrientationConstraint(G, RotationMatrix(), control_plant.world_frame(),
+                                X_WG.rotation(), 1e-3)
+    prog = ik.get_mutable_prog()
+    prog.AddQuadraticErrorCost(np.eye(6), q_guess, ik.q())
+    prog.SetInitialGuess(ik.q(), q_guess)
+    result = Solve(prog)
+    if not result.is_success():
+        raise RuntimeError(f"no UR5 configuration reaches the start pose {p} (IK failed)")
+    return result.GetSolution(ik.q())
+
+
+def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary) -> GraspStation:
+    """Builds the station Diagram for a (settled) scene. See the module docstring."""
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(scenario.plant, builder)
+    plant.set_name("plant")
+    scene_graph.set_name("scene_graph")
+    arm, gripper = _add_robot(plant)
+    _, sheet = add_table_and_sheet(plant, scene.center_xy_m)
+    objects = add_scene_objects(plant, scene, library)
+    plant.Finalize()
+
+    X_BG, X_TG, X_GC = _gripper_offsets(plant, gripper)
+    gripper_bodies = plant.GetBodyIndices(gripper)
+    M_T = plant.CalcSpatialInertia(plant.CreateDefaultContext(),
+                                   plant.GetFrameByName("tool0", arm), gripper_bodies)
+    control_plant = make_control_plant(M_T, X_TG)
+
+    # --- arm: differential IK -> desired state for the in-plant PD + gravity FF -----
+    ik_params = DifferentialInverseKinematicsParameters(6, 6)
+    ik_params.set_nominal_joint_position(Q_HOME)
+    ik_params.set_joint_centering_gain(0.05 * np.eye(6))
+    lower = control_plant.GetPositionLowerLimits()
+    upper = control_plant.GetPositionUpperLimits()
+    ik_params.set_joint_position_limits((lower, upper))
+    v_max = scenario.arm.joint_velocity_fraction * control_plant.GetVelocityUpperLimits()
+    ik_params.set_joint_velocity_limits((-v_max, v_max))
+    v_tcp = scenario.arm.max_tcp_speed_m_s
+    ik_params.set_end_effector_translational_velocity_limits([-v_tcp] * 3, [v_tcp] * 3)
+    ik_params.set_end_effector_angular_speed_limit(scenario.arm.max_tcp_angular_speed_rad_s)
+    diff_ik = builder.AddNamedSystem("diff_ik", DifferentialInverseKinematicsIntegrator(
+        control_plant, control_plant.world_frame(), control_plant.GetFrameByName("grasp_frame"),
+        scenario.arm.ik_time_step_s, ik_params))
+    interp = builder.AddNamedSystem("arm_desired_state", StateInterpolatorWithDiscreteDerivative(
+        6, scenario.arm.ik_time_step_s, suppress_initial_transient=True))
+    builder.Connect(diff_ik.GetOutputPort("joint_positions"), interp.get_input_port())
+    builder.Connect(interp.get_output_port(), plant.get_desired_state_input_port(arm))
+    gravity = builder.AddNamedSystem("gravity_compensation", InverseDynamics(
+        control_plant, InverseDynamics.InverseDynamicsMode.kGravityCompensation))
+    builder.Connect(plant.get_state_output_port(arm), gravity.get_input_port_estimated_state())
+    builder.Connect(gravity.get_output_port_generalized_force(),
+                    plant.get_actuation_input_port(arm))
+    builder.ExportInput(diff_ik.GetInputPort("X_AE_desired"), "X_WG_desired")
+
+    # --- gripper -------------------------------------------------------------------
+    finger = plant.GetJointActuatorByName("left_finger_joint", gripper) \
+        if plant.HasJointActuatorNamed("left_finger_joint", gripper) \
+        else plant.get_joint_actuator(plant.GetJointActuatorIndices(gripper)[0])
+    kp = finger.get_controller_gains().p
+    grip = builder.AddNamedSystem("gripper_controller", GripperController(
+        kp=kp, closing_speed_m_s=scenario.gripper.closing_speed_m_s,
+        initial_width_m=scenario.gripper.open_width_m, time_step=plant.time_step()))
+    builder.Connect(plant.get_state_output_port(gripper), grip.GetInputPort("gripper_state"))
+    builder.Connect(grip.GetOutputPort("desired_state"), plant.get_desired_state_input_port(gripper))
+    builder.ExportInput(grip.GetInputPort("gripper_command"), "gripper_command")
+
+    # --- sheet -----------------------------------------------------------------------
+    builder.ExportInput(plant.get_desired_state_input_port(sheet), "sheet_desired_state")
+
+    # --- wrist camera ----------------------------------------------------------------
+    cam = scenario.camera
+    scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
+    camera_frame = plant.GetFrameByName("camera_mount", gripper)
+    X_PC = camera_frame.GetFixedPoseInBodyFrame()
+    core = RenderCameraCore(
+        RENDERER_NAME,
+        CameraInfo(width=cam.width, height=cam.height, fov_y=np.deg2rad(cam.fov_y_deg)),
+        ClippingRange(0.5 * cam.depth_min_m, 2.0 * cam.depth_max_m), RigidTransform())
+    depth_camera = DepthRenderCamera(core, DepthRange(cam.depth_min_m, cam.depth_max_m))
+    sensor = builder.AddNamedSystem("wrist_camera", RgbdSensor(
+        plant.GetBodyFrameIdOrThrow(camera_frame.body().index()), X_PC, depth_camera))
+    builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())
+    post = builder.AddNamedSystem("depth_postprocessor", DepthPostProcessor(
+        scenario.depth_noise, width=cam.width, height=cam.height,
+        far_value_m=cam.depth_max_m, frame_period_s=1.0 / cam.fps, seed=scenario.seed))
+    builder.Connect(sensor.depth_image_32F_output_port(), post.GetInputPort("depth_image_32f"))
+    builder.ExportOutput(post.GetOutputPort("depth_image"), "depth_image")
+    builder.ExportOutput(sensor.depth_image_32F_output_port(), "depth_image_raw")
+    builder.ExportOutput(sensor.label_image_output_port(), "label_image")
+
+    # --- measurements ----------------------------------------------------------------
+    builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
+    builder.ExportOutput(plant.get_state_output_port(gripper), "gripper_state")
+    builder.ExportOutput(plant.get_state_output_port(arm), "arm_state")
+    builder.ExportOutput(plant.get_state_output_port(), "plant_state")
+    builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
+    builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
+
+    diagram = builder.Build()
+    diagram.set_name("grasp_station")
+
+    start_camera = scenario.arm.start_camera_height_m
+    X_WG_start = topdown_pose(scene.center_xy_m, start_camera + X_GC.translation()[2])
+    q_start = solve_start_configuration(control_plant, X_WG_start)
+    return GraspStation(
+        diagram=diagram, plant=plant, scene_graph=scene_graph, arm=arm, gripper=gripper,
+        sheet=sheet, object_instances=objects, scene=scene, q_start=q_start,
+        X_WG_start=X_WG_start, X_BG=X_BG, X_GC=X_GC, _keep_alive=[control_plant],
+    )

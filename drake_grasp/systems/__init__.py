@@ -1,0 +1,3 @@
+"""Drake LeafSystems of the drake_grasp Diagram."""
+
+from drake_grasp.systems.depth import DepthPostProcessor

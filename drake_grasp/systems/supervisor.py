@@ -1,0 +1,215 @@
+"""The scripted grasp: approach from above using the object's true pose, close, lift, judge.
+
+The predefined grasp motion (descend, close, lift, hold, judge) is the same one every
+policy ends with; here it follows a plan made from the object's true pose, which makes
+it the physics check for everything else: if this fails, the contact model is wrong.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from drake_grasp.grasps import plan_topdown_grasp, points_between_pads
+from drake_grasp.scenario import GripperConfig, JudgeConfig, ScriptedGraspConfig
+
+
+class Mode(enum.Enum):
+    APPROACH = "approach"
+    DESCEND = "descend"
+    CLOSE = "close"
+    LIFT = "lift"
+    HOLD = "hold"
+    JUDGE = "judge"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class SupervisorState:
+    """Everything the supervisor remembers; lives in the Context's abstract state."""
+
+    mode: Mode = Mode.APPROACH
+    mode_start_s: float = 0.0
+    X_WG_grasp: RigidTransform | None = None
+    held_after_close: bool = False
+    outcome: dict = field(default_factory=dict)
+
+
+def min_jerk(s: float) -> float:
+    """Smooth 0 -> 1 time scaling with zero start/end velocity and acceleration."""
+    s = min(max(s, 0.0), 1.0)
+    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+def interpolate_pose(X_a: RigidTransform, X_b: RigidTransform, s: float) -> RigidTransform:
+    """Pose between X_a (s=0) and X_b (s=1): linear position, slerp rotation."""
+    p = (1.0 - s) * X_a.translation() + s * X_b.translation()
+    qa = X_a.rotation().ToQuaternion()
+    qb = X_b.rotation().ToQuaternion()
+    if np.dot(qa.wxyz(), qb.wxyz()) < 0.0:
+        qb = Quaternion(-qb.wxyz())
+    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), p)
+
+
+class ScriptedGraspSupervisor(LeafSystem):
+    """Grasps one object from above, planned from its true pose; judges by physics.
+
+    Modes (abstract state): approach -> descend -> close -> lift -> hold -> judge -> done.
+    Success: after the hold, the object's lowest point is at least `min_lift_m` above
+    the table and part of it is still between the pads of a not fully closed gripper.
+
+    Input ports:
+        body_poses: the plant's body poses (std::vector<RigidTransform>).
+        gripper_state: [q_left, q_right, v_left, v_right] of the 2F-85 fingers.
+    Output ports:
+        X_WG_desired: desired grasp-frame pose (RigidTransform) for differential IK.
+        gripper_command: [width_m, grip_force_n].
+    """
+
+    def __init__(self, *, object_body_index, object_points_O: np.ndarray,
+                 gripper_body_index, X_BG: RigidTransform, X_WG_start: RigidTransform,
+                 motion: ScriptedGraspConfig, gripper: GripperConfig, judge: JudgeConfig,
+                 table_z: float = 0.0, period_s: float = 0.01):
+        super().__init__()
+        self._object = int(object_body_index)
+        self._points_O = np.asarray(object_points_O, dtype=float)
+        self._gripper_body = int(gripper_body_index)
+        self._X_BG = X_BG
+        self._X_WG_start = X_WG_start
+        self._motion = motion
+        self._gripper = gripper
+        self._judge = judge
+        self._table_z = float(table_z)
+        self._body_poses = self.DeclareAbstractInputPort(
+            "body_poses", AbstractValue.Make([RigidTransform()]))
+        self._gripper_state = self.DeclareVectorInputPort("gripper_state", 4)
+        self._state = self.DeclareAbstractState(AbstractValue.Make(SupervisorState()))
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._Initialize)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, self._Update)
+        self.DeclareAbstractOutputPort(
+            "X_WG_desired", lambda: AbstractValue.Make(RigidTransform()), self._CalcPose,
+            {self.abstract_state_ticket(self._state), self.time_ticket()})
+        self.DeclareVectorOutputPort(
+            "gripper_command", 2, self._CalcGripperCommand,
+            {self.abstract_state_ticket(self._state)})
+
+    # -- queries for episode runners --------------------------------------------------
+
+    def get_supervisor_state(self, context) -> SupervisorState:
+        return context.get_abstract_state(self._state).get_value()
+
+    def is_done(self, context) -> bool:
+        return self.get_supervisor_state(context).mode == Mode.DONE
+
+    # -- helpers --------------------------------------------------------------------
+
+    def _object_points_W(self, context) -> np.ndarray:
+        X_WO = self._body_poses.Eval(context)[self._object]
+        return self._points_O @ X_WO.rotation().matrix().T + X_WO.translation()
+
+    def _pregrasp(self, X_WG_grasp: RigidTransform) -> RigidTransform:
+        return RigidTransform(X_WG_grasp.rotation(), X_WG_grasp.translation()
+                              + [0.0, 0.0, self._motion.pregrasp_height_m])
+
+    def _lifted(self, X_WG_grasp: RigidTransform) -> RigidTransform:
+        return RigidTransform(X_WG_grasp.rotation(), X_WG_grasp.translation()
+                              + [0.0, 0.0, self._motion.lift_height_m])
+
+    def _holding(self, context) -> bool:
+        x = self._gripper_state.Eval(context)
+        width = float(x[0] + x[1])
+        X_WG = self._body_poses.Eval(context)[self._gripper_body] @ self._X_BG
+        P_G = X_WG.inverse().multiply(self._object_points_W(context).T).T
+        return width > self._judge.min_holding_width_m and points_between_pads(P_G, width) > 0
+
+    # -- events ---------------------------------------------------------------------
+
+    def _Initialize(self, context, state):
+        try:
+            plan = plan_topdown_grasp(
+                self._object_points_W(context), table_z=self._table_z,
+                depth_below_top=self._motion.grasp_depth_below_top_m,
+                min_height=self._motion.min_grasp_height_m)
+        except ValueError as e:
+            new = SupervisorState(mode=Mode.DONE, outcome={
+                "success": False, "failure_reason": f"no top-down grasp: {e}"})
+        else:
+            X = RigidTransform(RotationMatrix(plan.rotation()), plan.position)
+            new = SupervisorState(mode=Mode.APPROACH, mode_start_s=context.get_time(),
+                                  X_WG_grasp=X)
+        state.get_mutable_abstract_state(int(self._state)).set_value(new)
+
+    def _Update(self, context, state):
+        s = self.get_supervisor_state(context)
+        t = context.get_time()
+        elapsed = t - s.mode_start_s
+        m = self._motion
+        new = s
+        if s.mode == Mode.APPROACH and elapsed >= m.approach_time_s:
+            new = replace(s, mode=Mode.DESCEND, mode_start_s=t)
+        elif s.mode == Mode.DESCEND and elapsed >= m.descend_time_s:
+            new = replace(s, mode=Mode.CLOSE, mode_start_s=t)
+        elif s.mode == Mode.CLOSE:
+            v = self._gripper_state.Eval(context)[2:]
+            settled = elapsed > 0.3 and np.abs(v).max() < 1e-3
+            if settled or elapsed >= m.close_time_s:
+                new = replace(s, mode=Mode.LIFT, mode_start_s=t,
+                              held_after_close=self._holding(context))
+        elif s.mode == Mode.LIFT and elapsed >= m.lift_time_s:
+            new = replace(s, mode=Mode.HOLD, mode_start_s=t)
+        elif s.mode == Mode.HOLD and elapsed >= m.hold_time_s:
+            new = replace(s, mode=Mode.JUDGE, mode_start_s=t)
+        elif s.mode == Mode.JUDGE:
+            new = replace(s, mode=Mode.DONE, mode_start_s=t, outcome=self._Judge(context, s))
+        if new is not s:
+            state.get_mutable_abstract_state(int(self._state)).set_value(new)
+
+    def _Judge(self, context, s: SupervisorState) -> dict:
+        lowest = float(self._object_points_W(context)[:, 2].min()) - self._table_z
+        holding = self._holding(context)
+        lifted = lowest >= self._judge.min_lift_m
+        success = lifted and holding
+        if success:
+            reason = None
+        elif not s.held_after_close:
+            reason = "missed: nothing between the pads after closing"
+        else:
+            reason = "slipped: the object left the pads during lift/hold"
+        return {"success": success, "failure_reason": reason,
+                "object_lowest_point_m": lowest, "held_after_close": s.held_after_close}
+
+    # -- outputs ----------------------------------------------------------------------
+
+    def _CalcPose(self, context, output):
+        s = self.get_supervisor_state(context)
+        m = self._motion
+        elapsed = context.get_time() - s.mode_start_s
+        if s.X_WG_grasp is None:
+            X = self._X_WG_start
+        elif s.mode == Mode.APPROACH:
+            X = interpolate_pose(self._X_WG_start, self._pregrasp(s.X_WG_grasp),
+                                 min_jerk(elapsed / m.approach_time_s))
+        elif s.mode == Mode.DESCEND:
+            X = interpolate_pose(self._pregrasp(s.X_WG_grasp), s.X_WG_grasp,
+                                 min_jerk(elapsed / m.descend_time_s))
+        elif s.mode == Mode.CLOSE:
+            X = s.X_WG_grasp
+        elif s.mode == Mode.LIFT:
+            X = interpolate_pose(s.X_WG_grasp, self._lifted(s.X_WG_grasp),
+                                 min_jerk(elapsed / m.lift_time_s))
+        else:
+            X = self._lifted(s.X_WG_grasp)
+        output.set_value(X)
+
+    def _CalcGripperCommand(self, context, output: BasicVector):
+        s = self.get_supervisor_state(context)
+        closed = s.mode in (Mode.CLOSE, Mode.LIFT, Mode.HOLD, Mode.JUDGE) or (
+            s.mode == Mode.DONE and s.X_WG_grasp is not None)
+        width = 0.0 if closed else self._gripper.open_width_m
+        output.SetFromVector([width, self._gripper.grip_force_n])
