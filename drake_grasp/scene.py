@@ -25,6 +25,7 @@ from drake_grasp.scenario import SceneConfig
 TABLE_URI = "package://drake_grasp/scene/table.sdf"
 SHEET_URI = "package://drake_grasp/scene/sheet.sdf"
 SHEET_THICKNESS_M = 0.002
+SHEET_CENTER_IN_MODEL_M = (0.5, 0.0)
 OBJECT_BODY_NAME = "body"
 
 
@@ -90,28 +91,33 @@ class SceneSpec:
 # Plant building, shared with the station.
 
 
-def add_table_and_sheet(plant, center_xy_m) -> tuple:
-    """Adds the table (top surface at world z=0) and the movable sheet.
+def add_table_and_sheet(plant, scene_graph, center_xy_m) -> tuple:
+    """Adds the table (top surface at world z=0) and the movable sheet centred at
+    `center_xy_m`; its three joints (x, y, yaw) measure the sheet's displacement.
 
-    The sheet's root is welded at the workspace centre, so its three joints
-    (x, y, yaw) measure the sheet's displacement from there.
+    The sheet's joints fix its height, so sheet-table contact is filtered out.
 
     Returns:
         (table_instance, sheet_instance)
     """
+    from pydrake.geometry import CollisionFilterDeclaration
     from pydrake.math import RigidTransform
 
     parser = make_parser(plant)
     (table,) = parser.AddModels(url=TABLE_URI)
-    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("table_origin", table)
-                     if plant.HasFrameNamed("table_origin", table)
-                     else plant.get_body(plant.GetBodyIndices(table)[0]).body_frame())
+    plant.WeldFrames(plant.world_frame(), plant.GetBodyByName("table", table).body_frame())
     (sheet,) = parser.AddModels(url=SHEET_URI)
-    sheet_root = plant.get_body(plant.GetBodyIndices(sheet)[0]).body_frame()
+    # With its joints at zero the sheet centre is SHEET_CENTER_IN_MODEL_M ahead of the
+    # model's root (models/scene/sheet.sdf).
     plant.WeldFrames(
-        plant.world_frame(), sheet_root,
-        RigidTransform([float(center_xy_m[0]), float(center_xy_m[1]), 0.0]),
+        plant.world_frame(), plant.GetBodyByName("sheet_origin", sheet).body_frame(),
+        RigidTransform([float(center_xy_m[0]) - SHEET_CENTER_IN_MODEL_M[0],
+                        float(center_xy_m[1]) - SHEET_CENTER_IN_MODEL_M[1], 0.0]),
     )
+    geometries = plant.CollectRegisteredGeometries(
+        [plant.GetBodyByName("table", table), plant.GetBodyByName("sheet", sheet)])
+    scene_graph.collision_filter_manager().Apply(
+        CollisionFilterDeclaration().ExcludeWithin(geometries))
     return table, sheet
 
 
@@ -189,6 +195,16 @@ def _object_vertices(library: ObjectLibrary, object_id: str) -> np.ndarray:
     info = library.get(object_id)
     mesh = trimesh.load(str(Path(info.directory) / "visual.obj"), force="mesh", process=False)
     return np.asarray(mesh.vertices, dtype=float)
+
+
+def scene_top_z(spec: SceneSpec, library: ObjectLibrary) -> float:
+    """Height of the highest point of any object in the scene [m] (0 when empty)."""
+    top = 0.0
+    for placement in spec.objects:
+        V = _object_vertices(library, placement.object_id)
+        X = placement.pose()
+        top = max(top, float((V @ X.rotation().matrix().T + X.translation())[:, 2].max()))
+    return top
 
 
 def _pick_ids(config: SceneConfig, library: ObjectLibrary, count: int,
@@ -290,8 +306,8 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
             discrete_contact_approximation="lagged",
         )
     builder = DiagramBuilder()
-    plant, _ = AddMultibodyPlant(plant_config, builder)
-    _, sheet = add_table_and_sheet(plant, spec.center_xy_m)
+    plant, scene_graph = AddMultibodyPlant(plant_config, builder)
+    _, sheet = add_table_and_sheet(plant, scene_graph, spec.center_xy_m)
     instances = add_scene_objects(plant, spec, library)
     plant.Finalize()
     connect_sheet_hold(builder, plant, sheet)

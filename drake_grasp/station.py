@@ -58,6 +58,7 @@ from drake_grasp.scene import (
     SceneSpec,
     add_scene_objects,
     add_table_and_sheet,
+    scene_top_z,
     set_object_poses,
 )
 from drake_grasp.systems.depth import DepthPostProcessor
@@ -66,9 +67,13 @@ from drake_grasp.systems.gripper import GripperController
 UR5_URI = "package://drake_grasp/ur5/ur5.urdf"
 GRIPPER_URI = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
 RENDERER_NAME = "vtk"
+# Fingertips reach this far past the grasp frame along the approach axis
+# (models/robotiq_2f85/README.md), and the start keeps this much air below them.
+FINGERTIP_BELOW_GRASP_M = 0.025
+START_CLEARANCE_M = 0.03
 # A UR5 configuration with the tool pointing down over the workspace, elbow up; the
 # start pose is solved by IK from here.
-Q_HOME = np.array([0.0, -1.7, 1.9, -1.77, -1.5708, 0.0])
+Q_HOME = np.array([-0.245, -1.6894, 1.6738, -1.5552, -1.5708, -0.245 + np.pi / 2])
 
 
 @dataclass
@@ -183,7 +188,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     plant.set_name("plant")
     scene_graph.set_name("scene_graph")
     arm, gripper = _add_robot(plant)
-    _, sheet = add_table_and_sheet(plant, scene.center_xy_m)
+    _, sheet = add_table_and_sheet(plant, scene_graph, scene.center_xy_m)
     objects = add_scene_objects(plant, scene, library)
     plant.Finalize()
 
@@ -220,9 +225,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     builder.ExportInput(diff_ik.GetInputPort("X_AE_desired"), "X_WG_desired")
 
     # --- gripper -------------------------------------------------------------------
-    finger = plant.GetJointActuatorByName("left_finger_joint", gripper) \
-        if plant.HasJointActuatorNamed("left_finger_joint", gripper) \
-        else plant.get_joint_actuator(plant.GetJointActuatorIndices(gripper)[0])
+    finger = plant.GetJointActuatorByName("left_finger_actuator", gripper)
     kp = finger.get_controller_gains().p
     grip = builder.AddNamedSystem("gripper_controller", GripperController(
         kp=kp, closing_speed_m_s=scenario.gripper.closing_speed_m_s,
@@ -266,7 +269,10 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     diagram = builder.Build()
     diagram.set_name("grasp_station")
 
-    start_camera = scenario.arm.start_camera_height_m
+    # The paper starts the camera 0.3 m above the table; a standing object taller than
+    # the open fingers' reach at that height raises the start so nothing touches.
+    clearance = -X_GC.translation()[2] + FINGERTIP_BELOW_GRASP_M + START_CLEARANCE_M
+    start_camera = max(scenario.arm.start_camera_height_m, scene_top_z(scene, library) + clearance)
     X_WG_start = topdown_pose(scene.center_xy_m, start_camera + X_GC.translation()[2])
     q_start = solve_start_configuration(control_plant, X_WG_start)
     return GraspStation(

@@ -51,7 +51,7 @@ class GripperController(LeafSystem):
         self._ramp = self.DeclareDiscreteState(np.array([initial_width_m]))
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._UpdateRamp)
         self.DeclareVectorOutputPort("desired_state", 2, self._CalcDesiredState,
-                                     {self.xd_ticket(self._ramp),
+                                     {self.discrete_state_ticket(self._ramp),
                                       self.input_port_ticket(self.get_input_port(0).get_index()),
                                       self.input_port_ticket(self.get_input_port(1).get_index())})
 

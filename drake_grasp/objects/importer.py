@@ -1,0 +1,288 @@
+"""Importing a user mesh (OBJ/STL/PLY/glTF/GLB) as a graspable object.
+
+The result has the same folder layout as the procedural objects: the repaired
+mesh as the visual, a CoACD convex decomposition as compliant-hydroelastic
+`Convex` collision pieces, and mass properties from the mesh and a density.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from drake_grasp.objects import categories as cat
+from drake_grasp.objects import geometry as g
+from drake_grasp.objects.library import ObjectInfo
+from drake_grasp.objects.model_files import ContactMaterial, write_object_dir
+
+SUPPORTED_SUFFIXES = (".obj", ".stl", ".ply", ".gltf", ".glb")
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,100}$")
+MIN_DIAGONAL_M = 0.01
+MAX_DIAGONAL_M = 1.0
+USER_RGBA = (0.7, 0.7, 0.72, 1.0)
+
+
+def import_mesh(
+    mesh_path: str | Path,
+    *,
+    name: str,
+    library_dir: str | Path,
+    scale: float = 1.0,
+    category: str = "user",
+    split: str = "test",
+    density_kg_m3: float = 500.0,
+    max_convex_hulls: int = 12,
+    seed: int = 0,
+    overwrite: bool = False,
+    hydroelastic_modulus_pa: float = 1e7,
+) -> ObjectInfo:
+    """Imports a mesh file into `library_dir/<name>/`.
+
+    The mesh keeps its orientation (z up as in the file; note that glTF is
+    y-up by specification and is not rotated here); it is translated so the
+    bottom centre of its bounding box is the origin.
+
+    Args:
+        mesh_path: OBJ, STL, PLY, glTF or GLB file (a glTF scene's meshes are
+            concatenated with their node transforms).
+        name: Object id and folder name: letters, digits, '_' and '-'.
+        library_dir: Library folder (created if needed).
+        scale: Factor from file units to metres (0.001 for millimetres).
+        category: Category label (same character set as `name`).
+        split: "train" or "test".
+        density_kg_m3: Density used for the mass (volume of the repaired mesh,
+            or of its convex hull if it cannot be made watertight).
+        max_convex_hulls: Upper bound on CoACD collision pieces.
+        seed: CoACD seed (the decomposition is deterministic given it).
+        overwrite: Replace an existing object of that name.
+        hydroelastic_modulus_pa: Compliant-hydroelastic modulus of the pieces.
+
+    Returns:
+        The new object's info.
+
+    Raises:
+        FileNotFoundError: `mesh_path` does not exist.
+        FileExistsError: The object exists and `overwrite` is False.
+        ValueError: Bad argument, unreadable/empty mesh, or implausible size
+            (the message names the file and suggests a `--scale`).
+    """
+    path = Path(mesh_path).expanduser()
+    _check_args(
+        name, category, split, scale, density_kg_m3, max_convex_hulls, seed, hydroelastic_modulus_pa
+    )
+    target = Path(library_dir).expanduser() / name
+    if target.exists() and not overwrite:
+        raise FileExistsError(
+            f"object {name!r} already exists at {target}; pass overwrite=True to replace it"
+        )
+
+    geometries = _load(path)
+    for geometry in geometries:
+        geometry.apply_scale(scale)
+    _check_size(path, geometries, scale)
+    warnings: list[str] = []
+    mesh, watertight = _repair_all(path, geometries, warnings)
+    mesh.apply_translation(g.bottom_center_offset([mesh]))
+
+    if watertight:
+        solid = mesh
+        volume_basis = "repaired mesh"
+    else:
+        solid = mesh.convex_hull
+        volume_basis = "convex hull (the mesh could not be made watertight)"
+        warnings.append(
+            "mesh is not watertight after repair; mass and inertia use its convex hull, "
+            "which overestimates the volume of concave shapes"
+        )
+    props = solid.mass_properties
+    mass = g.MassProperties(
+        mass_kg=density_kg_m3 * float(props.volume),
+        volume_m3=float(props.volume),
+        com_m=np.asarray(props.center_mass, dtype=float),
+        inertia_kg_m2=density_kg_m3 * np.asarray(props.inertia, dtype=float),
+    )
+    if not 0.01 <= mass.mass_kg <= 2.0:
+        warnings.append(
+            f"mass {mass.mass_kg:.4g} kg is unusual for a graspable object; check scale and density"
+        )
+    pieces = _decompose(mesh, watertight, max_convex_hulls, seed, warnings)
+    contact = ContactMaterial(hydroelastic_modulus_pa, mu_static=0.6, mu_dynamic=0.5)
+    meta = {
+        "id": name,
+        "category": category,
+        "split": split,
+        "source": path.name,
+        "source_path": str(path.resolve()),
+        "generator_version": cat.GENERATOR_VERSION,
+        "scale": scale,
+        "density_kg_m3": density_kg_m3,
+        "mass_kg": mass.mass_kg,
+        "extents_m": g.extents_of([mesh]),
+        "volume_m3": mass.volume_m3,
+        "volume_basis": volume_basis,
+        "com_m": mass.com_m,
+        "num_collision_pieces": len(pieces),
+        "coacd": {"max_convex_hulls": max_convex_hulls, "seed": seed},
+        "rgba": USER_RGBA,
+        "hydroelastic_modulus_pa": contact.hydroelastic_modulus_pa,
+        "mu_static": contact.mu_static,
+        "mu_dynamic": contact.mu_dynamic,
+        "relaxation_time_s": contact.relaxation_time_s,
+        "warnings": warnings,
+    }
+    placed = write_object_dir(
+        target,
+        model_name=name,
+        visual=mesh,
+        collision=pieces,
+        mass=mass,
+        rgba=USER_RGBA,
+        contact=contact,
+        meta=meta,
+        overwrite=overwrite,
+    )
+    if not placed:
+        raise FileExistsError(
+            f"object {name!r} was created at {target} by someone else meanwhile; not replaced"
+        )
+    return ObjectInfo.from_dir(target)
+
+
+def _check_args(name, category, split, scale, density, max_hulls, seed, modulus) -> None:
+    if not isinstance(name, str) or not NAME_PATTERN.match(name):
+        raise ValueError(f"object name {name!r} is invalid; use 1-100 letters, digits, '_' or '-'")
+    if not isinstance(category, str) or not NAME_PATTERN.match(category):
+        raise ValueError(f"category {category!r} is invalid; use 1-100 letters, digits, '_' or '-'")
+    if split not in cat.SPLITS:
+        raise ValueError(f"split {split!r} is not one of {list(cat.SPLITS)}")
+    positive = (("scale", scale), ("density_kg_m3", density), ("hydroelastic_modulus_pa", modulus))
+    for label, value in positive:
+        is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not is_number or not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{label} must be a positive finite number, got {value!r}")
+    if isinstance(max_hulls, bool) or not isinstance(max_hulls, (int, np.integer)) or max_hulls < 1:
+        raise ValueError(f"max_convex_hulls must be an integer >= 1, got {max_hulls!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+
+
+def _load(path: Path) -> list[trimesh.Trimesh]:
+    """The file's triangle meshes, each with its scene transform applied."""
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file {path} does not exist (or is not a file)")
+    suffix = path.suffix.lower()
+    kind = suffix[1:].upper()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise ValueError(
+            f"mesh file {path}: unsupported type {suffix!r}; expected one of {list(SUPPORTED_SUFFIXES)}"
+        )
+    try:
+        scene = trimesh.load_scene(str(path))
+    except Exception as exc:  # trimesh raises many types on garbage input
+        # (An ImportError here is trimesh's text-encoding sniffing for garbage bytes.)
+        detail = "" if isinstance(exc, ImportError) else f": {type(exc).__name__}: {exc}"
+        raise ValueError(f"mesh file {path}: cannot be read, not a valid {kind} file{detail}") from exc
+    meshes = []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geometry = scene.geometry.get(name)
+        if not isinstance(geometry, trimesh.Trimesh) or len(geometry.faces) == 0:
+            continue  # point clouds, paths, empty meshes
+        vertices = trimesh.transform_points(np.asarray(geometry.vertices, dtype=float), transform)
+        if not np.all(np.isfinite(vertices)):
+            raise ValueError(f"mesh file {path}: has non-finite vertex coordinates")
+        faces = np.asarray(geometry.faces)
+        meshes.append(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
+    if not meshes:
+        raise ValueError(f"mesh file {path}: contains no triangles (empty, or not a valid {kind} file)")
+    return meshes
+
+
+def _check_size(path: Path, meshes: list[trimesh.Trimesh], scale: float) -> None:
+    diagonal = float(np.linalg.norm(g.extents_of(meshes)))
+    if MIN_DIAGONAL_M <= diagonal <= MAX_DIAGONAL_M:
+        return
+    # A power of ten that brings the object to ~20 cm, the size of a typical household item.
+    suggestion = scale * 10.0 ** round(math.log10(0.2 / diagonal)) if diagonal > 0 else None
+    hint = f"--scale {suggestion:g}" if suggestion else "a --scale"
+    units = " (a mesh in millimetres needs --scale 0.001)" if diagonal > MAX_DIAGONAL_M else ""
+    raise ValueError(
+        f"mesh file {path}: bounding-box diagonal is {diagonal:.4g} m after scale {scale:g}, outside the "
+        f"plausible range [{MIN_DIAGONAL_M}, {MAX_DIAGONAL_M}] m for a graspable object; "
+        f"try {hint}{units}"
+    )
+
+
+def _repair(mesh: trimesh.Trimesh, warnings: list[str]) -> trimesh.Trimesh:
+    """Merges vertices, drops degenerate/duplicate faces, fills holes, fixes normals."""
+    mesh.merge_vertices()
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) and not mesh.is_watertight:
+        trimesh.repair.fill_holes(mesh)
+        if mesh.is_watertight:
+            warnings.append("filled holes to make the mesh watertight")
+    if len(mesh.faces):
+        trimesh.repair.fix_normals(mesh)  # consistent winding, outward normals
+    return mesh
+
+
+def _repair_all(
+    path: Path, meshes: list[trimesh.Trimesh], warnings: list[str]
+) -> tuple[trimesh.Trimesh, bool]:
+    """One cleaned mesh from the file's meshes, and whether it is a watertight solid.
+
+    Each mesh is repaired on its own (merging vertices across separate shells
+    would make touching shells non-manifold); watertight shells are then
+    united with manifold3d so overlaps are not counted twice.
+    """
+    repaired = [_repair(m, warnings) for m in meshes]
+    repaired = [m for m in repaired if len(m.faces)]
+    if not repaired:
+        raise ValueError(f"mesh file {path}: has only degenerate (zero-area or duplicate) faces")
+    closed = [bool(m.is_watertight and m.volume > 0) for m in repaired]
+    if all(closed):
+        if len(repaired) == 1:
+            return repaired[0], True
+        try:
+            union = g.union_mesh(repaired, strict=True)
+            if union.is_watertight and union.volume > 0:
+                return union, True
+        except ValueError:
+            pass
+    if any(closed) and not all(closed):
+        warnings.append(f"{closed.count(False)} of {len(closed)} mesh parts are open surfaces")
+    mesh = trimesh.util.concatenate(repaired) if len(repaired) > 1 else repaired[0]
+    return mesh, False
+
+
+def _decompose(
+    mesh: trimesh.Trimesh, watertight: bool, max_hulls: int, seed: int, warnings: list[str]
+) -> list[trimesh.Trimesh]:
+    """Convex collision pieces: the hull itself for convex meshes, else CoACD."""
+    if watertight and mesh.is_convex:
+        return [g.hull(mesh.vertices)]
+    import coacd
+
+    coacd.set_log_level("error")
+    # CoACD's "auto" preprocessing remeshes non-manifold input itself.
+    raw = coacd.run_coacd(
+        coacd.Mesh(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)),
+        max_convex_hull=int(max_hulls),
+        seed=int(seed),
+    )
+    pieces = []
+    for vertices, _faces in raw:
+        try:
+            pieces.append(g.hull(np.asarray(vertices, dtype=float)))
+        except Exception:  # a flat sliver: qhull fails or the volume is zero
+            continue
+    if not pieces:
+        warnings.append("convex decomposition failed; using the convex hull as the only collision piece")
+        pieces = [g.hull(mesh.vertices)]
+    return pieces

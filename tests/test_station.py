@@ -1,0 +1,85 @@
+"""The station Diagram: named subsystems and ports, arm tracking, gripper width, camera."""
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
+from pydrake.common.value import AbstractValue
+
+from drake_grasp.scenario import load_scenario
+from drake_grasp.scene import SceneSpec, make_scene
+from drake_grasp.station import MakeGraspStation
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return load_scenario(scenario_name="isolation", scenario_text="{seed: 1}")
+
+
+@pytest.fixture(scope="module")
+def scene(scenario, library):
+    return make_scene(scenario.scene, scenario.seed, library)
+
+
+def _closed_loop(station, X_WG_desired, gripper_command):
+    builder = DiagramBuilder()
+    builder.AddNamedSystem("station", station.diagram)
+    sd = station.diagram
+    pose = builder.AddSystem(ConstantValueSource(AbstractValue.Make(X_WG_desired)))
+    builder.Connect(pose.get_output_port(), sd.GetInputPort("X_WG_desired"))
+    grip = builder.AddSystem(ConstantVectorSource(np.asarray(gripper_command, float)))
+    builder.Connect(grip.get_output_port(), sd.GetInputPort("gripper_command"))
+    sheet = builder.AddSystem(ConstantVectorSource(np.zeros(6)))
+    builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    station.set_initial_state(sd.GetMyMutableContextFromRoot(simulator.get_mutable_context()))
+    return diagram, simulator
+
+
+def test_station_names_its_subsystems_and_ports(scenario, scene, library):
+    station = MakeGraspStation(scenario, scene, library)
+    d = station.diagram
+    for name in ("plant", "scene_graph", "diff_ik", "arm_desired_state", "gravity_compensation",
+                 "gripper_controller", "wrist_camera", "depth_postprocessor"):
+        assert d.HasSubsystemNamed(name), name
+    for port in ("X_WG_desired", "gripper_command", "sheet_desired_state"):
+        assert d.HasInputPort(port), port
+    for port in ("depth_image", "depth_image_raw", "label_image", "body_poses",
+                 "gripper_state", "arm_state", "plant_state"):
+        assert d.HasOutputPort(port), port
+
+
+def test_arm_tracks_a_commanded_pose_and_gripper_closes_to_width(scenario, library):
+    empty = SceneSpec(kind="isolation", seed=0, center_xy_m=[0.5, 0.0], objects=[], settled=True)
+    station = MakeGraspStation(scenario, empty, library)
+    X_goal = RigidTransform(station.X_WG_start.rotation(),
+                            station.X_WG_start.translation() + [0.05, -0.04, -0.06])
+    diagram, simulator = _closed_loop(station, X_goal, [0.03, 40.0])
+    simulator.AdvanceTo(2.5)
+    plant = station.plant
+    ctx = plant.GetMyContextFromRoot(simulator.get_context())
+    X_WG = plant.CalcRelativeTransform(ctx, plant.world_frame(),
+                                       plant.GetFrameByName("grasp_frame", station.gripper))
+    err = np.linalg.norm(X_WG.translation() - X_goal.translation())
+    assert err < 0.002, f"tracking error {err * 1000:.2f} mm"
+    angle = (X_WG.rotation().inverse() @ X_goal.rotation()).ToAngleAxis().angle()
+    assert angle < 0.01
+    q = plant.GetPositions(ctx, station.gripper)
+    assert q[0] + q[1] == pytest.approx(0.03, abs=0.001)
+
+
+def test_wrist_camera_sees_the_object(scenario, scene, library):
+    station = MakeGraspStation(scenario, scene, library)
+    ctx = station.diagram.CreateDefaultContext()
+    station.set_initial_state(ctx)
+    raw = station.diagram.GetOutputPort("depth_image_raw").Eval(ctx).data[:, :, 0]
+    depth = station.diagram.GetOutputPort("depth_image").Eval(ctx).data[:, :, 0]
+    assert depth.shape == (scenario.camera.height, scenario.camera.width)
+    assert np.all(np.isfinite(depth))
+    # The table is 0.3 m below the camera; the object is nearer.
+    assert np.median(depth) == pytest.approx(scenario.arm.start_camera_height_m, abs=0.01)
+    assert depth.min() < scenario.arm.start_camera_height_m - 0.02
+    assert np.isfinite(raw).any()
