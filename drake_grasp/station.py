@@ -101,20 +101,29 @@ class GraspStation:
     def gripper_body(self):
         return self.plant.GetFrameByName("grasp_frame", self.gripper).body()
 
-    def set_initial_state(self, root_context) -> None:
-        """Arm at the start configuration, gripper open, objects at their scene poses."""
-        plant_context = self.plant.GetMyMutableContextFromRoot(root_context)
-        self.plant.SetPositions(plant_context, self.arm, self.q_start)
-        self.plant.SetVelocities(plant_context, self.arm, np.zeros(6))
-        nq = self.plant.num_positions(self.gripper)
-        self.plant.SetPositions(plant_context, self.gripper, np.full(nq, 0.0425))
-        set_object_poses(self.plant, plant_context, self.scene, self.object_instances)
-        ik = self.diagram.GetSubsystemByName("diff_ik")
-        ik.SetPositions(ik.GetMyMutableContextFromRoot(root_context), self.q_start)
-        interp = self.diagram.GetSubsystemByName("arm_desired_state")
-        interp.set_initial_position(interp.GetMyMutableContextFromRoot(root_context), self.q_start)
-        grip = self.diagram.GetSubsystemByName("gripper_controller")
-        grip.set_width(grip.GetMyMutableContextFromRoot(root_context), 0.085)
+    def set_initial_state(self, station_context) -> None:
+        """Arm at the start configuration, gripper open, objects at their scene poses.
+
+        Args:
+            station_context: this station diagram's Context (use
+                `diagram.GetMyMutableContextFromRoot(root)` when it is nested).
+        """
+        def sub(name):
+            system = self.diagram.GetSubsystemByName(name)
+            return system, self.diagram.GetMutableSubsystemContext(system, station_context)
+
+        plant, plant_context = sub("plant")
+        plant.SetPositions(plant_context, self.arm, self.q_start)
+        plant.SetVelocities(plant_context, self.arm, np.zeros(6))
+        nq = plant.num_positions(self.gripper)
+        plant.SetPositions(plant_context, self.gripper, np.full(nq, 0.0425))
+        set_object_poses(plant, plant_context, self.scene, self.object_instances)
+        ik, ik_context = sub("diff_ik")
+        ik.SetPositions(ik_context, self.q_start)
+        interp, interp_context = sub("arm_desired_state")
+        interp.set_initial_position(interp_context, self.q_start)
+        grip, grip_context = sub("gripper_controller")
+        grip.set_width(grip_context, 0.085)
 
 
 def _add_robot(plant: MultibodyPlant):
