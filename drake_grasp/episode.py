@@ -59,6 +59,28 @@ def _object_surface_points(library: ObjectLibrary, object_id: str, count: int = 
     return np.vstack([np.asarray(points), np.asarray(mesh.vertices)])
 
 
+def choose_scripted_target(scene: SceneSpec, library: ObjectLibrary) -> tuple[int, np.ndarray]:
+    """The object the scripted grasp goes for: the one nearest the workspace centre that
+    a top-down grasp fits (else simply the nearest). Returns (index, surface points in
+    the object frame)."""
+    from drake_grasp.grasps import plan_topdown_grasp
+
+    center = np.asarray(scene.center_xy_m, dtype=float)
+    order = np.argsort([np.linalg.norm(np.asarray(o.xyz[:2]) - center) for o in scene.objects])
+    candidates = []
+    for i in order:
+        placement = scene.objects[int(i)]
+        P_O = _object_surface_points(library, placement.object_id)
+        X = placement.pose()
+        try:
+            plan_topdown_grasp(P_O @ X.rotation().matrix().T + X.translation())
+        except ValueError:
+            candidates.append((int(i), P_O))
+            continue
+        return int(i), P_O
+    return candidates[0]
+
+
 def _pose_dict(X) -> dict:
     q = X.rotation().ToQuaternion()
     return {"xyz": [float(v) for v in X.translation()],
@@ -84,14 +106,10 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     station = MakeGraspStation(scenario, scene, library)
     builder = DiagramBuilder()
     builder.AddNamedSystem("station", station.diagram)
-    target = 0
-    if scenario.scene.kind != "isolation":
-        # The scripted grasp picks the object closest to the start pose.
-        d = [np.linalg.norm(np.array(o.xyz[:2]) - np.array(scene.center_xy_m)) for o in scene.objects]
-        target = int(np.argmin(d))
+    target, points_O = choose_scripted_target(scene, library)
     supervisor = builder.AddNamedSystem("supervisor", ScriptedGraspSupervisor(
         object_body_index=station.object_body(target).index(),
-        object_points_O=_object_surface_points(library, scene.objects[target].object_id),
+        object_points_O=points_O,
         gripper_body_index=station.gripper_body().index(),
         X_BG=station.X_BG, X_WG_start=station.X_WG_start,
         motion=scenario.scripted, gripper=scenario.gripper, judge=scenario.judge))
