@@ -114,8 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
                                        "installed, else .dot)")
     _add_scenario_flags(p)
     p.add_argument("--out", required=True, help="output file (.svg, .png or .dot)")
-    p.add_argument("--depth", type=int, default=1,
-                   help="how many levels of nested diagrams to expand (default 1)")
+    p.add_argument("--depth", type=int, default=2,
+                   help="how many levels of nested diagrams to expand (default 2: the "
+                        "episode and the station inside it)")
     p.set_defaults(func=_cmd_diagram)
 
     p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")

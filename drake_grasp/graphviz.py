@@ -9,7 +9,7 @@ from pathlib import Path
 from drake_grasp.scenario import Scenario
 
 
-def diagram_dot(scenario: Scenario, *, depth: int = 1) -> str:
+def diagram_dot(scenario: Scenario, *, depth: int = 2) -> str:
     """Graphviz text of the episode Diagram for a scenario (scene sampled, not settled)."""
     from drake_grasp.episode import build_episode_diagram
     from drake_grasp.objects import load_library
@@ -21,7 +21,7 @@ def diagram_dot(scenario: Scenario, *, depth: int = 1) -> str:
     return diagram.GetGraphvizString(max_depth=depth)
 
 
-def write_diagram(scenario: Scenario, *, out: str | Path, depth: int = 1) -> Path:
+def write_diagram(scenario: Scenario, *, out: str | Path, depth: int = 2) -> Path:
     """Writes the Diagram to `out`: SVG/PNG through `dot` if available, else `.dot` text.
 
     Returns the path written (its suffix is `.dot` when `dot` is missing).

@@ -1,0 +1,40 @@
+"""The drake-grasp command line: diagram pictures, errors, object import, scenarios."""
+
+import json
+
+import trimesh
+
+from drake_grasp.cli import main
+
+
+def test_diagram_writes_svg_or_dot(tmp_path, capsys):
+    assert main(["diagram", "--scenario", "isolation", "--out", str(tmp_path / "station.svg")]) == 0
+    written = capsys.readouterr().out.strip()
+    text = open(written).read()
+    assert "wrist_camera" in text and "diff_ik" in text
+
+
+def test_bad_scenario_key_is_a_clean_error(tmp_path, capsys):
+    code = main(["demo", "--scenario", "isolation", "--scenario-text", "{scene: {kindd: x}}",
+                 "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "kindd" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_objects_import_and_list(tmp_path, capsys):
+    mesh = trimesh.creation.box(extents=[0.05, 0.08, 0.03])
+    path = tmp_path / "block.stl"
+    mesh.export(path)
+    lib = tmp_path / "lib"
+    assert main(["objects", "import", str(path), "--name", "block", "--library", str(lib)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["id"] == "block" and 0.01 < info["mass_kg"] < 0.1
+    assert main(["objects", "list", "--objects", str(lib)]) == 0
+    assert capsys.readouterr().out.split() == ["block"]
+
+
+def test_scenarios_lists_the_shipped_names(capsys):
+    assert main(["scenarios"]) == 0
+    names = capsys.readouterr().out.split()
+    assert "isolation" in names and "clutter" in names
