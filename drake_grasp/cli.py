@@ -83,6 +83,29 @@ def _cmd_objects_list(args) -> int:
     return 0
 
 
+def _cmd_generate(args) -> int:
+    from drake_grasp.dataset import DatasetConfig, generate_dataset
+
+    scenario = _load(args, seed=args.seed)
+    config = DatasetConfig(images_per_scene=args.images_per_scene,
+                           offsets_per_image=args.offsets_per_image,
+                           scenes_per_shard=args.scenes_per_shard)
+    manifest = generate_dataset(out=args.out, num_scenes=args.scenes, split=args.split,
+                                seed=args.seed, scenario=scenario, config=config,
+                                workers=args.workers, scheduler=args.scheduler,
+                                objects_dir=args.objects)
+    print(json.dumps({k: manifest[k] for k in ("num_scenes", "num_images", "num_labels",
+                                               "num_scenes_skipped", "num_shards")}))
+    return 0
+
+
+def _cmd_inspect_data(args) -> int:
+    from drake_grasp.datavis import inspect_dataset
+
+    print(inspect_dataset(args.data, out=args.out, num_images=args.images, seed=args.seed))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -124,6 +147,33 @@ def build_parser() -> argparse.ArgumentParser:
                                               "(rtf_isolation, rtf_clutter5, depth_frame_ms)")
     p.add_argument("--out", default=None, help="also write the JSON (with the machine) here")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("generate", help="generate the simulated training set (HDF5 shards + "
+                                         "manifest.json); re-running resumes")
+    _add_scenario_flags(p, default="random")
+    p.add_argument("--scenes", type=int, required=True, help="number of scenes")
+    p.add_argument("--split", required=True, choices=["train", "test"],
+                   help="object instances to use (the split is by instance)")
+    p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the tasks on this Dask distributed scheduler instead")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    p.add_argument("--out", required=True, help="dataset folder")
+    p.add_argument("--images-per-scene", type=int, default=40,
+                   help="camera poses per scene (paper: 40)")
+    p.add_argument("--offsets-per-image", type=int, default=10,
+                   help="labelled offsets per image (paper: 10)")
+    p.add_argument("--scenes-per-shard", type=int, default=4,
+                   help="scenes per shard file, i.e. per worker task (default 4)")
+    p.set_defaults(func=_cmd_generate)
+
+    p = sub.add_parser("inspect-data", help="picture of a dataset: depth images with true "
+                                            "grasps and labelled offsets, label histogram")
+    p.add_argument("data", help="dataset folder")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--images", type=int, default=12, help="images to draw (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="which images (default 0)")
+    p.set_defaults(func=_cmd_inspect_data)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

@@ -289,12 +289,29 @@ def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary) -> Scen
     return SceneSpec(kind=config.kind, seed=int(seed), center_xy_m=[cx, cy], objects=placements)
 
 
-def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
-                 speed_tol_m_s: float = 0.005, max_time_s: float = 4.0) -> SceneSpec:
-    """Drops the objects onto the sheet and simulates until all are at rest.
+@dataclass
+class SceneWorld:
+    """A plant with the table, the sheet and a scene's objects, ready to simulate/render."""
 
-    Objects that end below the table top (fell off) are removed. Returns a new spec
-    with the resting poses and `settled=True`.
+    diagram: object
+    plant: object
+    scene_graph: object
+    instances: list
+    simulator: object
+
+    def plant_context(self):
+        return self.plant.GetMyMutableContextFromRoot(self.simulator.get_mutable_context())
+
+    def bodies(self) -> list:
+        return [self.plant.GetBodyByName(OBJECT_BODY_NAME, i) for i in self.instances]
+
+
+def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
+                      renderer_name: str | None = None) -> SceneWorld:
+    """Table, sheet (held still) and the spec's objects at their poses, no robot.
+
+    Args:
+        renderer_name: also add a VTK renderer of this name (for depth images).
     """
     from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
     from pydrake.systems.analysis import Simulator
@@ -311,22 +328,35 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
     instances = add_scene_objects(plant, spec, library)
     plant.Finalize()
     connect_sheet_hold(builder, plant, sheet)
+    if renderer_name is not None:
+        from pydrake.geometry import MakeRenderEngineVtk, RenderEngineVtkParams
+
+        scene_graph.AddRenderer(renderer_name, MakeRenderEngineVtk(RenderEngineVtkParams()))
     diagram = builder.Build()
     simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    plant_context = plant.GetMyMutableContextFromRoot(context)
-    set_object_poses(plant, plant_context, spec, instances)
+    world = SceneWorld(diagram, plant, scene_graph, instances, simulator)
+    set_object_poses(plant, world.plant_context(), spec, instances)
+    return world
+
+
+def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0.005,
+                 max_time_s: float = 4.0) -> SceneSpec:
+    """Simulates `world` until every object is slower than `speed_tol_m_s` (or the time
+    is up) and returns the resting spec; objects that fell off the table are dropped."""
+    simulator = world.simulator
+    plant, plant_context = world.plant, world.plant_context()
     simulator.Initialize()
-    bodies = [plant.GetBodyByName(OBJECT_BODY_NAME, i) for i in instances]
-    t, dt = 0.0, 0.05
-    while t < max_time_s:
+    bodies = world.bodies()
+    t, dt = simulator.get_context().get_time(), 0.05
+    t_end = t + max_time_s
+    while t < t_end:
         t += dt
         simulator.AdvanceTo(t)
         speeds = [
             np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
             for b in bodies
         ]
-        if t >= 0.3 and max(speeds) < speed_tol_m_s:
+        if t >= 0.3 and (not speeds or max(speeds) < speed_tol_m_s):
             break
     settled = []
     for placement, body in zip(spec.objects, bodies):
@@ -341,6 +371,17 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
         ))
     return SceneSpec(kind=spec.kind, seed=spec.seed, center_xy_m=list(spec.center_xy_m),
                      objects=settled, settled=True)
+
+
+def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
+                 speed_tol_m_s: float = 0.005, max_time_s: float = 4.0) -> SceneSpec:
+    """Drops the objects onto the sheet and simulates until all are at rest.
+
+    Objects that end below the table top (fell off) are removed. Returns a new spec
+    with the resting poses and `settled=True`.
+    """
+    world = build_scene_world(spec, library, plant_config=plant_config)
+    return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
 def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None) -> SceneSpec:

@@ -148,6 +148,24 @@ def _gripper_offsets(plant: MultibodyPlant, gripper) -> tuple[RigidTransform, Ri
     return X_BG, X_TG, X_GC
 
 
+def gripper_frame_offsets() -> tuple[RigidTransform, RigidTransform, RigidTransform]:
+    """(X_BG, X_TG, X_GC) read from the gripper model alone (no robot, no scene)."""
+    plant = MultibodyPlant(0.0)
+    (gripper,) = make_parser(plant).AddModels(url=GRIPPER_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("robotiq_base", gripper))
+    plant.Finalize()
+    return _gripper_offsets(plant, gripper)
+
+
+def make_depth_camera(cam, renderer_name: str = RENDERER_NAME) -> DepthRenderCamera:
+    """The wrist depth camera model from a `WristCameraConfig`."""
+    core = RenderCameraCore(
+        renderer_name,
+        CameraInfo(width=cam.width, height=cam.height, fov_y=np.deg2rad(cam.fov_y_deg)),
+        ClippingRange(0.5 * cam.depth_min_m, 2.0 * cam.depth_max_m), RigidTransform())
+    return DepthRenderCamera(core, DepthRange(cam.depth_min_m, cam.depth_max_m))
+
+
 def make_control_plant(gripper_spatial_inertia_T: SpatialInertia, X_TG: RigidTransform):
     """UR5 with the gripper lumped into one rigid body on tool0, plus the grasp frame.
 
@@ -251,11 +269,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
     camera_frame = plant.GetFrameByName("camera_mount", gripper)
     X_PC = camera_frame.GetFixedPoseInBodyFrame()
-    core = RenderCameraCore(
-        RENDERER_NAME,
-        CameraInfo(width=cam.width, height=cam.height, fov_y=np.deg2rad(cam.fov_y_deg)),
-        ClippingRange(0.5 * cam.depth_min_m, 2.0 * cam.depth_max_m), RigidTransform())
-    depth_camera = DepthRenderCamera(core, DepthRange(cam.depth_min_m, cam.depth_max_m))
+    depth_camera = make_depth_camera(cam)
     sensor = builder.AddNamedSystem("wrist_camera", RgbdSensor(
         plant.GetBodyFrameIdOrThrow(camera_frame.body().index()), X_PC, depth_camera))
     builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())

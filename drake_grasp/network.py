@@ -1,0 +1,712 @@
+"""The distance CNN of Viereck et al. (CoRL 2017) and its exact factored fast path.
+
+The network estimates d(I, a) >= 0, the distance (metres in the paper's weighted
+(x, y, theta) pose space) from the hand, after a planar displacement a = (x, y, theta),
+to the nearest viable grasp, given a 64x64 wrist depth image I.
+
+Architecture (the paper's LeNet variant)::
+
+    I (1x64x64) -> Conv1 20@5x5 -> lrelu -> maxpool2 -> (+ tile(IP_a(a)))      30x30
+                -> Conv2 50@5x5 -> lrelu -> maxpool2 -> flatten (8450)          13x13
+                -> IP1 500 -> lrelu -> IP2 1 -> output_scale_m * softplus -> d
+
+The fast path rests on two exact identities (DESIGN.md, "The CNN, and why it can be
+fast"):
+
+1. Conv2 is linear and unpadded, so for a spatially constant per-channel shift b,
+   ``Conv2(P + tile(b)) = Conv2(P) + c`` with ``c[o] = sum_i b[i] * sum_taps W2[o, i]``:
+   one number per output channel, the conv bias staying inside ``Conv2(P)``.
+2. Max-pooling commutes with adding a per-channel constant and with any
+   non-decreasing function, so ``pool(lrelu(Z + c)) = lrelu(pool(Z) + c)``.
+
+Hence ``Zp = pool(Conv2(Pool1(lrelu(Conv1(I)))))`` (50x13x13) is computed once per
+image (`DistanceCNN.image_features`), and each action costs an affine 4 -> 50 map, a
+broadcast add, lrelu and the IP layers (`DistanceCNN.score_actions` for control,
+`DistanceCNN.forward_factored` for training). Results equal the direct form up to
+floating-point rounding, gradients included.
+
+Weights are stored with safetensors only (no pickle), with the architecture and input
+normalization in the file's metadata and a SHA-256 of the tensor data, so a corrupted
+or mismatched file fails loudly instead of loading garbage (`save_weights`,
+`load_weights`).
+
+This module knows nothing of Drake; `drake_grasp.systems` wraps it.
+"""
+
+# No `from __future__ import annotations`: NetworkConfig may be nested in scenario
+# dataclasses read by Drake's yaml_load_typed, which needs real annotation objects.
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import numpy as np
+import safetensors
+import safetensors.torch
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+import drake_grasp
+
+ArrayLike = Union[np.ndarray, torch.Tensor]
+
+WEIGHTS_FORMAT = "drake_grasp.DistanceCNN/1"
+"""Value of the ``format`` metadata key of a weights file written by `save_weights`."""
+
+# Metadata keys written by `save_weights`; user metadata goes in its own JSON entry so
+# it can never shadow these.
+_KEY_FORMAT = "format"
+_KEY_CONFIG = "config"
+_KEY_CODE_VERSION = "code_version"
+_KEY_TENSORS_SHA256 = "tensors_sha256"
+_KEY_USER = "user_metadata"
+
+# load_weights adds these to the returned metadata, so users may not set them.
+_RESERVED_USER_KEYS = ("config", "code_version", "format")
+
+_DEPTH_REFERENCES = ("fixed", "median")
+_THETA_UNITS = ("rad", "deg")
+_THETA_ENCODINGS = ("double_angle",)
+
+
+@dataclass
+class NetworkConfig:
+    """Architecture and input normalization of `DistanceCNN`.
+
+    Everything that changes what a weight means lives here; `save_weights` stores it
+    in the file and `load_weights` rebuilds the net from it.
+
+    Depth normalization (`normalize_depth`), applied to a depth image in metres::
+
+        d = clip(depth, depth_clip_near_m, depth_clip_far_m)     (+inf -> far)
+        n = (d - ref) / depth_scale_m
+        ref = depth_offset_m                  if depth_reference == "fixed"
+            = median of the image's d         if depth_reference == "median"
+
+    The default is "fixed": the net sees absolute depth. Invariance to camera height
+    is *not* what the task wants: the actions are metric (metres) while the image is
+    in pixels, and the metres-per-pixel scale grows linearly with the camera height
+    (the controller descends from ~0.3 m to ~0.15 m). The net needs the absolute depth
+    to relate an offset in metres to image content; subtracting the image's median
+    depth removes the most direct cue for that scale and leaves only object sizes,
+    which vary. Height variation is instead covered by the training set (cameras at
+    random heights, as in the paper). "median" is kept for experiments; it makes the
+    input invariant to a pure height shift. The clip keeps empty pixels (the depth
+    pipeline's far value, ~1.5 m) from dominating the input range: beyond
+    `depth_clip_far_m` nothing matters for a grasp from 0.1-0.4 m.
+
+    Action features (`action_features`)::
+
+        a = (x, y, theta) -> [x / action_xy_scale_m, y / action_xy_scale_m,
+                              cos(2 theta), sin(2 theta)]
+
+    x, y are the planar offsets in metres in the camera frame (~ +-0.1 m), theta the
+    yaw offset in `theta_unit`. Encoding the *double* angle makes theta and
+    theta + 180 degrees identical inputs, which is exact for a parallel-jaw gripper.
+
+    Attributes:
+        image_size: Side of the square input image [pixels].
+        conv1_channels: Conv1 filters (paper: 20).
+        conv2_channels: Conv2 filters (paper: 50).
+        kernel: Conv kernel side (paper: 5), stride 1, no padding.
+        ip1: Width of the hidden inner-product layer (LeNet: 500).
+        leaky_slope: Negative slope of every leaky ReLU (the PyTorch/Caffe-style
+            default 0.01; the paper gives no value).
+        output_scale_m: The output is ``output_scale_m * softplus(IP2)``, in metres.
+            Softplus rather than ReLU: the paper's d is > 0, and a ReLU output would
+            pass no gradient to a sample whose prediction fell below zero (L1 loss).
+            The scale puts an untrained net's output (softplus(0) * 0.05 = 35 mm) in
+            the range of the labels instead of at 0.69 m.
+        depth_reference: "fixed" or "median" (see above).
+        depth_offset_m: Reference depth for "fixed" [m], the middle of the working range.
+        depth_scale_m: Depth units per normalized unit [m].
+        depth_clip_near_m: Depths below are clipped up to this [m] (0 = invalid pixel).
+        depth_clip_far_m: Depths above (and +inf) are clipped down to this [m].
+        action_xy_scale_m: x and y are divided by this [m].
+        theta_unit: Unit of a raw action's theta: "rad" (as `drake_grasp.grasps`) or
+            "deg".
+        theta_encoding: Only "double_angle" (cos 2theta, sin 2theta); recorded so a
+            future encoding cannot silently load old weights.
+    """
+
+    image_size: int = 64
+    conv1_channels: int = 20
+    conv2_channels: int = 50
+    kernel: int = 5
+    ip1: int = 500
+    leaky_slope: float = 0.01
+    output_scale_m: float = 0.05
+    depth_reference: str = "fixed"
+    depth_offset_m: float = 0.3
+    depth_scale_m: float = 0.1
+    depth_clip_near_m: float = 0.05
+    depth_clip_far_m: float = 0.8
+    action_xy_scale_m: float = 0.1
+    theta_unit: str = "rad"
+    theta_encoding: str = "double_angle"
+
+    def __post_init__(self) -> None:
+        for name in ("image_size", "conv1_channels", "conv2_channels", "kernel", "ip1"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"NetworkConfig.{name}: expected an int >= 1, got {value!r}")
+        for name in (
+            "output_scale_m",
+            "depth_scale_m",
+            "depth_clip_far_m",
+            "action_xy_scale_m",
+        ):
+            value = getattr(self, name)
+            if not _is_real(value) or not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"NetworkConfig.{name}: expected a finite number > 0, got {value!r}")
+        for name in ("leaky_slope", "depth_offset_m", "depth_clip_near_m"):
+            value = getattr(self, name)
+            if not _is_real(value) or not math.isfinite(value):
+                raise ValueError(f"NetworkConfig.{name}: expected a finite number, got {value!r}")
+        # The fast path needs lrelu non-decreasing (slope >= 0); slope 1 would make it
+        # linear, which is legal but pointless, so only the sign is checked.
+        if self.leaky_slope < 0.0:
+            raise ValueError(f"NetworkConfig.leaky_slope: expected >= 0, got {self.leaky_slope!r}")
+        if not self.depth_clip_near_m < self.depth_clip_far_m:
+            raise ValueError(
+                "NetworkConfig.depth_clip_near_m: expected < depth_clip_far_m "
+                f"({self.depth_clip_far_m!r}), got {self.depth_clip_near_m!r}"
+            )
+        for name, allowed in (
+            ("depth_reference", _DEPTH_REFERENCES),
+            ("theta_unit", _THETA_UNITS),
+            ("theta_encoding", _THETA_ENCODINGS),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"NetworkConfig.{name}: expected one of {allowed}, got {getattr(self, name)!r}"
+                )
+        self.feature_shape()  # raises if the image is too small for the two conv/pools
+
+    def feature_shape(self) -> tuple[int, int, int]:
+        """Shape (C, H, W) of Pool2's output, i.e. of `DistanceCNN.image_features`.
+
+        Raises:
+            ValueError: The image is too small for two conv + pool stages.
+        """
+        k = self.kernel
+        side = self.image_size - k + 1  # Conv1, unpadded
+        pool1 = side // 2
+        conv2 = pool1 - k + 1
+        pool2 = conv2 // 2
+        if side < 2 or conv2 < 2 or pool2 < 1:
+            raise ValueError(
+                f"NetworkConfig.image_size: {self.image_size} is too small for two "
+                f"{k}x{k} conv + 2x2 pool stages"
+            )
+        return (self.conv2_channels, pool2, pool2)
+
+    @property
+    def pool1_size(self) -> int:
+        """Side of Pool1's output (where the action's IP layer is tiled)."""
+        return (self.image_size - self.kernel + 1) // 2
+
+    @property
+    def num_features(self) -> int:
+        """Length of the flattened Pool2 output (IP1's input): 8450 for the defaults."""
+        c, h, w = self.feature_shape()
+        return c * h * w
+
+    def to_dict(self) -> dict[str, Any]:
+        """The config as a plain dict (JSON-able)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, source: str = "config") -> "NetworkConfig":
+        """Builds a config from a dict that must name every field exactly once.
+
+        Missing fields are errors rather than defaults: a weights file written with a
+        different default must not load as if it had this one.
+
+        Raises:
+            ValueError: Unknown or missing fields, or invalid values; the message starts
+                with `source`.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"{source}: expected a JSON object, got {type(data).__name__}")
+        names = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(data) - set(names))
+        if unknown:
+            raise ValueError(f"{source}: unknown NetworkConfig field(s) {unknown}; known: {names}")
+        missing = [n for n in names if n not in data]
+        if missing:
+            raise ValueError(f"{source}: missing NetworkConfig field(s) {missing}")
+        try:
+            return cls(**data)
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from e
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+# ----------------------------------------------------------------------------------
+# Input normalization
+# ----------------------------------------------------------------------------------
+
+
+def normalize_depth(
+    depth: ArrayLike,
+    config: Optional[NetworkConfig] = None,
+    *,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Maps depth images in metres to the network's input (see `NetworkConfig`).
+
+    Args:
+        depth: Depth [m], shape (H, W), (B, H, W) or (B, 1, H, W). +inf (nothing
+            there) is allowed and clipped to `depth_clip_far_m`; values <= 0 (invalid
+            pixels, which `drake_grasp.sensing.postprocess_depth` should already have
+            filled) are clipped to `depth_clip_near_m`.
+        config: Normalization parameters; defaults to `NetworkConfig()`.
+        dtype: Floating dtype of the result.
+
+    Returns:
+        The normalized images, shape (B, 1, H, W).
+
+    Raises:
+        ValueError: A bad shape, or NaN pixels (they would silently poison training).
+    """
+    config = config if config is not None else NetworkConfig()
+    t = torch.as_tensor(depth).to(dtype=dtype)
+    if t.ndim == 2:
+        t = t[None, None]
+    elif t.ndim == 3:
+        t = t[:, None]
+    elif not (t.ndim == 4 and t.shape[1] == 1):
+        raise ValueError(
+            f"depth: expected shape (H, W), (B, H, W) or (B, 1, H, W), got {tuple(t.shape)}"
+        )
+    if torch.isnan(t).any():
+        raise ValueError("depth: contains NaN pixels; fill invalid pixels first")
+    d = t.clamp(config.depth_clip_near_m, config.depth_clip_far_m)
+    if config.depth_reference == "median":
+        # torch.median returns the lower of the two middle values: deterministic.
+        ref = d.flatten(1).median(dim=1).values[:, None, None, None]
+    else:
+        ref = config.depth_offset_m
+    return (d - ref) / config.depth_scale_m
+
+
+def action_features(
+    actions: ArrayLike,
+    config: Optional[NetworkConfig] = None,
+    *,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Encodes raw actions (x, y, theta) as [x/s, y/s, cos 2theta, sin 2theta].
+
+    Args:
+        actions: Shape (..., 3) raw actions (x, y in metres, theta in
+            `config.theta_unit`), or (..., 4) features, returned unchanged (cast).
+        config: Normalization parameters; defaults to `NetworkConfig()`.
+        dtype: Floating dtype of the result.
+
+    Returns:
+        Shape (..., 4).
+
+    Raises:
+        ValueError: The last dimension is neither 3 nor 4.
+    """
+    config = config if config is not None else NetworkConfig()
+    a = torch.as_tensor(actions).to(dtype=dtype)
+    if a.ndim == 0 or a.shape[-1] not in (3, 4):
+        raise ValueError(
+            "actions: expected last dimension 3 (x, y, theta) or 4 (features), "
+            f"got shape {tuple(a.shape)}"
+        )
+    if a.shape[-1] == 4:
+        return a
+    theta = a[..., 2]
+    if config.theta_unit == "deg":
+        theta = torch.deg2rad(theta)
+    s = config.action_xy_scale_m
+    return torch.stack(
+        (a[..., 0] / s, a[..., 1] / s, torch.cos(2.0 * theta), torch.sin(2.0 * theta)), dim=-1
+    )
+
+
+# ----------------------------------------------------------------------------------
+# The network
+# ----------------------------------------------------------------------------------
+
+
+class DistanceCNN(nn.Module):
+    """The paper's distance-to-nearest-grasp CNN, with an exact factored fast path.
+
+    Inputs are *normalized* images (`normalize_depth`, or `preprocess`) and actions
+    as raw (x, y, theta) or as features (`action_features`).
+
+    Three equal forms (up to rounding):
+
+    * `forward` / `forward_direct`: the paper's graph, (B images, B actions) -> (B,).
+    * `image_features` + `score_actions`: control; one image, K candidate actions.
+    * `forward_factored`: training; B images, each with M labelled actions -> (B, M).
+
+    Construction never touches torch's global RNG: the layers are created on the meta
+    device and initialised from `generator` (a fresh generator seeded 0 by default).
+
+    Args:
+        config: Architecture and normalization; defaults to `NetworkConfig()`.
+        generator: Source of the initial weights.
+        dtype: Floating dtype of the parameters.
+    """
+
+    def __init__(
+        self,
+        config: Optional[NetworkConfig] = None,
+        *,
+        generator: Optional[torch.Generator] = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        super().__init__()
+        self.config = config if config is not None else NetworkConfig()
+        cfg = self.config
+        meta = {"device": "meta", "dtype": dtype}
+        self.conv1 = nn.Conv2d(1, cfg.conv1_channels, cfg.kernel, **meta)
+        self.ip_action = nn.Linear(4, cfg.conv1_channels, **meta)
+        self.conv2 = nn.Conv2d(cfg.conv1_channels, cfg.conv2_channels, cfg.kernel, **meta)
+        self.ip1 = nn.Linear(cfg.num_features, cfg.ip1, **meta)
+        self.ip2 = nn.Linear(cfg.ip1, 1, **meta)
+        self.to_empty(device="cpu")
+        self.reset_parameters(generator)
+
+    @torch.no_grad()
+    def reset_parameters(self, generator: Optional[torch.Generator] = None) -> None:
+        """He-uniform weights (for leaky ReLU), uniform +-1/sqrt(fan_in) biases.
+
+        Args:
+            generator: Random source; None means a fresh generator seeded 0.
+        """
+        g = generator if generator is not None else torch.Generator().manual_seed(0)
+        for layer in (self.conv1, self.ip_action, self.conv2, self.ip1, self.ip2):
+            nn.init.kaiming_uniform_(
+                layer.weight, a=self.config.leaky_slope, nonlinearity="leaky_relu", generator=g
+            )
+            fan_in = layer.weight[0].numel()
+            bound = 1.0 / math.sqrt(fan_in)
+            layer.bias.uniform_(-bound, bound, generator=g)
+
+    # -- helpers -------------------------------------------------------------------
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the parameters."""
+        return self.conv1.weight.dtype
+
+    def preprocess(self, depth: ArrayLike) -> torch.Tensor:
+        """`normalize_depth` with this net's config and dtype -> (B, 1, H, W)."""
+        return normalize_depth(depth, self.config, dtype=self.dtype)
+
+    def _lrelu(self, x: torch.Tensor) -> torch.Tensor:
+        return F.leaky_relu(x, self.config.leaky_slope)
+
+    def _check_images(self, images: torch.Tensor) -> None:
+        s = self.config.image_size
+        if images.ndim != 4 or tuple(images.shape[1:]) != (1, s, s):
+            raise ValueError(
+                f"images: expected shape (B, 1, {s}, {s}) (normalized depth), "
+                f"got {tuple(images.shape)}"
+            )
+
+    def _features(self, actions: ArrayLike) -> torch.Tensor:
+        return action_features(actions, self.config, dtype=self.dtype)
+
+    def _head(self, h: torch.Tensor) -> torch.Tensor:
+        """IP1 -> lrelu -> IP2 -> scaled softplus on flattened Pool2 activations."""
+        z = self.ip2(self._lrelu(self.ip1(h))).squeeze(-1)
+        return self.config.output_scale_m * F.softplus(z)
+
+    # -- direct form -----------------------------------------------------------------
+
+    def forward_direct(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """The paper's graph, literally: one image and one action per row.
+
+        Args:
+            images: Normalized depth, (B, 1, S, S).
+            actions: (B, 3) raw or (B, 4) features.
+
+        Returns:
+            Distances [m], (B,), > 0.
+        """
+        self._check_images(images)
+        feats = self._features(actions)
+        if feats.ndim != 2 or feats.shape[0] != images.shape[0]:
+            raise ValueError(
+                f"actions: expected shape ({images.shape[0]}, 3 or 4) to match "
+                f"{images.shape[0]} images, got {tuple(feats.shape)}"
+            )
+        x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
+        x = x + self.ip_action(feats)[:, :, None, None]  # tiled over Pool1's H, W
+        x = F.max_pool2d(self._lrelu(self.conv2(x)), 2)
+        return self._head(x.flatten(1))
+
+    def forward(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """Same as `forward_direct`."""
+        return self.forward_direct(images, actions)
+
+    # -- factored (fast) form ----------------------------------------------------------
+
+    def image_features(self, images: torch.Tensor) -> torch.Tensor:
+        """The action-independent part: pool2(Conv2(Pool1(lrelu(Conv1(I))))).
+
+        Conv2's bias is included; Conv2's leaky ReLU is *not* (it comes after the
+        action's per-channel shift, see the module docstring).
+
+        Args:
+            images: Normalized depth, (B, 1, S, S).
+
+        Returns:
+            (B, C2, P, P): (B, 50, 13, 13) for the defaults.
+        """
+        self._check_images(images)
+        x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
+        return F.max_pool2d(self.conv2(x), 2)
+
+    def action_offsets(self, actions: ArrayLike) -> torch.Tensor:
+        """Per-channel Conv2-output shift c(a) caused by the tiled action input.
+
+        ``c = S @ IP_a(f)`` with ``S[o, i] = sum over taps of W2[o, i]``, folded into one
+        affine map 4 -> C2 (so K actions cost a (K, 4) @ (4, C2) product).
+
+        Args:
+            actions: (..., 3) raw or (..., 4) features.
+
+        Returns:
+            (..., C2).
+        """
+        feats = self._features(actions)
+        tap_sums = self.conv2.weight.sum(dim=(2, 3))  # (C2, C1)
+        weight = tap_sums @ self.ip_action.weight  # (C2, 4)
+        bias = tap_sums @ self.ip_action.bias  # (C2,)
+        return F.linear(feats, weight, bias)
+
+    def _score_features(self, features: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+        # features (..., C2, P, P) broadcast against offsets (..., C2): one row of IP1
+        # input per action, then the head as a single (N, 8450) @ (8450, 500) product.
+        h = self._lrelu(features + offsets[..., None, None])
+        lead = h.shape[:-3]
+        return self._head(h.reshape(-1, self.config.num_features)).reshape(lead)
+
+    def score_actions(self, features: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """Distances for K candidate actions on one image (control).
+
+        Args:
+            features: `image_features` of one image, (C2, P, P) or (1, C2, P, P).
+            actions: (K, 3) raw or (K, 4) features.
+
+        Returns:
+            Distances [m], (K,).
+        """
+        expected = self.config.feature_shape()
+        if features.ndim == 4 and features.shape[0] == 1:
+            features = features[0]
+        if tuple(features.shape) != expected:
+            raise ValueError(
+                f"features: expected shape {expected} or (1, *{expected}) "
+                f"(image_features of one image), got {tuple(features.shape)}"
+            )
+        offsets = self.action_offsets(actions)
+        if offsets.ndim != 2:
+            raise ValueError(
+                f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}"
+            )
+        return self._score_features(features[None], offsets)
+
+    def forward_factored(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """Distances for M actions on each of B images (training), differentiable.
+
+        The image part runs once per image and is expanded over its M actions.
+
+        Args:
+            images: Normalized depth, (B, 1, S, S).
+            actions: (B, M, 3) raw or (B, M, 4) features.
+
+        Returns:
+            Distances [m], (B, M).
+        """
+        features = self.image_features(images)
+        offsets = self.action_offsets(actions)
+        if offsets.ndim != 3 or offsets.shape[0] != images.shape[0]:
+            raise ValueError(
+                f"actions: expected shape ({images.shape[0]}, M, 3 or 4) to match "
+                f"{images.shape[0]} images, got {tuple(torch.as_tensor(actions).shape)}"
+            )
+        return self._score_features(features[:, None], offsets)
+
+
+# ----------------------------------------------------------------------------------
+# Weights I/O (safetensors only: a weights file cannot run code)
+# ----------------------------------------------------------------------------------
+
+
+def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
+    """SHA-256 over names, dtypes, shapes and raw bytes of tensors, in sorted name order.
+
+    safetensors has no checksum, so a flipped byte inside the tensor data would load
+    as different weights without this.
+    """
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().cpu().contiguous()
+        h.update(f"{name}\0{t.dtype}\0{tuple(t.shape)}\0".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def save_weights(
+    model: DistanceCNN, path: Union[str, os.PathLike], *, metadata: dict[str, Any]
+) -> None:
+    """Writes the weights as a safetensors file with self-describing metadata.
+
+    The file's metadata holds: ``format`` (`WEIGHTS_FORMAT`), ``config`` (the
+    `NetworkConfig` as JSON: architecture and input normalization), ``code_version``
+    (`drake_grasp.__version__`), ``tensors_sha256`` (`tensors_sha256`) and
+    ``user_metadata`` (`metadata` as JSON; put e.g. ``dataset_manifest_sha256``,
+    training run id, epoch there). The file is written to a temporary name in the
+    same folder and renamed, so a crash never leaves a half-written file at `path`.
+
+    Args:
+        model: The network.
+        path: Destination, conventionally ``*.safetensors``.
+        metadata: JSON-serialisable user metadata (may be empty).
+
+    Raises:
+        ValueError: `metadata` is not a dict or not JSON-serialisable.
+    """
+    if not isinstance(metadata, dict):
+        raise ValueError(f"metadata: expected a dict, got {type(metadata).__name__}")
+    reserved = sorted(set(metadata) & set(_RESERVED_USER_KEYS))
+    if reserved:
+        raise ValueError(f"metadata: keys {reserved} are reserved (load_weights fills them in)")
+    try:
+        user_json = json.dumps(metadata, sort_keys=True, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"metadata: must be JSON-serialisable: {e}") from e
+    tensors = {k: v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
+    header = {
+        _KEY_FORMAT: WEIGHTS_FORMAT,
+        _KEY_CONFIG: json.dumps(model.config.to_dict(), sort_keys=True),
+        _KEY_CODE_VERSION: drake_grasp.__version__,
+        _KEY_TENSORS_SHA256: tensors_sha256(tensors),
+        _KEY_USER: user_json,
+    }
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        safetensors.torch.save_file(tensors, tmp, metadata=header)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_weights(
+    path: Union[str, os.PathLike], *, expected_config: Optional[NetworkConfig] = None
+) -> tuple[DistanceCNN, dict[str, Any]]:
+    """Loads and verifies a file written by `save_weights`.
+
+    Checks, in order: the file exists; it parses as safetensors; its metadata has the
+    expected format and parses; the tensor data matches its SHA-256; the stored config
+    is valid and (if given) equals `expected_config`; the tensors' names and shapes
+    equal the state dict of the net that config builds. The model gets the dtype of
+    the stored tensors and is returned in eval mode.
+
+    Args:
+        path: A ``.safetensors`` file from `save_weights`.
+        expected_config: If given, every field must match the stored config.
+
+    Returns:
+        (model, metadata): metadata is the user metadata given to `save_weights`,
+        plus ``config`` (dict), ``code_version`` and ``format``.
+
+    Raises:
+        FileNotFoundError: No file at `path`.
+        ValueError: Anything else wrong; the message names the file and the key/field.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such weights file")
+    try:
+        with safetensors.safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as e:  # SafetensorError, truncated buffers, bad JSON header, ...
+        raise ValueError(f"{path}: not a valid safetensors file ({type(e).__name__}: {e})") from e
+
+    for key in (_KEY_FORMAT, _KEY_CONFIG, _KEY_CODE_VERSION, _KEY_TENSORS_SHA256, _KEY_USER):
+        if key not in header:
+            raise ValueError(
+                f"{path}: metadata key {key!r} missing (not a drake_grasp DistanceCNN "
+                f"weights file? found keys {sorted(header)})"
+            )
+    if header[_KEY_FORMAT] != WEIGHTS_FORMAT:
+        raise ValueError(
+            f"{path}: metadata 'format' is {header[_KEY_FORMAT]!r}, expected {WEIGHTS_FORMAT!r}"
+        )
+    digest = tensors_sha256(tensors)
+    if digest != header[_KEY_TENSORS_SHA256]:
+        raise ValueError(
+            f"{path}: tensor data does not match metadata 'tensors_sha256' (file corrupted "
+            f"or modified): stored {header[_KEY_TENSORS_SHA256]}, computed {digest}"
+        )
+    parsed = {}
+    for key in (_KEY_CONFIG, _KEY_USER):
+        try:
+            parsed[key] = json.loads(header[key])
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: metadata {key!r} is not valid JSON: {e}") from e
+    if not isinstance(parsed[_KEY_USER], dict):
+        raise ValueError(f"{path}: metadata 'user_metadata' must be a JSON object")
+    config = NetworkConfig.from_dict(parsed[_KEY_CONFIG], source=f"{path}: metadata 'config'")
+
+    if expected_config is not None:
+        for field in dataclasses.fields(NetworkConfig):
+            stored, wanted = getattr(config, field.name), getattr(expected_config, field.name)
+            if stored != wanted:
+                raise ValueError(
+                    f"{path}: config field {field.name!r} is {stored!r} in the file, "
+                    f"expected {wanted!r}"
+                )
+
+    dtypes = {t.dtype for t in tensors.values()}
+    if len(dtypes) != 1 or not next(iter(dtypes)).is_floating_point:
+        raise ValueError(
+            f"{path}: expected all tensors to share one floating dtype, got "
+            + ", ".join(f"{k}: {t.dtype}" for k, t in sorted(tensors.items()))
+        )
+    model = DistanceCNN(config, dtype=next(iter(dtypes)))
+    expected = model.state_dict()
+    for key in sorted(set(expected) | set(tensors)):
+        if key not in tensors:
+            raise ValueError(f"{path}: tensor {key!r} missing (the stored config needs it)")
+        if key not in expected:
+            raise ValueError(f"{path}: unexpected tensor {key!r} (not in the stored config's net)")
+        if tuple(tensors[key].shape) != tuple(expected[key].shape):
+            raise ValueError(
+                f"{path}: tensor {key!r} has shape {tuple(tensors[key].shape)}, the stored "
+                f"config needs {tuple(expected[key].shape)}"
+            )
+    model.load_state_dict(tensors, strict=True)
+    model.eval()
+    metadata = dict(parsed[_KEY_USER])
+    metadata.update(
+        config=config.to_dict(),
+        code_version=header[_KEY_CODE_VERSION],
+        format=header[_KEY_FORMAT],
+    )
+    return model, metadata
