@@ -110,6 +110,8 @@ class SceneSamples:
     grasp_pose: np.ndarray
     grasp_width: np.ndarray
     grasp_xy_theta: np.ndarray
+    # Wall time of each stage [s] (for profiling; not stored in shards).
+    timings: dict = field(default_factory=dict)
 
 
 class SceneRenderer:
@@ -151,14 +153,26 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     from drake_grasp.scene import build_scene_world, sample_scene, settle_world
     from drake_grasp.sensing import frame_rng, postprocess_depth
 
+    timings: dict = {}
+    clock = time.perf_counter()
+
+    def lap(name):
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = timings.get(name, 0.0) + now - clock
+        clock = now
+
     s_seed = scene_seed(seed, scene_index)
     scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[])
     spec = sample_scene(scene_cfg, s_seed, library)
     world = build_scene_world(spec, library, plant_config=scenario.plant, renderer_name="vtk")
+    lap("build")
     settled = settle_world(world, spec, speed_tol_m_s=config.settle_speed_tol_m_s,
                            max_time_s=config.settle_max_time_s)
+    lap("settle")
     rng = np.random.default_rng([s_seed, 1])
     grasps = find_grasps(settled, library, rng, mu=config.friction_coefficient)
+    lap("grasps")
     if len(grasps.xy_theta) == 0:
         return None
     renderer = SceneRenderer(world, scenario.camera)
@@ -173,18 +187,21 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     offsets = np.empty((K, M, 3))
     for k in range(K):
         raw = renderer.render(hand[k])
+        lap("render")
         depth[k] = postprocess_depth(raw, frame_rng(s_seed, k), scenario.depth_noise,
                                      scenario.camera.depth_max_m)
         offsets[k] = sample_actions_in_view(
             rng, M, camera_height_m=cam_height[k], fov_deg=scenario.camera.fov_y_deg,
             camera_offset_xy_G=X_GC[:2])
+        lap("postprocess")
     moved = apply_actions(hand[:, [0, 1, 3]], offsets)  # (K, M, 3)
     labels = distance_to_nearest_grasp(moved.reshape(-1, 3), grasps.xy_theta).reshape(K, M)
+    lap("labels")
     return SceneSamples(
         scene_index=scene_index, spec_json=json.dumps(settled.to_dict()), depth=depth,
         hand_pose=hand, offsets=offsets.astype(np.float32), labels=labels.astype(np.float32),
         grasp_pose=np.asarray(grasps.poses, float), grasp_width=np.asarray(grasps.widths, np.float32),
-        grasp_xy_theta=np.asarray(grasps.xy_theta, float))
+        grasp_xy_theta=np.asarray(grasps.xy_theta, float), timings=timings)
 
 
 # ----------------------------------------------------------------------------
@@ -263,9 +280,15 @@ def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml
     samples = [generate_scene(i, seed=seed, split=split, scenario=scenario, config=cfg,
                               library=library)
                for i in range(first, first + cfg.scenes_per_shard)]
+    t_write = time.perf_counter()
     write_shard(path, samples, attrs=attrs)
     counts = read_shard_counts(path)
     counts["seconds"] = time.perf_counter() - t0
+    timings: dict = {"write": time.perf_counter() - t_write}
+    for s in samples:
+        for k, v in (s.timings if s is not None else {}).items():
+            timings[k] = timings.get(k, 0.0) + v
+    counts["timings"] = timings
     return counts
 
 
@@ -345,29 +368,36 @@ def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
     args = dict(out=str(out), seed=int(seed), split=split, scenario_yaml=dump_scenario(scenario),
                 config=dataclasses.asdict(config),
                 objects_dir=str(objects_dir) if objects_dir else None, attrs=attrs)
-    _run_tasks(todo, args, workers=workers, scheduler=scheduler, progress=progress,
-               total=num_shards, done=num_shards - len(todo))
-    return write_manifest(out, cfg)
+    timings = _run_tasks(todo, args, workers=workers, scheduler=scheduler, progress=progress,
+                         total=num_shards, done=num_shards - len(todo))
+    manifest = write_manifest(out, cfg)
+    # Summed worker seconds per stage of this run (returned, not written).
+    manifest["run_timings_s"] = timings
+    return manifest
 
 
 def _run_tasks(todo: list[int], args: dict, *, workers: int, scheduler: str | None,
-               progress: bool, total: int, done: int) -> None:
+               progress: bool, total: int, done: int) -> dict:
+    """Runs the shard tasks; returns the summed per-stage worker seconds."""
     from tqdm import tqdm
 
     bar = tqdm(total=total, initial=done, unit="shard", disable=not progress,
                desc="generate", dynamic_ncols=True)
     labels = 0
     t0 = time.perf_counter()
+    timings: dict = {}
 
     def tick(counts):
         nonlocal labels
         labels += counts["num_labels"]
+        for k, v in counts.get("timings", {}).items():
+            timings[k] = timings.get(k, 0.0) + v
         bar.update(1)
         bar.set_postfix(labels_per_s=f"{labels / (time.perf_counter() - t0):.0f}")
 
     try:
         if not todo:
-            return
+            return timings
         if scheduler:
             from dask.distributed import Client, as_completed
 
@@ -389,6 +419,7 @@ def _run_tasks(todo: list[int], args: dict, *, workers: int, scheduler: str | No
                     tick(fut.result())
     finally:
         bar.close()
+    return timings
 
 
 # ----------------------------------------------------------------------------
