@@ -106,6 +106,18 @@ def _cmd_inspect_data(args) -> int:
     return 0
 
 
+def _cmd_train(args) -> int:
+    from drake_grasp.training import TrainConfig, train
+
+    config = TrainConfig(epochs=args.epochs, batch_instances=args.batch, learning_rate=args.lr,
+                         momentum=args.momentum, seed=args.seed, device=args.device,
+                         threads=args.threads)
+    metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config)
+    print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
+                      "device": metrics["device"], "out": str(args.out)}))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -174,6 +186,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", type=int, default=12, help="images to draw (default 12)")
     p.add_argument("--seed", type=int, default=0, help="which images (default 0)")
     p.set_defaults(func=_cmd_inspect_data)
+
+    p = sub.add_parser("train", help="train the distance CNN (L1, SGD); re-running resumes")
+    p.add_argument("--data", required=True,
+                   help="train-split dataset folder, or a folder holding train/ and test/")
+    p.add_argument("--test-data", default=None,
+                   help="test-split dataset folder (held-out object instances)")
+    p.add_argument("--out", required=True, help="output folder (checkpoints, metrics, weights)")
+    p.add_argument("--epochs", type=int, default=10, help="epochs (default 10)")
+    p.add_argument("--batch", type=int, default=1000,
+                   help="instances (image, offset, label) per batch (paper: 1000)")
+    p.add_argument("--lr", type=float, default=0.001, help="SGD learning rate (paper: 0.001)")
+    p.add_argument("--momentum", type=float, default=0.9, help="SGD momentum (paper: 0.9)")
+    p.add_argument("--seed", type=int, default=0, help="initial weights and shuffling seed")
+    p.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
+    p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch default)")
+    p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

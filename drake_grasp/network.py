@@ -165,7 +165,9 @@ class NetworkConfig:
         ):
             value = getattr(self, name)
             if not _is_real(value) or not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"NetworkConfig.{name}: expected a finite number > 0, got {value!r}")
+                raise ValueError(
+                    f"NetworkConfig.{name}: expected a finite number > 0, got {value!r}"
+                )
         for name in ("leaky_slope", "depth_offset_m", "depth_clip_near_m"):
             value = getattr(self, name)
             if not _is_real(value) or not math.isfinite(value):
@@ -344,6 +346,47 @@ def action_features(
 # ----------------------------------------------------------------------------------
 
 
+class _PackedWeights:
+    """A memo of (weight, bias) converted to oneDNN tensors for inference.
+
+    Keyed on the parameters' storage and version counters, so an optimizer step,
+    `load_state_dict` or a dtype/device move invalidates it. It is a pure cache of a
+    function of the weights (results do not depend on whether it is warm), and is
+    dropped on copy/pickle because oneDNN tensors are not copyable.
+    """
+
+    def __init__(self) -> None:
+        self._key: Optional[tuple] = None
+        self._value: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+        # torch builds without oneDNN, or a failing conversion, use the default path.
+        self._usable = torch.backends.mkldnn.is_available()
+
+    def get(self, weight: torch.Tensor, bias: torch.Tensor):
+        """The oneDNN (weight, bias) pair, or None if unavailable."""
+        if not self._usable:
+            return None
+        try:
+            # Inference tensors have no version counter: no safe key, so no cache.
+            key = (weight.data_ptr(), weight._version, bias.data_ptr(), bias._version)
+        except RuntimeError:
+            return None
+        if key != self._key:
+            try:
+                with torch.no_grad():
+                    self._value = (weight.detach().to_mkldnn(), bias.detach().to_mkldnn())
+            except RuntimeError:
+                self._usable = False
+                return None
+            self._key = key
+        return self._value
+
+    def __deepcopy__(self, memo: dict) -> "_PackedWeights":
+        return _PackedWeights()
+
+    def __reduce__(self):
+        return (_PackedWeights, ())
+
+
 class DistanceCNN(nn.Module):
     """The paper's distance-to-nearest-grasp CNN, with an exact factored fast path.
 
@@ -425,10 +468,43 @@ class DistanceCNN(nn.Module):
     def _features(self, actions: ArrayLike) -> torch.Tensor:
         return action_features(actions, self.config, dtype=self.dtype)
 
-    def _head(self, h: torch.Tensor) -> torch.Tensor:
+    def _head(self, h: torch.Tensor, *, fast_ip1: bool = False) -> torch.Tensor:
         """IP1 -> lrelu -> IP2 -> scaled softplus on flattened Pool2 activations."""
-        z = self.ip2(self._lrelu(self.ip1(h))).squeeze(-1)
+        y = self._ip1_packed(h) if fast_ip1 else None
+        if y is None:
+            y = self.ip1(h)
+        z = self.ip2(self._lrelu(y)).squeeze(-1)
         return self.config.output_scale_m * F.softplus(z)
+
+    def _ip1_packed(self, h: torch.Tensor) -> Optional[torch.Tensor]:
+        """IP1 through oneDNN with cached weights, or None where that does not apply.
+
+        IP1 is the per-action floor. On the machines measured (AMD EPYC, torch's MKL
+        build) oneDNN's fp32 GEMM runs this (K, 8450) @ (8450, 500) product about 2x
+        faster than the default MKL path. It has no autograd, so it is used only when
+        no gradient is wanted, for float32 on CPU. The result is the same float32
+        product up to summation order (~1e-6 relative).
+        """
+        w, b = self.ip1.weight, self.ip1.bias
+        if (
+            h.dtype != torch.float32
+            or w.dtype != torch.float32
+            or h.device.type != "cpu"
+            or (torch.is_grad_enabled() and (h.requires_grad or w.requires_grad or b.requires_grad))
+        ):
+            return None
+        packed = self._ip1_cache.get(w, b)
+        if packed is None:
+            return None
+        return F.linear(h.contiguous().to_mkldnn(), *packed).to_dense()
+
+    @property
+    def _ip1_cache(self) -> "_PackedWeights":
+        # Created lazily so modules built by other means (e.g. deepcopy) get one too.
+        cache = self.__dict__.get("_ip1_cache_obj")
+        if cache is None:
+            cache = self.__dict__["_ip1_cache_obj"] = _PackedWeights()
+        return cache
 
     # -- direct form -----------------------------------------------------------------
 
@@ -499,10 +575,16 @@ class DistanceCNN(nn.Module):
         # input per action, then the head as a single (N, 8450) @ (8450, 500) product.
         h = self._lrelu(features + offsets[..., None, None])
         lead = h.shape[:-3]
-        return self._head(h.reshape(-1, self.config.num_features)).reshape(lead)
+        out = self._head(h.reshape(-1, self.config.num_features), fast_ip1=True)
+        return out.reshape(lead)
 
     def score_actions(self, features: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for K candidate actions on one image (control).
+
+        All K actions go through IP1 as one (K, 8450) @ (8450, 500) product, the floor
+        of the per-action cost. Call under `torch.inference_mode()` in a controller:
+        no autograd graph is kept and, for float32, IP1 runs on cached oneDNN weights
+        (about 2x faster on CPU). The result is differentiable otherwise.
 
         Args:
             features: `image_features` of one image, (C2, P, P) or (1, C2, P, P).

@@ -1,0 +1,395 @@
+"""Tests of the distance CNN: shapes, symmetry, fast path == direct form, weights I/O."""
+
+import copy
+import dataclasses
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+import safetensors
+import safetensors.torch
+import torch
+
+import drake_grasp
+from drake_grasp.network import (
+    DistanceCNN,
+    NetworkConfig,
+    action_features,
+    load_weights,
+    normalize_depth,
+    save_weights,
+    tensors_sha256,
+)
+
+CFG = NetworkConfig()
+
+
+def _gen(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def _model(seed: int = 0, dtype: torch.dtype = torch.float64, config=None) -> DistanceCNN:
+    return DistanceCNN(config, generator=_gen(seed), dtype=dtype)
+
+
+def _images(n: int, seed: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    return torch.randn(n, 1, CFG.image_size, CFG.image_size, generator=_gen(seed), dtype=dtype)
+
+
+def _raw_actions(shape: tuple, seed: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Raw (x, y, theta): x, y in +-0.1 m, theta in [-pi, pi) rad."""
+    u = torch.rand(*shape, 3, generator=_gen(seed), dtype=dtype)
+    scale = torch.tensor([0.2, 0.2, 2 * math.pi], dtype=dtype)
+    shift = torch.tensor([0.1, 0.1, math.pi], dtype=dtype)
+    return u * scale - shift
+
+
+def _max_rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    return ((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()
+
+
+def _param_grads(model: DistanceCNN, out: torch.Tensor, seed: int) -> dict:
+    # A random weighting of the outputs so every gradient path is exercised.
+    w = torch.randn(out.shape, generator=_gen(seed), dtype=out.dtype)
+    names, params = zip(*model.named_parameters())
+    grads = torch.autograd.grad((w * out).sum(), params)
+    return dict(zip(names, grads))
+
+
+# -- config and normalization --------------------------------------------------------
+
+
+def test_default_config_shapes():
+    assert CFG.feature_shape() == (50, 13, 13)
+    assert CFG.num_features == 8450
+    assert CFG.pool1_size == 30
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("conv2_channels", 0), ("kernel", 2.5), ("leaky_slope", -0.1), ("depth_reference", "max"),
+     ("theta_unit", "grad"), ("depth_clip_far_m", 0.01), ("image_size", 12)],
+)
+def test_config_rejects_bad_values(field, value):
+    with pytest.raises(ValueError, match=field if field != "depth_clip_far_m" else "depth_clip"):
+        NetworkConfig(**{field: value})
+
+
+def test_config_from_dict_requires_every_field():
+    d = CFG.to_dict()
+    assert NetworkConfig.from_dict(d) == CFG
+    del d["ip1"]
+    with pytest.raises(ValueError, match="missing.*ip1"):
+        NetworkConfig.from_dict(d)
+    with pytest.raises(ValueError, match="unknown.*bogus"):
+        NetworkConfig.from_dict({**CFG.to_dict(), "bogus": 1})
+
+
+def test_normalize_depth_fixed():
+    depth = np.full((64, 64), 0.3, dtype=np.float32)
+    depth[0, 0] = np.inf  # nothing there -> far clip
+    depth[0, 1] = 0.0  # invalid pixel -> near clip
+    depth[0, 2] = 0.25
+    n = normalize_depth(depth)
+    assert n.shape == (1, 1, 64, 64) and n.dtype == torch.float32
+    assert n[0, 0, 0, 0].item() == pytest.approx((CFG.depth_clip_far_m - 0.3) / 0.1)
+    assert n[0, 0, 0, 1].item() == pytest.approx((CFG.depth_clip_near_m - 0.3) / 0.1)
+    assert n[0, 0, 0, 2].item() == pytest.approx(-0.5, abs=1e-6)
+    assert n[0, 0, 5, 5].item() == pytest.approx(0.0, abs=1e-6)
+    assert normalize_depth(np.stack([depth] * 3)).shape == (3, 1, 64, 64)
+    assert normalize_depth(torch.as_tensor(depth)[None, None]).shape == (1, 1, 64, 64)
+
+
+def test_normalize_depth_median_is_height_invariant():
+    cfg = NetworkConfig(depth_reference="median")
+    rng = np.random.default_rng(0)
+    depth = 0.3 + 0.05 * rng.random((2, 64, 64))
+    a = normalize_depth(depth, cfg, dtype=torch.float64)
+    b = normalize_depth(depth + 0.07, cfg, dtype=torch.float64)
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_normalize_depth_errors():
+    with pytest.raises(ValueError, match="NaN"):
+        normalize_depth(np.full((64, 64), np.nan))
+    with pytest.raises(ValueError, match="depth: expected shape"):
+        normalize_depth(np.zeros((2, 3, 64, 64)))
+
+
+def test_action_features():
+    raw = torch.tensor([[0.05, -0.1, math.pi / 4]], dtype=torch.float64)
+    f = action_features(raw, dtype=torch.float64)
+    torch.testing.assert_close(f, torch.tensor([[0.5, -1.0, 0.0, 1.0]], dtype=torch.float64))
+    deg = NetworkConfig(theta_unit="deg")
+    f_deg = action_features([[0.05, -0.1, 45.0]], deg, dtype=torch.float64)
+    torch.testing.assert_close(f_deg, f)
+    assert torch.equal(action_features(f, dtype=torch.float64), f)  # features pass through
+    with pytest.raises(ValueError, match="actions"):
+        action_features(torch.zeros(5, 2))
+
+
+# -- the network -----------------------------------------------------------------------
+
+
+def test_construction_is_seeded_and_leaves_global_rng_alone():
+    with torch.random.fork_rng():
+        torch.manual_seed(123)
+        before = torch.random.get_rng_state()
+        a = _model(seed=7, dtype=torch.float32)
+        after = torch.random.get_rng_state()
+    assert torch.equal(before, after)
+    b = _model(seed=7, dtype=torch.float32)
+    c = _model(seed=8, dtype=torch.float32)
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), k
+        assert not torch.equal(sa[k], sc[k]), k
+
+
+def test_shapes_and_non_negative():
+    m = _model(dtype=torch.float32)
+    imgs = _images(3, seed=1, dtype=torch.float32)
+    acts = _raw_actions((3, 4), seed=2, dtype=torch.float32)
+    assert m(imgs, acts[:, 0]).shape == (3,)
+    feats = m.image_features(imgs)
+    assert feats.shape == (3, 50, 13, 13)
+    assert m.score_actions(feats[0], acts[0]).shape == (4,)
+    assert m.score_actions(feats[:1], acts[0]).shape == (4,)
+    out = m.forward_factored(imgs, acts)
+    assert out.shape == (3, 4)
+    assert torch.all(out >= 0) and torch.all(torch.isfinite(out))
+    # Even a net pushed hard toward negative outputs stays >= 0 (softplus).
+    with torch.no_grad():
+        m.ip2.bias.fill_(-50.0)
+    out = m.forward_factored(imgs, acts)
+    assert torch.all(out >= 0) and torch.all(torch.isfinite(out))
+
+
+def test_input_shape_errors():
+    m = _model(dtype=torch.float32)
+    with pytest.raises(ValueError, match=r"images: expected shape \(B, 1, 64, 64\)"):
+        m(torch.zeros(2, 64, 64), torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="actions"):
+        m(torch.zeros(2, 1, 64, 64), torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="features"):
+        m.score_actions(torch.zeros(2, 50, 13, 13), torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="actions"):
+        m.forward_factored(torch.zeros(2, 1, 64, 64), torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize("theta_unit, half_turn", [("rad", math.pi), ("deg", 180.0)])
+def test_theta_symmetry(theta_unit, half_turn):
+    cfg = NetworkConfig(theta_unit=theta_unit)
+    m = _model(config=cfg)
+    imgs = _images(2, seed=3)
+    acts = _raw_actions((2, 5), seed=4)
+    if theta_unit == "deg":
+        acts[..., 2] = torch.rad2deg(acts[..., 2])
+    flipped = acts.clone()
+    flipped[..., 2] += half_turn
+    out = m.forward_factored(imgs, acts)
+    torch.testing.assert_close(m.forward_factored(imgs, flipped), out, rtol=1e-12, atol=0)
+    torch.testing.assert_close(m(imgs, flipped[:, 0]), m(imgs, acts[:, 0]), rtol=1e-12, atol=0)
+    # ...while a quarter turn is a different grasp.
+    quarter = acts.clone()
+    quarter[..., 2] += half_turn / 2
+    assert not torch.allclose(m.forward_factored(imgs, quarter), out)
+
+
+def test_raw_and_feature_actions_agree():
+    m = _model()
+    imgs = _images(2, seed=5)
+    acts = _raw_actions((2, 3), seed=6)
+    feats = action_features(acts, m.config, dtype=torch.float64)
+    torch.testing.assert_close(m.forward_factored(imgs, feats), m.forward_factored(imgs, acts))
+
+
+# float64 is the real check of the identities. float32 gets looser gradient bounds: the
+# two forms round differently, so a max-pool window whose two largest entries are within
+# rounding of each other can pick a different argmax and route one gradient entry
+# elsewhere (seen at ~3e-3 max-relative on 1 seed in 20); outputs stay within ~4e-6.
+_TOLERANCES = [(torch.float64, 1e-9, 1e-8), (torch.float32, 5e-5, 1e-2)]
+
+
+@pytest.mark.parametrize("dtype, out_rtol, grad_rtol", _TOLERANCES)
+def test_control_fast_path_equals_direct(dtype, out_rtol, grad_rtol):
+    m = _model(seed=11, dtype=dtype)
+    img = _images(1, seed=12, dtype=dtype)
+    acts = _raw_actions((16,), seed=13, dtype=dtype)
+
+    direct = m.forward_direct(img.expand(16, -1, -1, -1), acts)
+    fast = m.score_actions(m.image_features(img), acts)
+    assert _max_rel(fast, direct) <= out_rtol
+
+    g_direct = _param_grads(m, direct, seed=14)
+    g_fast = _param_grads(m, fast, seed=14)
+    for name, g in g_direct.items():
+        assert g.abs().max() > 0, f"{name}: zero gradient makes the comparison vacuous"
+        assert _max_rel(g_fast[name], g) <= grad_rtol, name
+
+
+@pytest.mark.parametrize("dtype, out_rtol, grad_rtol", _TOLERANCES)
+def test_training_fast_path_equals_direct(dtype, out_rtol, grad_rtol):
+    B, M = 3, 4
+    m = _model(seed=21, dtype=dtype)
+    imgs = _images(B, seed=22, dtype=dtype)
+    acts = _raw_actions((B, M), seed=23, dtype=dtype)
+
+    direct = m.forward_direct(imgs.repeat_interleave(M, dim=0), acts.reshape(B * M, 3))
+    direct = direct.reshape(B, M)
+    fast = m.forward_factored(imgs, acts)
+    assert _max_rel(fast, direct) <= out_rtol
+
+    g_direct = _param_grads(m, direct, seed=24)
+    g_fast = _param_grads(m, fast, seed=24)
+    for name, g in g_direct.items():
+        assert g.abs().max() > 0, f"{name}: zero gradient makes the comparison vacuous"
+        assert _max_rel(g_fast[name], g) <= grad_rtol, name
+
+
+def test_inference_mode_control_path():
+    # Without autograd, float32 IP1 runs on cached oneDNN weights: same numbers to
+    # float32 rounding, and the cache follows in-place weight updates.
+    m = _model(seed=41, dtype=torch.float32)
+    img = _images(1, seed=42, dtype=torch.float32)
+    acts = _raw_actions((32,), seed=43, dtype=torch.float32)
+    for _ in range(2):
+        with torch.inference_mode():
+            fast = m.score_actions(m.image_features(img), acts)
+        direct = m.forward_direct(img.expand(32, -1, -1, -1), acts).detach()
+        assert _max_rel(fast, direct) <= 5e-5
+        with torch.no_grad():
+            m.ip1.weight.mul_(1.5)  # must invalidate the cache for the second round
+    clone = copy.deepcopy(m)
+    with torch.inference_mode():
+        assert torch.equal(clone.score_actions(clone.image_features(img), acts),
+                           m.score_actions(m.image_features(img), acts))
+
+
+# -- weights I/O -------------------------------------------------------------------------
+
+
+META = {"dataset_manifest_sha256": "ab" * 32, "epoch": 3}
+
+
+def _saved(tmp_path, dtype=torch.float32, config=None):
+    m = _model(seed=31, dtype=dtype, config=config)
+    path = tmp_path / "cnn.safetensors"
+    save_weights(m, path, metadata=META)
+    return m, path
+
+
+def _rewrite(path, *, metadata=None, tensors=None, recompute_digest=True):
+    """Re-saves `path` with some metadata entries / tensors replaced (or removed: None)."""
+    with safetensors.safe_open(str(path), framework="pt") as f:
+        header = dict(f.metadata())
+        stored = {k: f.get_tensor(k) for k in f.keys()}
+    for k, v in (metadata or {}).items():
+        header[k] = v
+    for k, v in (tensors or {}).items():
+        if v is None:
+            del stored[k]
+        else:
+            stored[k] = v
+    if recompute_digest:
+        header["tensors_sha256"] = tensors_sha256(stored)
+    safetensors.torch.save_file(stored, str(path), metadata=header)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_save_load_round_trip(tmp_path, dtype):
+    m, path = _saved(tmp_path, dtype=dtype, config=NetworkConfig(depth_reference="median"))
+    loaded, meta = load_weights(path, expected_config=m.config)
+    assert loaded.config == m.config and loaded.dtype == dtype and not loaded.training
+    assert meta["dataset_manifest_sha256"] == META["dataset_manifest_sha256"]
+    assert meta["epoch"] == 3
+    assert meta["code_version"] == drake_grasp.__version__
+    assert NetworkConfig.from_dict(meta["config"]) == m.config
+    imgs = _images(2, seed=32, dtype=dtype)
+    acts = _raw_actions((2, 3), seed=33, dtype=dtype)
+    assert torch.equal(loaded.forward_factored(imgs, acts), m.forward_factored(imgs, acts))
+    assert not list(tmp_path.glob(".*tmp")), "temporary file left behind"
+
+
+def test_save_rejects_bad_metadata(tmp_path):
+    m = _model(dtype=torch.float32)
+    with pytest.raises(ValueError, match="JSON"):
+        save_weights(m, tmp_path / "a.safetensors", metadata={"x": object()})
+    with pytest.raises(ValueError, match="reserved"):
+        save_weights(m, tmp_path / "a.safetensors", metadata={"config": "{}"})
+    assert not (tmp_path / "a.safetensors").exists()
+
+
+def test_load_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.safetensors"):
+        load_weights(tmp_path / "nope.safetensors")
+
+
+def test_load_flipped_bytes(tmp_path):
+    _, path = _saved(tmp_path)
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2  # inside ip1.weight, the bulk of the file
+    data[mid : mid + 8] = bytes(b ^ 0xFF for b in data[mid : mid + 8])
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*tensors_sha256"):
+        load_weights(path)
+
+
+def test_load_truncated(tmp_path):
+    _, path = _saved(tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*not a valid safetensors"):
+        load_weights(path)
+    path.write_bytes(b"\x00\x01garbage")
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*not a valid safetensors"):
+        load_weights(path)
+
+
+def test_load_config_changed_in_metadata(tmp_path):
+    m, path = _saved(tmp_path)
+    cfg = {**m.config.to_dict(), "conv2_channels": 40}
+    _rewrite(path, metadata={"config": json.dumps(cfg)})
+    with pytest.raises(ValueError, match=re.escape(str(path)) + r".*'conv2\.(weight|bias)'.*shape"):
+        load_weights(path)
+
+
+def test_load_tensor_shape_changed(tmp_path):
+    m, path = _saved(tmp_path)
+    _rewrite(path, tensors={"ip2.weight": torch.zeros(1, 499)})
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*'ip2.weight'.*shape"):
+        load_weights(path)
+
+
+def test_load_tensor_missing_or_extra(tmp_path):
+    _, path = _saved(tmp_path)
+    _rewrite(path, tensors={"conv1.bias": None})
+    with pytest.raises(ValueError, match="'conv1.bias' missing"):
+        load_weights(path)
+    _, path = _saved(tmp_path)
+    _rewrite(path, tensors={"extra": torch.zeros(2)})
+    with pytest.raises(ValueError, match="unexpected tensor 'extra'"):
+        load_weights(path)
+
+
+def test_load_expected_config_mismatch(tmp_path):
+    _, path = _saved(tmp_path)
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*'depth_scale_m'"):
+        load_weights(path, expected_config=dataclasses.replace(CFG, depth_scale_m=0.2))
+
+
+def test_load_bad_metadata(tmp_path):
+    _, path = _saved(tmp_path)
+    _rewrite(path, metadata={"config": "{not json"})
+    with pytest.raises(ValueError, match="'config' is not valid JSON"):
+        load_weights(path)
+    _, path = _saved(tmp_path)
+    _rewrite(path, metadata={"format": "something-else"})
+    with pytest.raises(ValueError, match="'format'"):
+        load_weights(path)
+    # A plain safetensors file without our metadata.
+    safetensors.torch.save_file({"x": torch.zeros(2)}, str(path))
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*metadata key 'format' missing"):
+        load_weights(path)
