@@ -80,8 +80,9 @@ def test_explicit_poses_on_the_box():
     assert check.width[0] == pytest.approx(0.05, abs=0.002)
     assert check.object_index[0] == 0
     assert check.num_points_between[2] == 0 and np.isnan(check.width[2])
-    # The contact normals face each other along the closing direction.
-    np.testing.assert_allclose(check.contact_normals[0], [[-1, 0, 0], [1, 0, 0]], atol=1e-6)
+    # The contact normals face each other along the closing direction (the patches
+    # also hold a few samples of the top face at the edge).
+    assert np.sum(check.contact_normals[0] * [[-1, 0, 0], [1, 0, 0]], axis=1) == pytest.approx([1, 1], abs=0.01)
 
 
 def test_sphere_wider_than_the_stroke_has_no_grasps():
@@ -93,7 +94,8 @@ def test_small_sphere_is_grasped():
     sphere = _on_table(trimesh.creation.icosphere(subdivisions=3, radius=0.03))
     grasps = find_grasps_in_meshes([sphere], np.random.default_rng(0))
     assert len(grasps) > 0
-    assert np.all(np.hypot(grasps.xy_theta[:, 0] - 0.5, grasps.xy_theta[:, 1]) < 0.015)
+    assert np.all(np.hypot(grasps.xy_theta[:, 0] - 0.5, grasps.xy_theta[:, 1]) < 0.03)
+    assert np.all((grasps.widths > 0.04) & (grasps.widths <= 0.06 + 1e-3))
 
 
 def test_fingers_may_not_go_through_the_table():
@@ -129,12 +131,26 @@ def test_fingers_collide_with_a_neighbouring_object():
     assert check_grasp_poses(pose, _points([box])).valid.tolist() == [True]
     both = check_grasp_poses(pose, _points([box, block]))
     assert both.collision_free.tolist() == [False]
-    # The palm (13 cm wide) also hits a block just outside the fingers' reach, if it
-    # rises above the palm: 62 mm from the centre, 4 cm higher than the box.
-    far = _box((0.01, 0.02, 0.09), xy=(0.5 + 0.062, 0.0))
+    # The palm (13 cm wide) also hits a block just beyond the fingers (x in 59 ... 69 mm
+    # from the centre; the fingers end at 58.5 mm), if it rises above the palm's
+    # underside (25 mm above the centre).
+    far = _box((0.01, 0.02, 0.09), xy=(0.5 + 0.064, 0.0))
     assert check_grasp_poses(pose, _points([box, far])).collision_free.tolist() == [False]
-    low = _box((0.01, 0.02, 0.04), xy=(0.5 + 0.062, 0.0))
+    low = _box((0.01, 0.02, 0.04), xy=(0.5 + 0.064, 0.0))
     assert check_grasp_poses(pose, _points([box, low])).collision_free.tolist() == [True]
+
+
+def test_housing_collides_with_tall_neighbours():
+    # A 2 cm cube and a 1 cm post 30 - 40 mm beside it across the closing direction:
+    # outside the palm (|y| <= 15 mm) but under the housing (radius 40 mm, its
+    # underside 31 mm above the grasp centre).
+    cube = _box((0.02, 0.02, 0.02))
+    pose = [_topdown_pose(0.5, 0.0, TABLE_TOP_Z_M + 0.022, 0.0)]  # fingertips 5 mm above the table
+    assert check_grasp_poses(pose, _points([cube])).valid.tolist() == [True]
+    tall = _box((0.01, 0.01, 0.06), xy=(0.5, 0.035))
+    short = _box((0.01, 0.01, 0.035), xy=(0.5, 0.035))
+    assert check_grasp_poses(pose, _points([cube, tall])).collision_free.tolist() == [False]
+    assert check_grasp_poses(pose, _points([cube, short])).collision_free.tolist() == [True]
 
 
 def test_pads_touching_two_objects_is_not_a_grasp():
@@ -181,20 +197,25 @@ def test_tilted_approaches():
 
 
 def test_candidates():
-    box = _box((0.05, 0.12, 0.04))
-    c = sample_grasp_candidates([box], np.random.default_rng(0), num_samples=50, num_rotations=4,
-                                depths=(0.0, 0.01))
-    assert len(c) == 50 * 4 * 2
-    assert c.angles.shape == (50, 4)
+    # A lying cylinder: curved sides give the first rotation a direction.
+    cylinder = trimesh.creation.cylinder(radius=0.03, height=0.12, sections=48)
+    cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    cylinder = _on_table(cylinder)
+    c = sample_grasp_candidates([cylinder], np.random.default_rng(0), num_samples=60,
+                                num_rotations=4, depths=(0.0, 0.01))
+    assert len(c) == 60 * 4 * 2
+    assert c.angles.shape == (60, 4)
     np.testing.assert_allclose(np.diff(c.angles, axis=1), np.pi / 4)
-    np.testing.assert_allclose(c.approach, np.tile([0.0, 0.0, -1.0], (50, 1)))
-    # Side-face samples start with the closing direction along their normal.
-    side = np.abs(c.normals[:, 2]) < 0.5
-    assert side.any()
+    np.testing.assert_allclose(c.approach, np.tile([0.0, 0.0, -1.0], (60, 1)))
+    # Only surfaces seen from above are sampled.
+    assert np.all(c.normals[:, 2] > 0)
+    assert np.all(c.origins[:, 2] > TABLE_TOP_Z_M + 0.03 - 1e-9)
+    # Where the normal leans sideways, rotation 0 closes along its horizontal part.
+    horizontal = c.normals[:, :2] / np.linalg.norm(c.normals[:, :2], axis=1, keepdims=True)
+    leaning = np.linalg.norm(c.normals[:, :2], axis=1) > 0.3
+    assert leaning.sum() > 10
     x0 = np.cos(c.angles[:, 0, None]) * c.basis_x + np.sin(c.angles[:, 0, None]) * np.cross(c.approach, c.basis_x)
-    np.testing.assert_allclose(np.abs(np.sum(x0[side] * c.normals[side], axis=1)), 1.0, atol=1e-9)
-    # Nothing sampled on the bottom face.
-    assert np.all(c.normals[:, 2] > -0.9)
+    np.testing.assert_allclose(np.abs(np.sum(x0[leaning, :2] * horizontal[leaning], axis=1)), 1.0, atol=1e-9)
 
 
 def test_deterministic_for_a_seed():
@@ -356,3 +377,27 @@ def test_lying_can_in_a_settled_scene(library):
     assert np.all(np.abs(closing @ axis) < np.sin(np.deg2rad(30.0)))
     # 65 mm across, up to 65 / cos(26.6 deg) = 73 mm where the closing line is oblique.
     assert np.all((grasps.widths > 0.05) & (grasps.widths < 0.074))
+
+
+def test_explicit_side_approach():
+    # Approaching horizontally along +y into the box's 5 cm wide end, closing along x.
+    box = _box((0.05, 0.12, 0.04))
+    mid = TABLE_TOP_Z_M + 0.02
+
+    def side_pose(y, x_axis):
+        X = np.eye(4)
+        z_axis = np.array([0.0, 1.0, 0.0])
+        X[:3, :3] = np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+        X[:3, 3] = [0.5, y, mid]
+        return X
+
+    check = check_grasp_poses(
+        [side_pose(-0.05, [1.0, 0, 0]),  # pad centres 1 cm in from the end: fine
+         side_pose(0.0, [1.0, 0, 0]),  # 6 cm in: the palm (25 mm behind the centre) hits the end
+         side_pose(-0.05, [0, 0, 1.0])],  # closing vertically: the lower finger is in the table
+        _points([box]))
+    assert check.collision_free.tolist() == [True, False, False]
+    assert check.valid.tolist() == [True, False, False]
+    assert check.width[0] == pytest.approx(0.05, abs=0.003)
+    with pytest.raises(ValueError, match="right-handed"):
+        check_grasp_poses([np.diag([1.0, 1.0, -1.0, 1.0])], _points([box]))
