@@ -70,7 +70,7 @@ def _cmd_objects_import(args) -> int:
     info = import_mesh(args.mesh, name=args.name, library_dir=args.library, scale=args.scale,
                        density_kg_m3=args.density, overwrite=args.overwrite)
     print(json.dumps({"id": info.id, "mass_kg": info.mass_kg,
-                      "extents_m": list(info.extents_m), "sdf": str(info.sdf_path)}))
+                      "extents_m": list(info.extents_m), "model": str(info.model_path)}))
     return 0
 
 

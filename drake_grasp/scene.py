@@ -22,8 +22,8 @@ from drake_grasp.assets import make_parser
 from drake_grasp.objects import ObjectLibrary
 from drake_grasp.scenario import SceneConfig
 
-TABLE_URI = "package://drake_grasp/scene/table.sdf"
-SHEET_URI = "package://drake_grasp/scene/sheet.sdf"
+TABLE_URI = "package://drake_grasp/scene/table.urdf"
+SHEET_URI = "package://drake_grasp/scene/sheet.urdf"
 SHEET_THICKNESS_M = 0.002
 SHEET_CENTER_IN_MODEL_M = (0.5, 0.0)
 OBJECT_BODY_NAME = "body"
@@ -108,7 +108,7 @@ def add_table_and_sheet(plant, scene_graph, center_xy_m) -> tuple:
     plant.WeldFrames(plant.world_frame(), plant.GetBodyByName("table", table).body_frame())
     (sheet,) = parser.AddModels(url=SHEET_URI)
     # With its joints at zero the sheet centre is SHEET_CENTER_IN_MODEL_M ahead of the
-    # model's root (models/scene/sheet.sdf).
+    # model's root (models/scene/sheet.urdf).
     plant.WeldFrames(
         plant.world_frame(), plant.GetBodyByName("sheet_origin", sheet).body_frame(),
         RigidTransform([float(center_xy_m[0]) - SHEET_CENTER_IN_MODEL_M[0],
@@ -129,7 +129,7 @@ def add_scene_objects(plant, spec: SceneSpec, library: ObjectLibrary) -> list:
     for i, placement in enumerate(spec.objects):
         info = library.get(placement.object_id)
         parser = Parser(plant, f"object_{i}")
-        (instance,) = parser.AddModels(str(info.sdf_path))
+        (instance,) = parser.AddModels(str(info.model_path))
         instances.append(instance)
     return instances
 

@@ -17,8 +17,8 @@ from drake_grasp.assets import make_parser
 
 UR5_URL = "package://drake_grasp/ur5/ur5.urdf"
 GRIPPER_URL = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
-TABLE_URL = "package://drake_grasp/scene/table.sdf"
-SHEET_URL = "package://drake_grasp/scene/sheet.sdf"
+TABLE_URL = "package://drake_grasp/scene/table.urdf"
+SHEET_URL = "package://drake_grasp/scene/sheet.urdf"
 ALL_URLS = [UR5_URL, GRIPPER_URL, TABLE_URL, SHEET_URL]
 
 UR5_JOINTS = [

@@ -140,14 +140,14 @@ def test_files_and_meta(sample_infos, library):
         assert library.root.name == f"objects-v{GENERATOR_VERSION}"
         meta = json.loads((directory / "meta.json").read_text())
         n = meta["num_collision_pieces"]
-        assert {p.name for p in directory.iterdir()} == {"model.sdf", "meta.json", "visual.obj"} | {
+        assert {p.name for p in directory.iterdir()} == {"model.urdf", "meta.json", "visual.obj"} | {
             f"collision_{i:02d}.obj" for i in range(n)
         }
         assert (meta["id"], meta["split"], meta["category"]) == (info.id, info.split, info.category)
         assert meta["source"] == "procedural" and meta["generator_version"] == GENERATOR_VERSION
         assert meta["mass_kg"] == pytest.approx(info.mass_kg)
         assert len(meta["extents_m"]) == 3 and meta["volume_m3"] > 0
-        sdf = info.sdf_path.read_text()
+        sdf = info.model_path.read_text()
         assert "<drake:declare_convex/>" in sdf and "<drake:compliant_hydroelastic/>" in sdf
         assert sdf.count("<collision ") == n
     # No temporary folders left behind.
@@ -156,10 +156,10 @@ def test_files_and_meta(sample_infos, library):
 
 def test_second_get_reuses_files(library, sample_infos):
     info = sample_infos[0]
-    stamp = info.sdf_path.stat().st_mtime_ns
+    stamp = info.model_path.stat().st_mtime_ns
     fresh = ObjectLibrary.builtin(library.root.parent)
     assert fresh.get(info.id) == info
-    assert info.sdf_path.stat().st_mtime_ns == stamp
+    assert info.model_path.stat().st_mtime_ns == stamp
 
 
 def test_existing_target_is_kept(tmp_path):
@@ -190,7 +190,7 @@ def test_models_parse_in_drake(sample_infos):
 
     plant, _ = AddMultibodyPlantSceneGraph(DiagramBuilder(), time_step=0.002)
     for info in sample_infos:
-        (model,) = Parser(plant).AddModels(str(info.sdf_path))
+        (model,) = Parser(plant).AddModels(str(info.model_path))
         assert plant.GetModelInstanceName(model) == info.id
         body = plant.GetBodyByName("body", model)
         assert body.default_mass() == pytest.approx(info.mass_kg)
@@ -204,7 +204,7 @@ def test_objects_drop_and_rest_on_ground(sample_infos):
 
     builder, plant = _plant_with_ground()
     infos = [i for i in sample_infos if i.split == "test"]  # one per category
-    models = [Parser(plant).AddModels(str(info.sdf_path))[0] for info in infos]
+    models = [Parser(plant).AddModels(str(info.model_path))[0] for info in infos]
     plant.Finalize()
     simulator = Simulator(builder.Build())
     context = plant.GetMyMutableContextFromRoot(simulator.get_mutable_context())
@@ -243,7 +243,7 @@ def test_import_stl_in_cm(tmp_path):
     assert meta["source"] == "box_cm.stl" and meta["num_collision_pieces"] == 1
     assert meta["warnings"] == []
     plant = MultibodyPlant(time_step=0.002)
-    (model,) = Parser(plant).AddModels(str(info.sdf_path))
+    (model,) = Parser(plant).AddModels(str(info.model_path))
     assert plant.GetBodyByName("body", model).default_mass() == pytest.approx(info.mass_kg)
 
     lib = ObjectLibrary.from_dir(lib_dir)
@@ -357,9 +357,9 @@ def test_from_dir_errors_name_the_folder(tmp_path):
         ObjectLibrary.from_dir(lib_dir)
     meta["mass_kg"] = 0.1
     meta_path.write_text(json.dumps(meta))
-    info.sdf_path.write_text("<sdf><model name='b'>")
-    with pytest.raises(ValueError, match="model.sdf"):
+    info.model_path.write_text("<sdf><model name='b'>")
+    with pytest.raises(ValueError, match="model.urdf"):
         ObjectLibrary.from_dir(lib_dir)
-    os.remove(info.sdf_path)
-    with pytest.raises(ValueError, match="model.sdf"):
+    os.remove(info.model_path)
+    with pytest.raises(ValueError, match="model.urdf"):
         ObjectLibrary.from_dir(lib_dir)

@@ -1,6 +1,6 @@
 """Graspable household objects for the simulation.
 
-Two sources, one on-disk layout (`<library>/<object_id>/model.sdf`, ...):
+Two sources, one on-disk layout (`<library>/<object_id>/model.urdf`, ...):
 
 * the built-in procedural library: 381 objects in 10 categories (mug, hammer,
   bottle, tetra_pak, flashlight, camera, can, apple, toy_car, banana), split
@@ -14,7 +14,7 @@ Typical use::
 
     lib = load_library(None)               # or load_library("my_objects/")
     info = lib.get(lib.ids(split="test")[0])
-    Parser(plant).AddModels(str(info.sdf_path))   # body frame name: "body"
+    Parser(plant).AddModels(str(info.model_path))   # body frame name: "body"
 """
 
 from drake_grasp.objects.categories import (

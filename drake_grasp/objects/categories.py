@@ -37,7 +37,7 @@ from drake_grasp.objects.model_files import ContactMaterial
 
 # Bump whenever the geometry, masses or file contents of procedural objects
 # change: the cache folder is named after it, so stale files are never reused.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 # The first NUM_TEST_PER_CATEGORY indices of every category are the test split.
 NUM_TEST_PER_CATEGORY = 5

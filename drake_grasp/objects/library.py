@@ -1,6 +1,6 @@
 """Object libraries: the built-in procedural set (cached on disk) and user folders.
 
-An object on disk is a folder `<library>/<object_id>/` holding `model.sdf`
+An object on disk is a folder `<library>/<object_id>/` holding `model.urdf`
 (one model named after the id, one body named `body`), `visual.obj`,
 `collision_XX.obj` (one convex piece each) and `meta.json`.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from drake_grasp.objects import categories as cat
 from drake_grasp.objects.geometry import union_mesh
-from drake_grasp.objects.model_files import META_FILE, SDF_FILE, write_object_dir
+from drake_grasp.objects.model_files import META_FILE, MODEL_FILE, write_object_dir
 
 CACHE_ENV = "DRAKE_GRASP_CACHE"
 
@@ -32,13 +32,13 @@ class ObjectInfo:
     """What a simulation needs to know about one object on disk.
 
     Attributes:
-        id: Object id (also the SDF model name and the folder name).
+        id: Object id (also the model name and the folder name).
         category: Category name ("mug", ..., or "user" for imports).
         split: "train" or "test".
-        mass_kg: Mass written in the SDF.
+        mass_kg: Mass written in the model file.
         extents_m: Bounding-box size (x, y, z) in the canonical pose; the
             model frame origin is the bottom centre of that box.
-        sdf_path: The model.sdf to give to Drake's Parser.
+        model_path: The model.urdf to give to Drake's Parser.
         directory: The object's folder.
     """
 
@@ -47,12 +47,12 @@ class ObjectInfo:
     split: str
     mass_kg: float
     extents_m: tuple[float, float, float]
-    sdf_path: Path
+    model_path: Path
     directory: Path
 
     @classmethod
     def from_dir(cls, path: str | Path) -> "ObjectInfo":
-        """Reads an object folder, checking meta.json and model.sdf.
+        """Reads an object folder, checking meta.json and model.urdf.
 
         Raises:
             ValueError: The folder is not a complete object (the message names
@@ -60,7 +60,7 @@ class ObjectInfo:
         """
         directory = Path(path)
         meta_path = directory / META_FILE
-        sdf_path = directory / SDF_FILE
+        model_path = directory / MODEL_FILE
         if not meta_path.is_file():
             raise ValueError(f"{directory}: not an object folder, {META_FILE} is missing")
         try:
@@ -97,28 +97,27 @@ class ObjectInfo:
             lambda v: len(v) == 3 and all(isinstance(x, (int, float)) and x > 0 for x in v),
             "a list of 3 positive numbers",
         )
-        _check_sdf(sdf_path, oid)
+        _check_model(model_path, oid)
         extents_tuple = tuple(float(x) for x in extents)
-        return cls(oid, category, split, float(mass), extents_tuple, sdf_path, directory)
+        return cls(oid, category, split, float(mass), extents_tuple, model_path, directory)
 
     def read_meta(self) -> dict:
         """The full meta.json (parameters, volume, contact properties, ...)."""
         return json.loads((self.directory / META_FILE).read_text())
 
 
-def _check_sdf(sdf_path: Path, oid: str) -> None:
+def _check_model(model_path: Path, oid: str) -> None:
     # A cheap structural check; Drake's parser does the real validation later.
-    if not sdf_path.is_file():
-        raise ValueError(f"{sdf_path}: missing ({SDF_FILE} is required in every object folder)")
+    if not model_path.is_file():
+        raise ValueError(f"{model_path}: missing ({MODEL_FILE} is required in every object folder)")
     try:
-        root = ET.parse(sdf_path).getroot()
+        root = ET.parse(model_path).getroot()
     except (OSError, ET.ParseError) as exc:
-        raise ValueError(f"{sdf_path}: not well-formed XML ({exc})") from exc
-    model = root.find("model")
-    if root.tag != "sdf" or model is None:
-        raise ValueError(f"{sdf_path}: expected <sdf><model ...>, found <{root.tag}>")
-    if model.get("name") != oid:
-        raise ValueError(f"{sdf_path}: model name {model.get('name')!r}, expected the object id {oid!r}")
+        raise ValueError(f"{model_path}: not well-formed XML ({exc})") from exc
+    if root.tag != "robot":
+        raise ValueError(f"{model_path}: expected a URDF <robot ...>, found <{root.tag}>")
+    if root.get("name") != oid:
+        raise ValueError(f"{model_path}: model name {root.get('name')!r}, expected the object id {oid!r}")
 
 
 def default_cache_root() -> Path:
@@ -236,7 +235,7 @@ class ObjectLibrary:
                 for d in root.iterdir()
                 if d.is_dir()
                 and not d.name.startswith(".")
-                and ((d / META_FILE).exists() or (d / SDF_FILE).exists())
+                and ((d / META_FILE).exists() or (d / MODEL_FILE).exists())
             )
         infos = {}
         for d in candidates:
@@ -245,7 +244,7 @@ class ObjectLibrary:
         if not infos:
             raise ValueError(
                 f"object library folder {root} holds no objects (expected sub-folders with {META_FILE} "
-                f"and {SDF_FILE}, e.g. made by import_mesh)"
+                f"and {MODEL_FILE}, e.g. made by import_mesh)"
             )
         index = {oid: (info.category, info.split) for oid, info in infos.items()}
         return cls(root if candidates != [root] else root.parent, index, builtin=False, infos=infos)

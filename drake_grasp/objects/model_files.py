@@ -1,4 +1,4 @@
-"""Writing one object directory: model.sdf, visual.obj, collision_XX.obj, meta.json.
+"""Writing one object directory: model.urdf, visual.obj, collision_XX.obj, meta.json.
 
 The directory is assembled in a temporary folder next to the target and moved
 into place with a single rename, so readers never see a half-written object.
@@ -19,7 +19,7 @@ import trimesh
 
 from drake_grasp.objects.geometry import MassProperties, write_obj
 
-SDF_FILE = "model.sdf"
+MODEL_FILE = "model.urdf"
 META_FILE = "meta.json"
 VISUAL_FILE = "visual.obj"
 BODY_NAME = "body"
@@ -55,70 +55,53 @@ def _fmt(value: float) -> str:
     return f"{float(value):.9g}"
 
 
-def sdf_text(
+def urdf_text(
     model_name: str,
     mass: MassProperties,
     num_collision: int,
     rgba: tuple[float, float, float, float],
     contact: ContactMaterial,
 ) -> str:
-    """SDFormat 1.9 text of a one-body model with convex compliant collisions."""
+    """URDF text (with Drake's extensions) of a one-body model with convex compliant
+    collisions. URDF rather than SDFormat: Drake parses it in well under a millisecond,
+    against ~30 ms for the same model in SDFormat, and scenes are built per trial."""
     c = mass.com_m
     inertia = mass.inertia_kg_m2
     rgba_text = " ".join(_fmt(v) for v in rgba)
     proximity = (
-        "        <drake:proximity_properties>\n"
-        "          <drake:compliant_hydroelastic/>\n"
-        f"          <drake:hydroelastic_modulus>{_fmt(contact.hydroelastic_modulus_pa)}"
-        "</drake:hydroelastic_modulus>\n"
-        f"          <drake:relaxation_time>{_fmt(contact.relaxation_time_s)}</drake:relaxation_time>\n"
-        f"          <drake:mu_static>{_fmt(contact.mu_static)}</drake:mu_static>\n"
-        f"          <drake:mu_dynamic>{_fmt(contact.mu_dynamic)}</drake:mu_dynamic>\n"
-        "        </drake:proximity_properties>\n"
+        "      <drake:proximity_properties>\n"
+        "        <drake:compliant_hydroelastic/>\n"
+        f"        <drake:hydroelastic_modulus value=\"{_fmt(contact.hydroelastic_modulus_pa)}\"/>\n"
+        f"        <drake:relaxation_time value=\"{_fmt(contact.relaxation_time_s)}\"/>\n"
+        f"        <drake:mu_static value=\"{_fmt(contact.mu_static)}\"/>\n"
+        f"        <drake:mu_dynamic value=\"{_fmt(contact.mu_dynamic)}\"/>\n"
+        "      </drake:proximity_properties>\n"
     )
     collisions = "".join(
-        f'      <collision name="collision_{i:02d}">\n'
-        "        <geometry>\n"
-        "          <mesh>\n"
-        f"            <uri>{collision_file(i)}</uri>\n"
-        "            <drake:declare_convex/>\n"
-        "          </mesh>\n"
-        "        </geometry>\n"
+        f'    <collision name="collision_{i:02d}">\n'
+        f'      <geometry><mesh filename="{collision_file(i)}"><drake:declare_convex/></mesh></geometry>\n'
         f"{proximity}"
-        "      </collision>\n"
+        "    </collision>\n"
         for i in range(num_collision)
     )
     return (
         '<?xml version="1.0"?>\n'
-        '<sdf version="1.9" xmlns:drake="http://drake.mit.edu">\n'
-        f'  <model name="{escape(model_name)}">\n'
-        f'    <link name="{BODY_NAME}">\n'
-        "      <inertial>\n"
-        f"        <pose>{_fmt(c[0])} {_fmt(c[1])} {_fmt(c[2])} 0 0 0</pose>\n"
-        f"        <mass>{_fmt(mass.mass_kg)}</mass>\n"
-        "        <inertia>\n"
-        f"          <ixx>{_fmt(inertia[0, 0])}</ixx>\n"
-        f"          <ixy>{_fmt(inertia[0, 1])}</ixy>\n"
-        f"          <ixz>{_fmt(inertia[0, 2])}</ixz>\n"
-        f"          <iyy>{_fmt(inertia[1, 1])}</iyy>\n"
-        f"          <iyz>{_fmt(inertia[1, 2])}</iyz>\n"
-        f"          <izz>{_fmt(inertia[2, 2])}</izz>\n"
-        "        </inertia>\n"
-        "      </inertial>\n"
-        '      <visual name="visual">\n'
-        "        <geometry>\n"
-        "          <mesh>\n"
-        f"            <uri>{VISUAL_FILE}</uri>\n"
-        "          </mesh>\n"
-        "        </geometry>\n"
-        "        <material>\n"
-        f"          <diffuse>{rgba_text}</diffuse>\n"
-        "        </material>\n"
-        "      </visual>\n"
+        f'<robot name="{escape(model_name)}" xmlns:drake="http://drake.mit.edu">\n'
+        f'  <link name="{BODY_NAME}">\n'
+        "    <inertial>\n"
+        f'      <origin xyz="{_fmt(c[0])} {_fmt(c[1])} {_fmt(c[2])}" rpy="0 0 0"/>\n'
+        f'      <mass value="{_fmt(mass.mass_kg)}"/>\n'
+        f'      <inertia ixx="{_fmt(inertia[0, 0])}" ixy="{_fmt(inertia[0, 1])}" '
+        f'ixz="{_fmt(inertia[0, 2])}" iyy="{_fmt(inertia[1, 1])}" iyz="{_fmt(inertia[1, 2])}" '
+        f'izz="{_fmt(inertia[2, 2])}"/>\n'
+        "    </inertial>\n"
+        '    <visual name="visual">\n'
+        f'      <geometry><mesh filename="{VISUAL_FILE}"/></geometry>\n'
+        f'      <material name="{escape(model_name)}_color"><color rgba="{rgba_text}"/></material>\n'
+        "    </visual>\n"
         f"{collisions}"
-        "    </link>\n"
-        "  </model>\n"
-        "</sdf>\n"
+        "  </link>\n"
+        "</robot>\n"
     )
 
 
@@ -138,7 +121,7 @@ def write_object_dir(
 
     Args:
         target: The object directory to create (its parent is created).
-        model_name: SDF model name (the object id).
+        model_name: model name (the object id).
         visual: Visual mesh in the object frame.
         collision: Convex collision pieces in the object frame.
         mass: Mass properties written to `<inertial>`.
@@ -160,7 +143,7 @@ def write_object_dir(
         for i, piece in enumerate(collision):
             header = f"{model_name} convex piece {i}"
             write_obj(tmp / collision_file(i), piece, face_normals=False, header=header)
-        (tmp / SDF_FILE).write_text(sdf_text(model_name, mass, len(collision), rgba, contact))
+        (tmp / MODEL_FILE).write_text(urdf_text(model_name, mass, len(collision), rgba, contact))
         (tmp / META_FILE).write_text(json.dumps(_jsonable(meta), indent=2, sort_keys=True) + "\n")
         os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; the library may be shared.
         if overwrite and target.exists():
