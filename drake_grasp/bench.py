@@ -85,9 +85,10 @@ def bench_depth_frame_ms(repeats: int = 200) -> dict:
     return {"depth_frame_ms": round(1000 * float(np.median(times)), 3)}
 
 
-def bench_labels_per_s(num_scenes: int = 8, workers: int = 2) -> dict:
+def bench_labels_per_s(num_scenes: int = 24, workers: int = 2) -> dict:
     """Dataset generation rate with 2 local workers, paper settings (40 images x 10
-    offsets per scene), including worker start-up; plus where the time goes."""
+    offsets per scene): labels / wall time of the whole command (worker start-up
+    included), plus the worker seconds spent in each stage (where the time goes)."""
     import tempfile
 
     from drake_grasp.dataset import DatasetConfig, generate_dataset
