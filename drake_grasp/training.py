@@ -232,7 +232,7 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += float(loss) * labels.numel()
+            total += float(loss.detach()) * labels.numel()
             count += labels.numel()
             bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
         train_seconds = time.perf_counter() - t0
