@@ -5,6 +5,9 @@ Keys:
         scripted-grasp episode with one object, wrist depth frames at 10 Hz, one core.
     rtf_clutter5: the same with 5 objects in a pile.
     depth_frame_ms: render + post-process one 64x64 wrist depth frame (median).
+    labels_per_s: dataset generation, 2 workers, paper settings.
+    cnn: cnn_infer_ms_128 / cnn_infer_direct_ms_128 (one image, 128 actions),
+        train_samples_per_s / train_direct_samples_per_s (2 threads).
 """
 
 from __future__ import annotations
@@ -110,11 +113,81 @@ def bench_labels_per_s(num_scenes: int = 24, workers: int = 2) -> dict:
                                         k: round(v, 2) for k, v in manifest["run_timings_s"].items()}}}
 
 
+def bench_cnn(rounds: int = 8) -> dict:
+    """The distance CNN on 2 threads, fast path and direct form interleaved in one run:
+    scoring 128 candidate actions for one image (control), and forward + backward on
+    batches of 100 images x 10 offsets (training, samples = image-offset pairs)."""
+    import statistics
+
+    import torch
+
+    from drake_grasp.network import DistanceCNN
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        g = torch.Generator().manual_seed(0)
+        model = DistanceCNN(generator=g)
+        image = torch.randn(1, 1, 64, 64, generator=g)
+        actions = torch.rand(128, 3, generator=g) * 0.2 - 0.1
+        image128 = image.expand(128, 1, 64, 64).contiguous()
+        images = torch.randn(100, 1, 64, 64, generator=g)
+        offsets = torch.rand(100, 10, 3, generator=g) * 0.2 - 0.1
+        labels = torch.rand(100, 10, generator=g) * 0.1
+        images_rep = images.repeat_interleave(10, 0)
+
+        def infer_fast():
+            with torch.inference_mode():
+                model.score_actions(model.image_features(image), actions)
+
+        def infer_direct():
+            with torch.inference_mode():
+                model.forward_direct(image128, actions)
+
+        def train_fast():
+            model.zero_grad(set_to_none=True)
+            (model.forward_factored(images, offsets) - labels).abs().mean().backward()
+
+        def train_direct():
+            model.zero_grad(set_to_none=True)
+            pred = model.forward_direct(images_rep, offsets.reshape(-1, 3))
+            (pred - labels.reshape(-1)).abs().mean().backward()
+
+        def timed(f):
+            t0 = time.perf_counter()
+            f()
+            return time.perf_counter() - t0
+
+        runs = {f: [] for f in (infer_fast, infer_direct, train_fast, train_direct)}
+        for f in runs:
+            f()
+        for _ in range(rounds):
+            runs[infer_fast] += [timed(infer_fast) for _ in range(10)]
+            runs[infer_direct] += [timed(infer_direct) for _ in range(2)]
+            runs[train_fast] += [timed(train_fast) for _ in range(3)]
+            runs[train_direct] += [timed(train_direct)]
+        med = {f.__name__: statistics.median(v) for f, v in runs.items()}
+    finally:
+        torch.set_num_threads(threads)
+    ip1_flops = 2 * 8450 * 500  # IP1 multiply-adds per action, the floor of this net
+    return {
+        "cnn_infer_ms_128": round(1000 * med["infer_fast"], 2),
+        "cnn_infer_direct_ms_128": round(1000 * med["infer_direct"], 2),
+        "cnn_infer_speedup": round(med["infer_direct"] / med["infer_fast"], 1),
+        "train_samples_per_s": round(1000 / med["train_fast"], 1),
+        "train_direct_samples_per_s": round(1000 / med["train_direct"], 1),
+        "train_speedup": round(med["train_direct"] / med["train_fast"], 1),
+        "cnn_ip1_gflops_infer": round(128 * ip1_flops / med["infer_fast"] / 1e9, 1),
+        "cnn_ip1_gflops_train": round(3 * 1000 * ip1_flops / med["train_fast"] / 1e9, 1),
+    }
+
+
 BENCHMARKS = {
     "rtf_isolation": bench_rtf_isolation,
     "rtf_clutter5": bench_rtf_clutter5,
     "depth_frame_ms": bench_depth_frame_ms,
     "labels_per_s": bench_labels_per_s,
+    "cnn": bench_cnn,
 }
 
 

@@ -155,8 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_diagram)
 
     p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")
-    p.add_argument("--only", default="", help="comma-separated benchmark keys "
-                                              "(rtf_isolation, rtf_clutter5, depth_frame_ms)")
+    p.add_argument("--only", default="", help="comma-separated benchmark keys (rtf_isolation, "
+                                              "rtf_clutter5, depth_frame_ms, labels_per_s, cnn)")
     p.add_argument("--out", default=None, help="also write the JSON (with the machine) here")
     p.set_defaults(func=_cmd_bench)
 
