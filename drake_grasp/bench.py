@@ -73,7 +73,8 @@ def bench_depth_frame_ms(repeats: int = 200) -> dict:
     scenario.depth_noise.enabled = True
     library = load_library(None)
     scene = make_scene(scenario.scene, scenario.seed, library)
-    diagram, station, *_ = build_episode_diagram(scenario, scene, library)
+    ed = build_episode_diagram(scenario, scene, library)
+    diagram, station = ed.diagram, ed.station
     root = diagram.CreateDefaultContext()
     station.set_initial_state(station.diagram.GetMyMutableContextFromRoot(root))
     sc = station.diagram.GetMyMutableContextFromRoot(root)

@@ -32,6 +32,11 @@ class EpisodeResult:
     target_object_id: str | None
     final_X_WG: dict
     object_lowest_point_m: float | None = None
+    # The paper's metric at the moment the fingers start closing [m].
+    final_distance_m: float | None = None
+    control_steps: int = 0
+    disturbance: dict = field(default_factory=dict)
+    noise: str = "none"
     code_version: str = __version__
     details: dict = field(default_factory=dict)
 
@@ -45,6 +50,7 @@ class EpisodeRun:
 
     result: EpisodeResult
     depth_frames: list = field(default_factory=list)  # (time, mode, HxW array)
+    steps: list = field(default_factory=list)  # controller StepRecords
     final_plant_state: np.ndarray | None = None
     replay_html: str | None = None
     scene: SceneSpec | None = None
@@ -88,54 +94,185 @@ def _pose_dict(X) -> dict:
             "rpy": [float(v) for v in X.rotation().ToRollPitchYaw().vector()]}
 
 
-def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary,
-                          *, meshcat=None):
-    """Station + policy (scripted supervisor) + sheet hold, as one Diagram.
+@dataclass
+class EpisodeDiagram:
+    """The episode Diagram and handles into it."""
 
-    Returns:
-        (diagram, station, supervisor, target index, meshcat visualizer or None)
+    diagram: object
+    station: object
+    policy: object  # ScriptedGraspSupervisor or GraspController
+    target: int | None  # scene index of the scripted/target object
+    visualizer: object = None
+    disturbance: object = None
+    sampler: object = None
+
+
+def _gpd_detector(scenario: Scenario):
+    """detect(depth, X_WC) -> (x, y, theta_deg, z) of the best GPD-style grasp, or None."""
+    from drake_grasp import gpd
+
+    def detect(depth, X_WC):
+        rng = np.random.default_rng([scenario.seed, 53])
+        best = gpd.best_grasp(depth, fov_y_deg=scenario.camera.fov_y_deg, X_WC=X_WC, rng=rng)
+        if best is None:
+            return None
+        return (float(best.xy_theta[0]), float(best.xy_theta[1]), float(best.xy_theta[2]),
+                float(best.z))
+
+    return detect
+
+
+def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary,
+                          *, meshcat=None, model=None) -> EpisodeDiagram:
+    """Station + policy + sheet command (+ Meshcat), as one Diagram.
+
+    `scripted` uses the ScriptedGraspSupervisor; every other policy the GraspController,
+    with the ActionSampler and the DistanceEvaluator (CNN) where it needs them and the
+    SheetDisturbance moving the sheet.
     """
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource
 
     from drake_grasp.station import MakeGraspStation
-    from drake_grasp.systems.supervisor import ScriptedGraspSupervisor
 
     if not scene.objects:
         raise ValueError("scene has no objects on the table (all fell off while settling?)")
     station = MakeGraspStation(scenario, scene, library)
     builder = DiagramBuilder()
     builder.AddNamedSystem("station", station.diagram)
-    target, points_O = choose_scripted_target(scene, library)
-    supervisor = builder.AddNamedSystem("supervisor", ScriptedGraspSupervisor(
-        object_body_index=station.object_body(target).index(),
-        object_points_O=points_O,
-        gripper_body_index=station.gripper_body().index(),
-        X_BG=station.X_BG, X_WG_start=station.X_WG_start,
-        motion=scenario.scripted, gripper=scenario.gripper, judge=scenario.judge))
     sd = station.diagram
-    builder.Connect(sd.GetOutputPort("body_poses"), supervisor.GetInputPort("body_poses"))
-    builder.Connect(sd.GetOutputPort("gripper_state"), supervisor.GetInputPort("gripper_state"))
-    builder.Connect(supervisor.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
-    builder.Connect(supervisor.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
-    sheet = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
-    builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
-    visualizer = None
+    out = EpisodeDiagram(diagram=None, station=station, policy=None, target=None)
+    if scenario.policy == "scripted":
+        from drake_grasp.systems.supervisor import ScriptedGraspSupervisor
+
+        target, points_O = choose_scripted_target(scene, library)
+        policy = builder.AddNamedSystem("supervisor", ScriptedGraspSupervisor(
+            object_body_index=station.object_body(target).index(),
+            object_points_O=points_O,
+            gripper_body_index=station.gripper_body().index(),
+            X_BG=station.X_BG, X_WG_start=station.X_WG_start,
+            motion=scenario.scripted, gripper=scenario.gripper, judge=scenario.judge))
+        sheet = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
+        builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+        out.target = target
+    else:
+        out.target, policy = _add_controller(builder, scenario, scene, library, station, model, out)
+    builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
+    builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
+    builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
+    builder.Connect(policy.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
+    out.policy = policy
     if meshcat is not None:
         from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams
 
         params = MeshcatVisualizerParams()
         params.publish_period = 1.0 / 25.0
-        visualizer = MeshcatVisualizer.AddToBuilder(
+        out.visualizer = MeshcatVisualizer.AddToBuilder(
             builder, sd.GetOutputPort("query_object"), meshcat, params)
-    diagram = builder.Build()
-    diagram.set_name("grasp_episode")
-    return diagram, station, supervisor, target, visualizer
+    out.diagram = builder.Build()
+    out.diagram.set_name("grasp_episode")
+    return out
+
+
+def _add_controller(builder, scenario, scene, library, station, model, out):
+    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.systems.disturbance import SheetDisturbance
+    from drake_grasp.systems.evaluator import (
+        ActionSampler,
+        DistanceEvaluator,
+        load_cnn,
+        score_candidates,
+    )
+
+    c = scenario.controller
+    sd = station.diagram
+    needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
+    if needs_cnn and model is None:
+        model = load_cnn(c.weights)
+    target = None
+    target_label = None
+    if scenario.target:
+        ids = scene.object_ids()
+        if scenario.target not in ids:
+            raise ValueError(f"target: {scenario.target!r} is not in the scene; objects: {ids}")
+        target = ids.index(scenario.target)
+        # MultibodyPlant labels each body's geometry with its body index.
+        target_label = int(station.object_body(target).index())
+    points = [_object_surface_points(library, o.object_id, 600) for o in scene.objects]
+    controller = builder.AddNamedSystem("controller", GraspController(
+        scenario=scenario, policy=scenario.policy, X_WG_start=station.X_WG_start,
+        X_GC=station.X_GC, X_BG=station.X_BG,
+        gripper_body_index=station.gripper_body().index(),
+        object_bodies=[station.object_body(i).index() for i in range(len(scene.objects))],
+        object_points=points, object_ids=scene.object_ids(),
+        score_fn=(lambda depth, actions: score_candidates(model, depth, actions)) if needs_cnn else None,
+        detect_fn=_gpd_detector(scenario) if scenario.policy == "gpd" else None,
+        target_label=target_label))
+    builder.Connect(sd.GetOutputPort("depth_image"), controller.GetInputPort("depth_image"))
+    builder.Connect(sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
+    sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
+        num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
+        period_s=c.period_s, seed=scenario.seed))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"),
+                    controller.GetInputPort("candidate_actions"))
+    if needs_cnn:
+        evaluator = builder.AddNamedSystem("distance_evaluator", DistanceEvaluator(model))
+        builder.Connect(sd.GetOutputPort("depth_image"), evaluator.GetInputPort("depth_image"))
+        builder.Connect(sampler.GetOutputPort("candidate_actions"),
+                        evaluator.GetInputPort("candidate_actions"))
+        builder.Connect(evaluator.GetOutputPort("predicted_distances"),
+                        controller.GetInputPort("predicted_distances"))
+    else:
+        from pydrake.common.value import AbstractValue
+        from pydrake.systems.primitives import ConstantValueSource
+
+        none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
+            AbstractValue.Make(np.zeros(0))))
+        builder.Connect(none.get_output_port(), controller.GetInputPort("predicted_distances"))
+    disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(
+        scenario.disturbance, seed=scenario.seed, period_s=c.period_s))
+    builder.Connect(controller.GetOutputPort("control_status"),
+                    disturbance.GetInputPort("control_status"))
+    builder.Connect(disturbance.GetOutputPort("sheet_desired_state"),
+                    sd.GetInputPort("sheet_desired_state"))
+    out.disturbance = disturbance
+    out.sampler = sampler
+    return target, controller
+
+
+def _hand_xy_yaw(X_WG) -> np.ndarray:
+    """[x, y, yaw_deg] of a grasp-frame pose (yaw of the closing direction x_G)."""
+    R = X_WG.rotation().matrix()
+    return np.array([X_WG.translation()[0], X_WG.translation()[1],
+                     np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))])
+
+
+def final_distance(plant, plant_context, station, scene: SceneSpec, library, seed: int) -> dict:
+    """The paper's metric for the hand's current pose: its (x, y, theta) distance to the
+    nearest ground-truth grasp of the scene as it is now (objects where they are)."""
+    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.scene import ObjectPlacement
+
+    placements = []
+    for i, o in enumerate(scene.objects):
+        X = plant.EvalBodyPoseInWorld(plant_context, station.object_body(i))
+        q = X.rotation().ToQuaternion()
+        placements.append(ObjectPlacement(o.object_id, [float(v) for v in X.translation()],
+                                          [float(q.w()), float(q.x()), float(q.y()), float(q.z())]))
+    now = SceneSpec(kind=scene.kind, seed=scene.seed, center_xy_m=scene.center_xy_m,
+                    objects=placements, settled=True)
+    grasps = find_grasps(now, library, np.random.default_rng([seed, 61]))
+    X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
+                                       plant.GetFrameByName("grasp_frame", station.gripper))
+    hand = _hand_xy_yaw(X_WG)
+    d = float(distance_to_nearest_grasp(hand[None], grasps.xy_theta)[0])
+    return {"final_distance_m": d if np.isfinite(d) else None, "hand_xy_yaw": hand.tolist(),
+            "num_true_grasps": int(len(grasps.xy_theta))}
 
 
 def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=None,
                      scene: SceneSpec | None = None, record_depth: bool = True,
-                     visualize: bool | None = None) -> EpisodeRun:
+                     visualize: bool | None = None, model=None) -> EpisodeRun:
     """Samples and settles the scene, builds the diagram and runs the episode to its end."""
     from pydrake.systems.analysis import Simulator
 
@@ -149,44 +286,88 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
         from pydrake.geometry import StartMeshcat
 
         meshcat = StartMeshcat()
-    diagram, station, supervisor, target, visualizer = build_episode_diagram(
-        scenario, scene, library, meshcat=meshcat)
-    simulator = Simulator(diagram)
+    threads = None
+    if scenario.policy in ("ctr", "cnn-only", "cnn-ctr"):
+        import torch
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, scenario.controller.torch_threads))
+    try:
+        ed = build_episode_diagram(scenario, scene, library, meshcat=meshcat, model=model)
+        return _run(ed, scenario, scenario_name, scene, library, meshcat, record_depth,
+                    wall_start)
+    finally:
+        if threads is not None:
+            import torch
+
+            torch.set_num_threads(threads)
+
+
+def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, record_depth,
+         wall_start) -> EpisodeRun:
+    from pydrake.systems.analysis import Simulator
+
+    station, policy = ed.station, ed.policy
+    simulator = Simulator(ed.diagram)
     root = simulator.get_mutable_context()
     station.set_initial_state(station.diagram.GetMyMutableContextFromRoot(root))
-    if visualizer is not None:
-        visualizer.StartRecording()
+    if ed.visualizer is not None:
+        ed.visualizer.StartRecording()
     simulator.Initialize()
     station_context = station.diagram.GetMyContextFromRoot(root)
-    sup_context = supervisor.GetMyContextFromRoot(root)
+    policy_context = policy.GetMyContextFromRoot(root)
+    plant = station.plant
+    plant_context = plant.GetMyContextFromRoot(root)
     depth_port = station.diagram.GetOutputPort("depth_image")
-    frames = []
+    frames, steps = [], []
+    distance = None
     dt = 1.0 / scenario.camera.fps
     t = 0.0
     loop_start = time.perf_counter()
     while True:
+        mode = policy.mode_name(policy_context)
         if record_depth:
             img = depth_port.Eval(station_context)
-            frames.append((t, supervisor.get_supervisor_state(sup_context).mode.value,
-                           np.array(img.data[:, :, 0], copy=True)))
-        if supervisor.is_done(sup_context) or t >= scenario.max_sim_time_s:
+            frames.append((t, mode, np.array(img.data[:, :, 0], copy=True)))
+        if hasattr(policy, "get_controller_state"):
+            last = policy.get_controller_state(policy_context).last_step
+            if last is not None and (not steps or steps[-1].iteration != last.iteration):
+                steps.append(last)
+        # The paper's metric is taken where the hand stands when the fingers start to
+        # close (INIT: where it started).
+        if distance is None and (mode == "close" or (mode == "done" and scenario.policy == "init")):
+            distance = final_distance(plant, plant_context, station, scene, library, scenario.seed)
+        if policy.is_done(policy_context) or t >= scenario.max_sim_time_s:
             break
         t = min(t + dt, scenario.max_sim_time_s)
         simulator.AdvanceTo(t)
     loop_wall_s = time.perf_counter() - loop_start
+    if distance is None:
+        distance = final_distance(plant, plant_context, station, scene, library, scenario.seed)
     replay = None
-    if visualizer is not None:
-        visualizer.StopRecording()
-        visualizer.PublishRecording()
+    if ed.visualizer is not None:
+        ed.visualizer.StopRecording()
+        ed.visualizer.PublishRecording()
         replay = meshcat.StaticHtml()
-    state = supervisor.get_supervisor_state(sup_context)
-    outcome = dict(state.outcome)
+    outcome = policy.outcome(policy_context)
     if not outcome:
-        outcome = {"success": False, "failure_reason": f"timeout in mode {state.mode.value}"}
-    plant = station.plant
-    plant_context = plant.GetMyContextFromRoot(root)
+        outcome = {"success": False,
+                   "failure_reason": f"timeout in mode {policy.mode_name(policy_context)}"}
     X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
                                        plant.GetFrameByName("grasp_frame", station.gripper))
+    disturbance = {"kind": "none"}
+    if ed.disturbance is not None and scenario.disturbance.kind != "none":
+        dctx = ed.disturbance.GetMyContextFromRoot(root)
+        disturbance = {"kind": scenario.disturbance.kind}
+        if scenario.disturbance.kind == "shift":
+            trigger = ed.disturbance.trigger_time(dctx)
+            disturbance.update({
+                "shift_xy_m": ed.disturbance.shift[:2].tolist(),
+                "shift_yaw_deg": float(np.rad2deg(ed.disturbance.shift[2])),
+                "time_s": None if np.isnan(trigger) else trigger})
+        else:
+            disturbance["velocity_m_s"] = list(scenario.disturbance.velocity_m_s)
+    target_id = scene.objects[ed.target].object_id if ed.target is not None else None
     result = EpisodeResult(
         success=bool(outcome["success"]),
         failure_reason=outcome.get("failure_reason"),
@@ -196,15 +377,23 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
         sim_time_s=float(root.get_time()),
         wall_time_s=time.perf_counter() - wall_start,
         object_ids=scene.object_ids(),
-        target_object_id=scene.objects[target].object_id,
+        target_object_id=target_id,
         final_X_WG=_pose_dict(X_WG),
         object_lowest_point_m=outcome.get("object_lowest_point_m"),
+        final_distance_m=distance["final_distance_m"],
+        control_steps=int(outcome.get("iterations", len(steps)) or 0),
+        disturbance=disturbance,
+        noise=scenario.noise.kind,
         details={"held_after_close": outcome.get("held_after_close"),
-                 "final_mode": state.mode.value,
+                 "grasped_object_id": outcome.get("grasped_object_id"),
+                 "stop_reason": outcome.get("stop_reason"),
+                 "final_mode": policy.mode_name(policy_context),
+                 "hand_at_close_xy_yaw": distance["hand_xy_yaw"],
+                 "num_true_grasps": distance["num_true_grasps"],
                  "simulation_wall_time_s": loop_wall_s,
                  "num_depth_frames": len(frames)},
     )
-    return EpisodeRun(result=result, depth_frames=frames,
+    return EpisodeRun(result=result, depth_frames=frames, steps=steps,
                       final_plant_state=np.array(plant.GetPositionsAndVelocities(plant_context)),
                       replay_html=replay, scene=scene)
 

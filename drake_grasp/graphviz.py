@@ -17,7 +17,7 @@ def diagram_dot(scenario: Scenario, *, depth: int = 2) -> str:
 
     library = load_library(scenario.objects_dir or None)
     scene = sample_scene(scenario.scene, scenario.seed, library)
-    diagram = build_episode_diagram(scenario, scene, library)[0]
+    diagram = build_episode_diagram(scenario, scene, library).diagram
     return diagram.GetGraphvizString(max_depth=depth)
 
 

@@ -21,7 +21,9 @@ from drake_grasp.sensing import DepthNoiseConfig
 
 DEFAULT_SCENARIO_FILE = "default.scenarios.yaml"
 SCENE_KINDS = ("isolation", "random", "clutter")
-POLICIES = ("scripted",)
+POLICIES = ("scripted", "ctr", "gpd", "cnn-only", "cnn-ctr", "init")
+NOISE_KINDS = ("none", "gaussian", "offset")
+DISTURBANCE_KINDS = ("none", "shift", "moving")
 
 
 def _default_plant() -> MultibodyPlantConfig:
@@ -120,6 +122,78 @@ class ScriptedGraspConfig:
 
 
 @dataclass
+class ControllerConfig:
+    """The paper's closed-loop controller (Algorithm 1) and the learned evaluator.
+
+    Defaults are the paper's simulation: camera from 0.3 m to 0.15 m above the table in
+    75 iterations, each moving a fraction r = 0.2 of the way to the best candidate. (The
+    robot used r = 0.5 and 1 cm z steps.)
+    """
+
+    # Control period [s] (the robot's loop ran at about 5 Hz).
+    period_s: float = 0.1
+    iterations: int = 75
+    step_ratio: float = 0.2
+    # Camera height above the table at the last iteration [m]; the start height is
+    # `arm.start_camera_height_m`. z steps = (start - end) / iterations.
+    end_camera_height_m: float = 0.15
+    # Stop when the depth image shows an object this close to the sensor [m].
+    stop_distance_m: float = 0.14
+    # ... looking at the central part of the image (fraction of its side).
+    stop_window_fraction: float = 0.5
+    # Candidate actions per step, sampled uniformly in [-xy, xy]^2 x [-theta, theta]
+    # around the current pose (the paper constrains sampling near the origin).
+    num_candidates: int = 128
+    sample_xy_m: float = 0.04
+    sample_theta_deg: float = 45.0
+    # CNN weights; "" = the shipped models/cnn/weights.safetensors.
+    weights: str = ""
+    # Open-loop policies (cnn-only) search this many actions over the whole view.
+    global_candidates: int = 2048
+    # CPU threads for the CNN (1 suits one simulation per core).
+    torch_threads: int = 1
+
+
+@dataclass
+class NoiseConfig:
+    """Kinematic noise on commanded hand displacements.
+
+    gaussian: the paper's model, per commanded displacement
+        delta_noisy = delta + scale * w * |delta|, w ~ N(0, I) in (x, y, theta),
+        with |delta| in the paper's metric (0.001 m per degree).
+    offset: a fixed (x, y, theta) error between where the policy believes the hand goes
+        and where it goes, reached once the hand has moved `offset_ramp_m` from where
+        it looked first (calibrated at the observation pose, off at the grasp).
+    """
+
+    kind: str = "none"
+    gaussian_scale: float = 0.4
+    offset_xy_m: list[float] = field(default_factory=lambda: [0.02, 0.0])
+    offset_theta_deg: float = 0.0
+    offset_ramp_m: float = 0.01
+
+
+@dataclass
+class DisturbanceConfig:
+    """Moving the sheet under the objects during a grasp.
+
+    shift: after `after_iterations` controller iterations the sheet moves by a random
+        planar displacement (uniform translation up to `shift_max_m` in a random
+        direction, yaw uniform in +-`shift_max_yaw_deg`) within `shift_duration_s`,
+        as the paper's experimenter did with a sheet of paper.
+    moving: the sheet moves at a constant planar velocity during the approach.
+    """
+
+    kind: str = "none"
+    after_iterations: int = 3
+    shift_min_m: float = 0.03
+    shift_max_m: float = 0.08
+    shift_max_yaw_deg: float = 30.0
+    shift_duration_s: float = 0.5
+    velocity_m_s: list[float] = field(default_factory=lambda: [0.0, 0.01])
+
+
+@dataclass
 class JudgeConfig:
     """What counts as a successful grasp."""
 
@@ -143,6 +217,11 @@ class Scenario:
     arm: ArmConfig = field(default_factory=ArmConfig)
     scripted: ScriptedGraspConfig = field(default_factory=ScriptedGraspConfig)
     judge: JudgeConfig = field(default_factory=JudgeConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    # Target-object mode: grasp this object id (restricts candidates to its pixels).
+    target: str = ""
     # Object library folder made by `drake-grasp objects import`; "" = built-in.
     objects_dir: str = ""
     # Simulated-time budget of one episode [s].
@@ -156,6 +235,21 @@ class Scenario:
             raise ValueError(f"scene.kind: got {self.scene.kind!r}, expected one of {SCENE_KINDS}")
         if self.policy not in POLICIES:
             raise ValueError(f"policy: got {self.policy!r}, expected one of {POLICIES}")
+        if self.noise.kind not in NOISE_KINDS:
+            raise ValueError(f"noise.kind: got {self.noise.kind!r}, expected one of {NOISE_KINDS}")
+        if self.disturbance.kind not in DISTURBANCE_KINDS:
+            raise ValueError(f"disturbance.kind: got {self.disturbance.kind!r}, "
+                             f"expected one of {DISTURBANCE_KINDS}")
+        c = self.controller
+        if c.iterations < 1 or c.num_candidates < 1 or c.period_s <= 0:
+            raise ValueError("controller.iterations/num_candidates/period_s: expected positive values")
+        if not 0.0 < c.step_ratio <= 1.0:
+            raise ValueError(f"controller.step_ratio: got {c.step_ratio}, expected (0, 1]")
+        if not 0.0 < c.end_camera_height_m <= self.arm.start_camera_height_m:
+            raise ValueError("controller.end_camera_height_m: expected 0 < end <= "
+                             "arm.start_camera_height_m")
+        if len(self.noise.offset_xy_m) != 2:
+            raise ValueError(f"noise.offset_xy_m: expected [x, y], got {self.noise.offset_xy_m}")
         if self.scene.pose not in ("lying", "upright", "any"):
             raise ValueError(f"scene.pose: got {self.scene.pose!r}, expected lying|upright|any")
         if not 1 <= self.scene.num_objects_min <= self.scene.num_objects_max:

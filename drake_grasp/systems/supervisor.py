@@ -107,6 +107,12 @@ class ScriptedGraspSupervisor(LeafSystem):
     def is_done(self, context) -> bool:
         return self.get_supervisor_state(context).mode == Mode.DONE
 
+    def mode_name(self, context) -> str:
+        return self.get_supervisor_state(context).mode.value
+
+    def outcome(self, context) -> dict:
+        return dict(self.get_supervisor_state(context).outcome)
+
     # -- helpers --------------------------------------------------------------------
 
     def _object_points_W(self, context) -> np.ndarray:

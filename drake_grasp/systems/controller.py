@@ -1,0 +1,448 @@
+"""The grasp controller: the paper's closed-loop CTR and the one-shot baselines, each
+ending in the same predefined grasp motion (descend, close, lift, hold, judge).
+
+Policies (`policy` argument):
+    ctr: Algorithm 1 - every control period score the sampled candidates, move a
+        fraction r toward the best one in (x, y, theta), step down in z; stop at 14 cm.
+    cnn-ctr: the CNN's global best action from the first image, then CTR.
+    cnn-only: the CNN's global best action from the first image, executed open loop.
+    gpd: a GPD-style detection on the first image (`drake_grasp.gpd`), open loop.
+    init: no motion (the paper's INIT, for the distance experiment).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+from drake_grasp.actions import action_between, apply_actions, sample_actions_in_view
+from drake_grasp.grasps import points_between_pads, topdown_rotation
+from drake_grasp.policies import (
+    central_min_depth,
+    choose_action,
+    displacement_norm,
+    gaussian_noisy_displacement,
+    offset_fraction,
+)
+from drake_grasp.scenario import Scenario
+from drake_grasp.systems.supervisor import interpolate_pose, min_jerk
+
+CLOSED_LOOP = ("ctr", "cnn-ctr")
+ONE_SHOT = ("gpd", "cnn-only")
+
+
+class Phase(enum.Enum):
+    START = "start"        # before the first image
+    APPROACH = "approach"  # open-loop move to a one-shot target (gpd, cnn-only, cnn-ctr)
+    SERVO = "servo"        # CTR iterations
+    DESCEND = "descend"
+    CLOSE = "close"
+    LIFT = "lift"
+    HOLD = "hold"
+    JUDGE = "judge"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """One control decision, for pictures and analysis."""
+
+    iteration: int
+    time_s: float
+    hand: tuple  # believed hand pose [x, y, z, yaw_deg] when the image was taken
+    depth: np.ndarray
+    actions: np.ndarray
+    distances: np.ndarray
+    chosen: np.ndarray
+    moved: np.ndarray  # displacement commanded (after kinematic noise)
+
+
+@dataclass(frozen=True)
+class ControllerState:
+    """Everything the controller remembers (the Context's abstract state)."""
+
+    phase: Phase = Phase.START
+    phase_start_s: float = 0.0
+    iteration: int = 0
+    hand: tuple = (0.0, 0.0, 0.0, 0.0)         # believed target [x, y, z, yaw_deg]
+    segment_from: tuple = (0.0, 0.0, 0.0, 0.0)  # start of the current interpolated move
+    grasp: tuple | None = None                  # final grasp pose [x, y, z, yaw_deg]
+    stop_reason: str = ""
+    held_after_close: bool = False
+    last_step: StepRecord | None = None
+    outcome: dict = field(default_factory=dict)
+
+
+def hand_to_pose(hand) -> RigidTransform:
+    x, y, z, yaw = (float(v) for v in hand)
+    return RigidTransform(RotationMatrix(topdown_rotation(np.deg2rad(yaw))), [x, y, z])
+
+
+class GraspController(LeafSystem):
+    """Policy + predefined grasp motion; see the module docstring.
+
+    Input ports:
+        depth_image: post-processed wrist depth (ImageDepth32F).
+        label_image: the wrist camera's label image (ImageLabel16I), for target mode.
+        candidate_actions: (K, 3) from the ActionSampler.
+        predicted_distances: (K,) from the DistanceEvaluator.
+        body_poses: the plant's body poses (for the judge only).
+        gripper_state: [q_left, q_right, v_left, v_right].
+    Output ports:
+        X_WG_desired: desired grasp-frame pose for differential IK.
+        gripper_command: [width_m, grip_force_n].
+        control_status: [control step, approaching]: the CTR iteration (for the other
+            policies the number of control periods since the start), and 1 until the
+            gripper starts closing, then 0.
+    """
+
+    def __init__(self, *, scenario: Scenario, policy: str, X_WG_start: RigidTransform,
+                 X_GC: RigidTransform, X_BG: RigidTransform, gripper_body_index,
+                 object_bodies: list, object_points: list, object_ids: list[str],
+                 score_fn=None, detect_fn=None, target_label: int | None = None):
+        super().__init__()
+        self._s = scenario
+        self._policy = policy
+        c = scenario.controller
+        self._period = c.period_s
+        p = X_WG_start.translation()
+        R = X_WG_start.rotation().matrix()
+        yaw = np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))  # x_G = (cos yaw, sin yaw, 0)
+        self._start = (float(p[0]), float(p[1]), float(p[2]), float(yaw))
+        self._X_GC = X_GC
+        self._cam_dz = -float(X_GC.translation()[2])  # camera above the grasp centre
+        self._X_BG = X_BG
+        self._gripper_body = int(gripper_body_index)
+        self._objects = [int(b) for b in object_bodies]
+        self._object_points = [np.asarray(P, float) for P in object_points]
+        self._object_ids = list(object_ids)
+        self._score = score_fn
+        self._detect = detect_fn
+        self._target_label = target_label
+        start_cam = self._start[2] + self._cam_dz
+        self._dz = max(0.0, (start_cam - c.end_camera_height_m) / c.iterations)
+        cam = scenario.camera
+        self._focal = 0.5 * cam.height / np.tan(np.deg2rad(cam.fov_y_deg) / 2.0)
+
+        self._depth = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
+        self._label = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(ImageLabel16I()))
+        self._actions = self.DeclareAbstractInputPort(
+            "candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
+        self._distances = self.DeclareAbstractInputPort(
+            "predicted_distances", AbstractValue.Make(np.zeros(0)))
+        self._poses = self.DeclareAbstractInputPort(
+            "body_poses", AbstractValue.Make([RigidTransform()]))
+        self._gripper_state = self.DeclareVectorInputPort("gripper_state", 4)
+        self._state = self.DeclareAbstractState(AbstractValue.Make(ControllerState()))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, 0.0, self._Update)
+        self.DeclareAbstractOutputPort(
+            "X_WG_desired", lambda: AbstractValue.Make(RigidTransform()), self._CalcPose,
+            {self.abstract_state_ticket(self._state), self.time_ticket()})
+        self.DeclareVectorOutputPort("gripper_command", 2, self._CalcGripper,
+                                     {self.abstract_state_ticket(self._state)})
+        self.DeclareVectorOutputPort("control_status", 2, self._CalcStatus,
+                                     {self.abstract_state_ticket(self._state), self.time_ticket()})
+
+    # -- queries ----------------------------------------------------------------------
+
+    def get_controller_state(self, context) -> ControllerState:
+        return context.get_abstract_state(self._state).get_value()
+
+    def is_done(self, context) -> bool:
+        return self.get_controller_state(context).phase == Phase.DONE
+
+    def mode_name(self, context) -> str:
+        return self.get_controller_state(context).phase.value
+
+    def outcome(self, context) -> dict:
+        return dict(self.get_controller_state(context).outcome)
+
+    @property
+    def start_hand(self) -> tuple:
+        return self._start
+
+    # -- geometry helpers --------------------------------------------------------------
+
+    def _camera_height(self, hand) -> float:
+        return float(hand[2]) + self._cam_dz
+
+    def _noisy(self, delta: np.ndarray, rng_key: int) -> np.ndarray:
+        noise = self._s.noise
+        if noise.kind != "gaussian" or not np.any(delta):
+            return delta
+        rng = np.random.default_rng([self._s.seed, rng_key, 29])
+        return gaussian_noisy_displacement(delta, rng, noise.gaussian_scale)
+
+    def _executed(self, hand) -> tuple:
+        """Where the hand really goes for a believed pose (the constant-offset model)."""
+        noise = self._s.noise
+        if noise.kind != "offset":
+            return tuple(hand)
+        moved = float(np.hypot(hand[0] - self._start[0], hand[1] - self._start[1]))
+        f = offset_fraction(moved, noise.offset_ramp_m)
+        dx, dy = noise.offset_xy_m
+        out = apply_actions([hand[0], hand[1], hand[3]],
+                            np.array([[f * dx, f * dy, f * noise.offset_theta_deg]]))[0]
+        return (float(out[0]), float(out[1]), float(hand[2]), float(out[2]))
+
+    def _object_top_under(self, depth: np.ndarray, hand) -> float:
+        """Height of the highest surface between the open fingers, from the depth image."""
+        cam = self._s.camera
+        h, w = depth.shape
+        cam_z = self._camera_height(hand)
+        c_off = self._X_GC.translation()  # camera position in G
+        top = 0.0
+        for _ in range(2):  # project at the table, then at the found top (parallax)
+            d = max(cam_z - top, 0.05)
+            # The pad-swept box |x| <= 42.5 mm, |y| <= 11 mm around the grasp axis, seen
+            # from the camera (same orientation as G): pixel = f * (P - c) / d + centre.
+            xs = (np.array([-0.0425, 0.0425]) - c_off[0]) * self._focal / d + (w / 2 - 0.5)
+            ys = (np.array([-0.011, 0.011]) - c_off[1]) * self._focal / d + (h / 2 - 0.5)
+            c0, c1 = int(np.clip(np.floor(xs.min()), 0, w - 1)), int(np.clip(np.ceil(xs.max()), 0, w - 1))
+            r0, r1 = int(np.clip(np.floor(ys.min()), 0, h - 1)), int(np.clip(np.ceil(ys.max()), 0, h - 1))
+            window = depth[r0:r1 + 1, c0:c1 + 1]
+            valid = window[np.isfinite(window) & (window > 0)]
+            if valid.size == 0:
+                return 0.0
+            top = max(0.0, cam_z - float(valid.min()))
+        return top
+
+    def _grasp_from_depth(self, depth: np.ndarray, hand) -> tuple:
+        m = self._s.scripted
+        top = self._object_top_under(depth, hand)
+        z = max(m.min_grasp_height_m, top - m.grasp_depth_below_top_m)
+        return (hand[0], hand[1], min(z, hand[2]), hand[3])
+
+    def _target_mask(self, context, actions: np.ndarray, hand) -> np.ndarray | None:
+        """Which candidates put the hand centre over the target object's pixels."""
+        if self._target_label is None:
+            return None
+        labels = self._label.Eval(context).data[:, :, 0]
+        depth = self._depth.Eval(context).data[:, :, 0]
+        target = labels == self._target_label
+        if not target.any():
+            return None
+        h, w = labels.shape
+        d = float(np.median(depth[target]))
+        c_off = self._X_GC.translation()
+        u = np.round((actions[:, 0] - c_off[0]) * self._focal / d + (w / 2 - 0.5)).astype(int)
+        v = np.round((actions[:, 1] - c_off[1]) * self._focal / d + (h / 2 - 0.5)).astype(int)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        mask = np.zeros(len(actions), bool)
+        mask[inside] = target[v[inside], u[inside]]
+        if not mask.any():
+            # Target out of the sampled region: head for the centre of its pixels.
+            rows, cols = np.nonzero(target)
+            goal = np.array([(cols.mean() - (w / 2 - 0.5)) * d / self._focal + c_off[0],
+                             (rows.mean() - (h / 2 - 0.5)) * d / self._focal + c_off[1]])
+            mask[np.argmin(np.linalg.norm(actions[:, :2] - goal, axis=1))] = True
+        return mask
+
+    # -- decisions ----------------------------------------------------------------------
+
+    def _global_best(self, context, hand) -> np.ndarray:
+        """cnn-only: the CNN's best action over the whole camera view."""
+        cam = self._s.camera
+        rng = np.random.default_rng([self._s.seed, 0, 31])
+        actions = sample_actions_in_view(
+            rng, self._s.controller.global_candidates,
+            camera_height_m=self._camera_height(hand), fov_deg=cam.fov_y_deg,
+            camera_offset_xy_G=self._X_GC.translation()[:2], margin_m=0.01)
+        depth = self._depth.Eval(context).data[:, :, 0]
+        distances = self._score(depth, actions)
+        mask = self._target_mask(context, actions, hand)
+        if mask is not None:
+            distances = np.where(mask, distances, np.inf)
+        return choose_action(actions, distances)[0]
+
+    def _ctr_step(self, context, s: ControllerState, t: float) -> ControllerState:
+        c = self._s.controller
+        hand = s.hand
+        depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
+        near = central_min_depth(depth, c.stop_window_fraction)
+        cam_z = self._camera_height(hand)
+        reason = ""
+        if near < c.stop_distance_m:
+            reason = f"object within {c.stop_distance_m:.2f} m of the sensor ({near:.3f} m)"
+        elif cam_z <= c.end_camera_height_m + 1e-6:
+            reason = "hand at its lowest height"
+        elif s.iteration >= c.iterations:
+            reason = "iteration budget spent"
+        if reason:
+            grasp = self._grasp_from_depth(depth, hand)
+            return replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=hand,
+                           grasp=grasp, stop_reason=reason)
+        actions = np.asarray(self._actions.Eval(context), float)
+        distances = np.asarray(self._distances.Eval(context), float)
+        mask = self._target_mask(context, actions, hand)
+        if mask is not None:
+            distances = np.where(mask, distances, np.inf)
+        best, _ = choose_action(actions, distances)
+        delta = self._noisy(c.step_ratio * best, s.iteration + 1)
+        moved = apply_actions([hand[0], hand[1], hand[3]], delta[None])[0]
+        z = max(hand[2] - self._dz, c.end_camera_height_m - self._cam_dz)
+        new_hand = (float(moved[0]), float(moved[1]), float(z), float(moved[2]))
+        record = StepRecord(s.iteration, t, tuple(hand), depth, actions, distances, best, delta)
+        return replace(s, iteration=s.iteration + 1, hand=new_hand, segment_from=hand,
+                       phase_start_s=t, last_step=record)
+
+    def _Update(self, context, state):
+        s = self.get_controller_state(context)
+        t = context.get_time()
+        m = self._s.scripted
+        elapsed = t - s.phase_start_s
+        new = s
+        if s.phase == Phase.START:
+            new = self._Start(context, s, t)
+        elif s.phase == Phase.APPROACH and elapsed >= m.approach_time_s:
+            if self._policy == "cnn-ctr":
+                new = replace(s, phase=Phase.SERVO, phase_start_s=t, segment_from=s.hand)
+            else:
+                new = replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=s.hand)
+        elif s.phase == Phase.SERVO:
+            new = self._ctr_step(context, s, t)
+        elif s.phase == Phase.DESCEND and elapsed >= m.descend_time_s:
+            new = replace(s, phase=Phase.CLOSE, phase_start_s=t)
+        elif s.phase == Phase.CLOSE:
+            v = self._gripper_state.Eval(context)[2:]
+            if (elapsed > 0.3 and np.abs(v).max() < 1e-3) or elapsed >= m.close_time_s:
+                new = replace(s, phase=Phase.LIFT, phase_start_s=t,
+                              held_after_close=self._held_object(context) is not None)
+        elif s.phase == Phase.LIFT and elapsed >= m.lift_time_s:
+            new = replace(s, phase=Phase.HOLD, phase_start_s=t)
+        elif s.phase == Phase.HOLD and elapsed >= m.hold_time_s:
+            new = replace(s, phase=Phase.JUDGE, phase_start_s=t)
+        elif s.phase == Phase.JUDGE:
+            new = replace(s, phase=Phase.DONE, phase_start_s=t, outcome=self._Judge(context, s))
+        if new is not s:
+            state.get_mutable_abstract_state(int(self._state)).set_value(new)
+
+    def _Start(self, context, s: ControllerState, t: float) -> ControllerState:
+        start = self._start
+        base = replace(s, hand=start, segment_from=start, phase_start_s=t)
+        if self._policy == "init":
+            return replace(base, phase=Phase.DONE, outcome={
+                "success": False, "failure_reason": "init: no grasp attempted"})
+        if self._policy == "ctr":
+            return replace(base, phase=Phase.SERVO)
+        depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
+        if self._policy in ("cnn-only", "cnn-ctr"):
+            best = self._global_best(context, start)
+            delta = self._noisy(best, 0)
+            moved = apply_actions([start[0], start[1], start[3]], delta[None])[0]
+            hand = (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
+            grasp = self._grasp_from_depth(depth, hand) if self._policy == "cnn-only" else None
+            # The one-shot move keeps the start height; the final descent (or CTR) follows.
+            return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
+        # gpd
+        X_WC = hand_to_pose(start) @ self._X_GC
+        detection = self._detect(depth, X_WC.GetAsMatrix4())
+        if detection is None:
+            return replace(base, phase=Phase.DONE, outcome={
+                "success": False, "failure_reason": "missed: no grasp detected"})
+        x, y, theta, z = detection
+        # Move there as one displacement (noisy like any commanded displacement).
+        goal = np.array([x, y, theta])
+        a = action_between(np.array([start[0], start[1], start[3]]), goal)
+        delta = self._noisy(a, 0)
+        moved = apply_actions([start[0], start[1], start[3]], delta[None])[0]
+        hand = (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
+        grasp = (hand[0], hand[1], float(z), hand[3])
+        return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
+
+    # -- judge --------------------------------------------------------------------------
+
+    def _held_object(self, context) -> int | None:
+        """Index of an object between the pads of a not fully closed gripper, if any."""
+        x = self._gripper_state.Eval(context)
+        width = float(x[0] + x[1])
+        if width <= self._s.judge.min_holding_width_m:
+            return None
+        poses = self._poses.Eval(context)
+        X_GW = (poses[self._gripper_body] @ self._X_BG).inverse()
+        for i, (b, P) in enumerate(zip(self._objects, self._object_points)):
+            X = poses[b]
+            P_G = X_GW.multiply((P @ X.rotation().matrix().T + X.translation()).T).T
+            if points_between_pads(P_G, width) > 0:
+                return i
+        return None
+
+    def _Judge(self, context, s: ControllerState) -> dict:
+        poses = self._poses.Eval(context)
+        held = self._held_object(context)
+        lowest = None
+        if held is not None:
+            X = poses[self._objects[held]]
+            P = self._object_points[held] @ X.rotation().matrix().T + X.translation()
+            lowest = float(P[:, 2].min())
+        success = held is not None and lowest >= self._s.judge.min_lift_m
+        if success:
+            reason = None
+        elif not s.held_after_close:
+            reason = "missed: nothing between the pads after closing"
+        else:
+            reason = "slipped: the object left the pads during lift/hold"
+        return {"success": bool(success), "failure_reason": reason,
+                "object_lowest_point_m": lowest,
+                "grasped_object_id": self._object_ids[held] if held is not None else None,
+                "held_after_close": s.held_after_close, "stop_reason": s.stop_reason,
+                "iterations": s.iteration}
+
+    # -- outputs ------------------------------------------------------------------------
+
+    def _CalcPose(self, context, output):
+        s = self.get_controller_state(context)
+        m = self._s.scripted
+        t = context.get_time()
+        elapsed = t - s.phase_start_s
+        if s.phase in (Phase.START,):
+            hand = self._start
+            X = hand_to_pose(self._executed(hand))
+        elif s.phase == Phase.APPROACH:
+            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
+                                 hand_to_pose(self._executed(s.hand)),
+                                 min_jerk(elapsed / m.approach_time_s))
+        elif s.phase == Phase.SERVO:
+            # Move to the new target within one control period.
+            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
+                                 hand_to_pose(self._executed(s.hand)),
+                                 min_jerk(elapsed / (0.8 * self._period)))
+        elif s.phase == Phase.DESCEND:
+            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
+                                 hand_to_pose(self._executed(s.grasp)),
+                                 min_jerk(elapsed / m.descend_time_s))
+        elif s.phase == Phase.CLOSE:
+            X = hand_to_pose(self._executed(s.grasp))
+        elif s.phase == Phase.LIFT:
+            lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
+            X = interpolate_pose(hand_to_pose(self._executed(s.grasp)),
+                                 hand_to_pose(self._executed(lifted)),
+                                 min_jerk(elapsed / m.lift_time_s))
+        elif s.grasp is not None:
+            lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
+            X = hand_to_pose(self._executed(lifted))
+        else:
+            X = hand_to_pose(self._executed(s.hand))
+        output.set_value(X)
+
+    def _CalcGripper(self, context, output: BasicVector):
+        s = self.get_controller_state(context)
+        closed = s.phase in (Phase.CLOSE, Phase.LIFT, Phase.HOLD, Phase.JUDGE) or (
+            s.phase == Phase.DONE and s.grasp is not None)
+        g = self._s.gripper
+        output.SetFromVector([0.0 if closed else g.open_width_m, g.grip_force_n])
+
+    def _CalcStatus(self, context, output: BasicVector):
+        s = self.get_controller_state(context)
+        if s.phase in (Phase.START, Phase.SERVO) or self._policy in CLOSED_LOOP:
+            step = s.iteration
+        else:
+            step = int(round(context.get_time() / self._period))
+        approaching = s.phase in (Phase.START, Phase.APPROACH, Phase.SERVO, Phase.DESCEND)
+        output.SetFromVector([float(step), 1.0 if approaching else 0.0])

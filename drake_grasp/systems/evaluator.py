@@ -1,0 +1,90 @@
+"""The learned distance function and the candidate sampler as LeafSystems."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, LeafSystem, NumericParameterIndex
+from pydrake.systems.sensors import ImageDepth32F
+
+from drake_grasp.assets import models_dir
+from drake_grasp.network import DistanceCNN, load_weights
+from drake_grasp.policies import sample_candidates
+
+DEFAULT_WEIGHTS = "cnn/weights.safetensors"
+
+
+def load_cnn(weights: str = "") -> DistanceCNN:
+    """The distance CNN from a weights file; "" -> the shipped `models/cnn/` weights."""
+    path = weights or str(models_dir() / DEFAULT_WEIGHTS)
+    model, _ = load_weights(path)
+    return model.eval()
+
+
+def score_candidates(model: DistanceCNN, depth: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Predicted distance [m] for each candidate action on one depth image (fast path)."""
+    with torch.inference_mode():
+        features = model.image_features(model.preprocess(np.array(depth, np.float32)))
+        return model.score_actions(features[0], np.asarray(actions, np.float32)).numpy().astype(float)
+
+
+class DistanceEvaluator(LeafSystem):
+    """d(I, a): the CNN's predicted distance to the nearest grasp for each candidate.
+
+    Input ports:
+        depth_image: post-processed wrist depth (ImageDepth32F).
+        candidate_actions: (K, 3) actions [dx, dy, dtheta_deg] in the hand frame.
+    Output ports:
+        predicted_distances: (K,) metres.
+    """
+
+    def __init__(self, model: DistanceCNN):
+        super().__init__()
+        self._model = model
+        self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
+        self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
+        self.DeclareAbstractOutputPort(
+            "predicted_distances", lambda: AbstractValue.Make(np.zeros(0)),
+            self._CalcDistances)
+
+    def _CalcDistances(self, context, output):
+        depth = self.get_input_port(0).Eval(context).data[:, :, 0]
+        actions = self.get_input_port(1).Eval(context)
+        output.set_value(score_candidates(self._model, depth, actions) if len(actions)
+                         else np.zeros(0))
+
+
+class ActionSampler(LeafSystem):
+    """Candidate actions near the current pose, fresh for every control step.
+
+    The draw of step k depends only on (trial seed, k): `default_rng([seed, k, 17])`.
+
+    Output ports:
+        candidate_actions: (K, 3) actions uniform in [-xy, xy]^2 x [-theta, theta].
+    Parameters:
+        seed (numeric, 1 element): the trial seed; `set_seed`.
+    """
+
+    def __init__(self, *, num_candidates: int, xy_m: float, theta_deg: float, period_s: float,
+                 seed: int = 0):
+        super().__init__()
+        self._k = int(num_candidates)
+        self._xy = float(xy_m)
+        self._theta = float(theta_deg)
+        self._period = float(period_s)
+        self._seed = self.DeclareNumericParameter(BasicVector([float(seed)]))
+        self.DeclareAbstractOutputPort(
+            "candidate_actions", lambda: AbstractValue.Make(np.zeros((0, 3))), self._Calc,
+            {self.time_ticket(), self.numeric_parameter_ticket(NumericParameterIndex(self._seed))})
+
+    def set_seed(self, context, seed: int) -> None:
+        context.get_mutable_numeric_parameter(self._seed).SetAtIndex(0, float(seed))
+
+    def step_index(self, context) -> int:
+        return int(round(context.get_time() / self._period))
+
+    def _Calc(self, context, output):
+        seed = int(context.get_numeric_parameter(self._seed).GetAtIndex(0))
+        rng = np.random.default_rng([seed, self.step_index(context), 17])
+        output.set_value(sample_candidates(rng, self._k, xy_m=self._xy, theta_deg=self._theta))
