@@ -52,13 +52,44 @@ def _episode_rtf(scenario_name: str, text: str = "") -> dict:
 
 
 def bench_rtf_isolation() -> dict:
-    out = _episode_rtf("isolation")
+    out = _episode_rtf("isolation", "{policy: scripted}")
     return {"rtf_isolation": round(out["rtf"], 3), "rtf_isolation_detail": out}
 
 
 def bench_rtf_clutter5() -> dict:
-    out = _episode_rtf("clutter", "{scene: {clutter_objects: 5}}")
+    out = _episode_rtf("clutter", "{policy: scripted, scene: {clutter_objects: 5}}")
     return {"rtf_clutter5": round(out["rtf"], 3), "rtf_clutter5_detail": out}
+
+
+def bench_rtf_ctr_clutter5() -> dict:
+    """A full CTR episode (CNN every 0.1 s, 128 candidates) in a 5-object pile."""
+    out = _episode_rtf("clutter", "{policy: ctr, scene: {clutter_objects: 5}}")
+    return {"rtf_ctr_clutter5": round(out["rtf"], 3), "rtf_ctr_clutter5_detail": out}
+
+
+def bench_controller_step_ms(repeats: int = 50) -> dict:
+    """Latest image -> chosen action: sample 128 candidates, score them with the CNN
+    (fast path, 1 thread as in an episode), pick the least (median)."""
+    import torch
+
+    from drake_grasp.policies import choose_action, sample_candidates
+    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+
+    model = load_cnn("")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rng = np.random.default_rng(0)
+        depth = rng.uniform(0.2, 0.3, (64, 64)).astype(np.float32)
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            actions = sample_candidates(rng, 128, xy_m=0.04, theta_deg=45.0)
+            choose_action(actions, score_candidates(model, depth, actions))
+            times.append(time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(threads)
+    return {"controller_step_ms": round(1000 * float(np.median(times)), 2)}
 
 
 def bench_depth_frame_ms(repeats: int = 200) -> dict:
@@ -68,7 +99,7 @@ def bench_depth_frame_ms(repeats: int = 200) -> dict:
     from drake_grasp.scenario import load_scenario, replace
     from drake_grasp.scene import make_scene
 
-    scenario = load_scenario(scenario_name="clutter")
+    scenario = load_scenario(scenario_name="clutter", scenario_text="{policy: scripted}")
     scenario = replace(scenario, seed=BENCH_SEED)
     scenario.depth_noise.enabled = True
     library = load_library(None)
@@ -189,6 +220,8 @@ BENCHMARKS = {
     "depth_frame_ms": bench_depth_frame_ms,
     "labels_per_s": bench_labels_per_s,
     "cnn": bench_cnn,
+    "controller_step_ms": bench_controller_step_ms,
+    "rtf_ctr_clutter5": bench_rtf_ctr_clutter5,
 }
 
 

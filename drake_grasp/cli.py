@@ -34,13 +34,28 @@ def _load(args, **overrides):
 def _cmd_demo(args) -> int:
     from drake_grasp.episode import run_episode
 
-    overrides = {"policy": args.policy}
+    import dataclasses
+
+    overrides = {}
+    if args.policy is not None:
+        overrides["policy"] = args.policy
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.target is not None:
+        overrides["target"] = args.target
     scenario = _load(args, **overrides)
+    if args.noise is not None:
+        scenario = dataclasses.replace(
+            scenario, noise=dataclasses.replace(scenario.noise, kind=args.noise))
+    if args.weights is not None:
+        scenario = dataclasses.replace(
+            scenario, controller=dataclasses.replace(scenario.controller, weights=args.weights))
+    scenario.validate()
     result = run_episode(scenario, out_dir=args.out, scenario_name=args.scenario,
                          replay=not args.no_replay)
     print(json.dumps({"success": result.success, "failure_reason": result.failure_reason,
+                      "final_distance_m": result.final_distance_m,
+                      "control_steps": result.control_steps,
                       "object_ids": result.object_ids, "sim_time_s": round(result.sim_time_s, 3),
                       "wall_time_s": round(result.wall_time_s, 2), "out": str(args.out)}))
     return 0
@@ -136,8 +151,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run one grasp episode and write episode.json, "
                                     "replay.html and depth.png")
     _add_scenario_flags(p)
-    p.add_argument("--policy", default="scripted", choices=["scripted"],
-                   help="scripted: grasp from above using the object's true pose")
+    p.add_argument("--policy", default=None,
+                   choices=["ctr", "gpd", "cnn-only", "cnn-ctr", "init", "scripted"],
+                   help="ctr: the paper's closed-loop controller (shipped CNN); gpd: one-shot "
+                        "grasp detection on the first image, open loop; cnn-only: the CNN's "
+                        "global best action, open loop; cnn-ctr: cnn-only then ctr; init: no "
+                        "motion; scripted: grasp from above using the true object pose "
+                        "(default: the scenario's policy)")
+    p.add_argument("--noise", default=None, choices=["none", "gaussian", "offset"],
+                   help="kinematic noise on commanded displacements (default: the scenario's)")
+    p.add_argument("--target", default=None, metavar="OBJECT_ID",
+                   help="grasp this object: candidates restricted to its image region")
+    p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn/)")
     p.add_argument("--seed", type=int, default=None,
                    help="trial seed (scene and noise); default: the scenario's seed")
     p.add_argument("--out", required=True, help="output folder")

@@ -428,7 +428,8 @@ def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title:
 def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str = "",
                 library=None, replay: bool = True) -> EpisodeResult:
     """Runs one episode and writes `episode.json`, `scenario.yaml`, `scene.json`,
-    `depth.png` and (with `replay`) `replay.html` into `out_dir`.
+    `depth.png`, `controller_steps.png` (closed-loop policies) and (with `replay`)
+    `replay.html` into `out_dir`.
 
     Files are written to a staging folder beside `out_dir` and moved in only when the
     episode finished, so a failure leaves nothing half-written in `out_dir`.
@@ -443,9 +444,18 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
                                visualize=replay)
         (staging / "scenario.yaml").write_text(dump_scenario(scenario))
         run.scene.save(staging / "scene.json")
+        verdict = "success" if run.result.success else "failure"
         save_depth_contact_sheet(run.depth_frames, staging / "depth.png",
-                                 title=f"{scenario_name} seed {scenario.seed}: "
-                                       f"{'success' if run.result.success else 'failure'}")
+                                 title=f"{scenario_name} {scenario.policy} seed {scenario.seed}: {verdict}")
+        if run.steps:
+            from drake_grasp.pictures import save_controller_steps
+            from drake_grasp.station import gripper_frame_offsets
+
+            save_controller_steps(
+                run.steps, staging / "controller_steps.png", fov_y_deg=scenario.camera.fov_y_deg,
+                X_GC_xyz=gripper_frame_offsets()[2].translation(),
+                title=f"{scenario_name} {scenario.policy} seed {scenario.seed}: {verdict}; "
+                      "red = gripper now, green = best candidate")
         if run.replay_html is not None:
             (staging / "replay.html").write_text(run.replay_html)
         (staging / "episode.json").write_text(run.result.to_json())

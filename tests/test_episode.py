@@ -12,7 +12,8 @@ from drake_grasp.scenario import load_scenario
 
 
 def _isolated(object_id: str, pose: str, seed: int = 0, extra: str = ""):
-    text = f"{{seed: {seed}, scene: {{object_ids: [{object_id}], pose: {pose}}}{extra}}}"
+    text = (f"{{seed: {seed}, policy: scripted, scene: {{object_ids: [{object_id}], pose: {pose}}}"
+            f"{extra}}}")
     return load_scenario(scenario_name="isolation", scenario_text=text)
 
 
@@ -40,7 +41,7 @@ def test_scripted_grasp_slips_when_the_grip_force_is_too_low(library):
 
 
 def test_same_seed_same_final_state(library):
-    scenario = load_scenario(scenario_name="random", scenario_text="{seed: 4, max_sim_time_s: 1.0}")
+    scenario = load_scenario(scenario_name="random", scenario_text="{seed: 4, policy: scripted, max_sim_time_s: 1.0}")
     a = simulate_episode(scenario, library=library, record_depth=False)
     b = simulate_episode(scenario, library=library, record_depth=False)
     assert a.scene.to_dict() == b.scene.to_dict()
@@ -84,6 +85,6 @@ def test_broken_mesh_is_named(tmp_path, library):
     broken = sorted(dst.glob("collision_*.obj"))[0]
     broken.write_text("this is not a mesh\n")
     user = ObjectLibrary.from_dir(tmp_path / "lib")
-    scenario = load_scenario(scenario_name="isolation", scenario_text="{scene: {object_ids: [can_000], split: ''}}")
+    scenario = load_scenario(scenario_name="isolation", scenario_text="{policy: scripted, scene: {object_ids: [can_000], split: ''}}")
     with pytest.raises(Exception, match=broken.name):
         simulate_episode(scenario, library=user, record_depth=False)

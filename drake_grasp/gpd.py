@@ -1,0 +1,775 @@
+"""One-shot grasp pose detection (GPD) from a single depth image: the paper's baseline.
+
+Viereck et al. (CoRL 2017) compare their closed-loop controller with grasp pose
+detection (Gualtieri, ten Pas, Saenko & Platt, IROS 2016), run once from one depth
+view: the hand moves to a fixed pose above the table, takes one image, and executes
+the top detection open loop. GPD proposes hand candidates geometrically (ten Pas &
+Platt, ISRR 2015) and ranks them with a CNN. This module keeps the geometric part and
+ranks with a documented geometric score instead of a learned classifier, so it needs
+no training and runs anywhere: pure numpy / scipy, no Drake, no meshes, no ground
+truth. Its input is what a robot has: one depth image, the camera intrinsics (the
+pinhole model of `drake_grasp.station.make_depth_camera`) and the camera pose the
+robot believes it has.
+
+Pipeline (`detect_grasps`):
+
+1. Back-projection (`organized_points`, `depth_to_points`): world points of the valid
+   pixels and surface normals from neighbour differences in the organised image.
+2. Table removal: points below ``table_z + table_margin_m`` are the table / sheet.
+3. Candidates, as in ten Pas & Platt: `num_samples` cloud points drawn with the
+   given `rng`; about each, `num_rotations` top-down hands whose first closing
+   direction is the local surface normal projected to the horizontal plane (or, on
+   flat tops where the normal is vertical, the minor axis of the local footprint),
+   the others evenly spaced over 180 degrees (so the perpendicular is among them);
+   each at several `depths` below the local top (the highest point between the
+   pads), never with the fingertips below ``table_z + table_margin_m``.
+4. Tests per hand (all vectorised over hands x neighbouring points):
+   * collision: one view sees only the top of things, so the space below every
+     visible point is taken as occupied (a column down to the table). A finger, the
+     palm or the housing, swept straight down to its final pose, is free only if no
+     visible point lies inside its footprint at or above its lowest face. Then an
+     occlusion check: probe points on the open fingers, the palm and the housing
+     must be seen as free space (in front of the measured depth), which rejects
+     hands reaching into shadows behind tall objects.
+   * closing region: at least `min_points_between` visible points whose columns
+     cross the box the pads sweep (85 mm x 22 mm x 38 mm), spanning a width of at
+     least `min_width_m`; the pads close to its extent along x_G.
+   * antipodal contacts: the extreme points along -x_G and +x_G (patches of depth
+     `contact_tolerance_m`) must lie on the same connected object and pass the
+     two-contact force-closure test (`grasps.force_closure`, friction `mu`). The
+     normal of a contact on a depth discontinuity (an object's silhouette) is the
+     horizontal direction of the depth drop, i.e. the wall of the occupied column,
+     which the camera cannot see; elsewhere it is the measured surface normal.
+5. Score (`ScoreWeights`, the terms are in [0, 1] and returned per grasp):
+   ``score = w_a * antipodal + w_c * centring + w_l * clearance + w_f * fill +
+   w_d * depth + w_v * view`` with
+   * antipodal: ``1 - max(angle_1, angle_2) / atan(mu)``, the contact normals'
+     margin inside the friction cone;
+   * centring: ``1 - d / r``, d the xy distance from the grasp centre to the
+     centroid of the grasped object's visible points, r that object's radius
+     (grasps near the middle of an object hold it balanced);
+   * clearance: ``min(42.5 mm + x_min, 42.5 mm - x_max) / 42.5 mm``, the smaller gap
+     between a contact and its open finger (largest for a hand centred on the
+     object: the most tolerance to position errors along the closing direction);
+   * fill: the fraction of the pads' closing area (width x 22 mm) that visible
+     points cover (low where the pads hang over an object's end);
+   * depth: the fraction of the 38 mm pads below the local top (more contact);
+   * view: ``1 - d / h``, d the xy distance to the camera axis, h the half width of
+     the view at the table; a tie-breaker (weight 0.05 by default).
+   Detections come sorted by score, best first.
+
+Conventions (`drake_grasp.grasps`): the grasp frame G sits between the pads, z_G is
+the approach (down for top-down grasps), x_G the closing direction, R_WG = Rz(yaw)
+Rx(pi). A detection's ``theta`` is the yaw of x_G in degrees modulo 180.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from drake_grasp.grasps import (
+    FINGER_OUTER_X_M,
+    FINGERTIP_Z_M,
+    HAND_FOOTPRINT_RADIUS_M,
+    HOUSING_FRONT_Z_M,
+    HOUSING_RADIUS_M,
+    PAD_HALF_LENGTH_M,
+    PAD_HALF_WIDTH_M,
+    PALM_FRONT_Z_M,
+    PALM_HALF_X_M,
+    PALM_HALF_Y_M,
+    STROKE_M,
+    force_closure,
+    topdown_rotation,
+)
+
+HALF_STROKE_M = 0.5 * STROKE_M
+# Default far value of the post-processed wrist images (`WristCameraConfig.depth_max_m`).
+DEFAULT_MAX_DEPTH_M = 1.5
+# The sheet (2 mm) plus 2 mm: the same clearance `grasps.check_grasp_poses` demands of
+# the fingertips above the sheet's top, and the cut below which points are "table".
+DEFAULT_TABLE_MARGIN_M = 0.004
+DEFAULT_DEPTHS_M = (0.0, 0.01, 0.02)
+# Below this horizontal component a normal gives no closing direction (flat tops):
+# sin(12 deg), as `grasps.sample_grasp_candidates`.
+_MIN_HORIZONTAL_NORMAL = 0.2
+# Radius of the footprint whose minor axis orients hands on flat tops [m].
+_FOOTPRINT_RADIUS_M = 0.03
+
+# Probe points on the open hand for the occlusion check, in G [m]: each finger
+# (inner face, middle, outer face) x (both edges, middle) x (tip, centre, pad top),
+# the palm's front face and the housing's front ring. Inset 1 mm from the faces so
+# that a probe is inside the part, not on its boundary.
+_FX = np.array([HALF_STROKE_M + 0.001, 0.5 * (HALF_STROKE_M + FINGER_OUTER_X_M),
+                FINGER_OUTER_X_M - 0.001])
+_FY = np.array([-PAD_HALF_WIDTH_M + 0.001, 0.0, PAD_HALF_WIDTH_M - 0.001])
+_FZ = np.array([FINGERTIP_Z_M - 0.001, 0.0, -PAD_HALF_LENGTH_M])
+
+
+def _probe_points() -> np.ndarray:
+    fx = np.concatenate([_FX, -_FX])
+    fingers = np.stack(np.meshgrid(fx, _FY, _FZ, indexing="ij"), axis=-1).reshape(-1, 3)
+    px = np.linspace(-PALM_HALF_X_M + 0.001, PALM_HALF_X_M - 0.001, 9)
+    py = np.array([-PALM_HALF_Y_M + 0.001, 0.0, PALM_HALF_Y_M - 0.001])
+    palm = np.stack(np.meshgrid(px, py, [PALM_FRONT_Z_M - 0.001], indexing="ij"),
+                    axis=-1).reshape(-1, 3)
+    phi = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+    r = HOUSING_RADIUS_M - 0.001
+    ring = np.column_stack([r * np.cos(phi), r * np.sin(phi),
+                            np.full(8, HOUSING_FRONT_Z_M - 0.001)])
+    return np.concatenate([fingers, palm, ring])
+
+
+PROBES_G = _probe_points()
+
+
+# ----------------------------------------------------------------------------
+# Argument checks.
+
+
+def _check_rng(rng) -> np.random.Generator:
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
+    return rng
+
+
+def _finite(name: str, value, *, low: float | None = None, low_inclusive: bool = True,
+            high: float | None = None) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}") from None
+    ok = np.isfinite(v)
+    if ok and low is not None:
+        ok = v >= low if low_inclusive else v > low
+    if ok and high is not None:
+        ok = v < high
+    if not ok:
+        rng_txt = ""
+        if low is not None:
+            rng_txt += f" {'>=' if low_inclusive else '>'} {low}"
+        if high is not None:
+            rng_txt += f"{' and' if low is not None else ''} < {high}"
+        raise ValueError(f"{name}: expected a finite number{rng_txt}, got {value!r}")
+    return v
+
+
+def _positive_int(name: str, value) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def _check_depth(depth) -> np.ndarray:
+    d = np.asarray(depth)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[:, :, 0]
+    if d.ndim != 2 or min(d.shape) < 3 or not np.issubdtype(d.dtype, np.number):
+        raise ValueError(
+            f"depth: expected a numeric (H, W) or (H, W, 1) image of depths [m] with "
+            f"H, W >= 3, got shape {d.shape} and dtype {d.dtype}")
+    d = d.astype(np.float64)
+    bad = np.isnan(d) | np.isneginf(d)
+    if bad.any():
+        raise ValueError(
+            f"depth: expected depths [m] (> 0; 0 or +inf mark invalid / far pixels), got "
+            f"{int(bad.sum())} NaN or -inf pixels (post-process the image first)")
+    return d
+
+
+def _check_pose(X_WC) -> np.ndarray:
+    if hasattr(X_WC, "GetAsMatrix4"):  # a Drake RigidTransform (no Drake import here)
+        X_WC = X_WC.GetAsMatrix4()
+    X = np.asarray(X_WC, dtype=float)
+    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
+        raise ValueError(
+            f"X_WC: expected a finite 4x4 homogeneous transform of the camera in the world, "
+            f"got shape {X.shape}" + ("" if X.shape != (4, 4) else " with non-finite entries"))
+    R = X[:3, :3]
+    if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0
+            or not np.allclose(X[3], [0.0, 0.0, 0.0, 1.0])):
+        raise ValueError("X_WC: expected a rigid transform (orthonormal rotation with det +1, "
+                         "last row [0, 0, 0, 1])")
+    return X
+
+
+def camera_intrinsics(height: int, width: int, fov_y_deg: float) -> tuple[float, float, float]:
+    """Pinhole intrinsics of Drake's `CameraInfo(width, height, fov_y)`.
+
+    Args:
+        height, width: Image size [pixels].
+        fov_y_deg: Vertical field of view [deg], in (0, 180).
+
+    Returns:
+        (f, cu, cv): focal length [pixels] (square pixels) and the principal point
+        (column, row) = (W / 2 - 0.5, H / 2 - 0.5).
+    """
+    fov = _finite("fov_y_deg", fov_y_deg, low=0.0, low_inclusive=False, high=180.0)
+    f = 0.5 * height / np.tan(np.deg2rad(fov) / 2.0)
+    return float(f), width / 2.0 - 0.5, height / 2.0 - 0.5
+
+
+# ----------------------------------------------------------------------------
+# Point cloud.
+
+
+@dataclass(frozen=True)
+class OrganizedCloud:
+    """Back-projected depth image, one entry per pixel (row, column).
+
+    Attributes:
+        points: (H, W, 3) world positions [m] (NaN where not `valid`).
+        normals: (H, W, 3) unit surface normals in the world, facing the camera
+            (zero where not `valid`).
+        valid: (H, W) pixels with a depth reading (0 < depth < far value).
+        depth: (H, W) the checked depth image [m].
+        focal_px: Focal length [pixels].
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    valid: np.ndarray
+    depth: np.ndarray
+    focal_px: float
+
+
+def organized_points(depth, *, fov_y_deg: float, X_WC,
+                     max_depth_m: float = DEFAULT_MAX_DEPTH_M) -> OrganizedCloud:
+    """Back-projects a depth image into world points and normals, keeping its grid.
+
+    Pixel (row v, column u) with depth d (along the optical axis, as Drake renders)
+    is the camera-frame point d * ((u - cu) / f, (v - cv) / f, 1) (x right, y down,
+    z forward). Normals come from the cross product of neighbour differences along
+    the rows and the columns; of the two neighbours on each axis the one with the
+    smaller depth step is used, so that normals at an object's silhouette describe
+    the object, not the jump to the table behind it. They are turned toward the
+    camera (a camera sees only surfaces facing it).
+
+    Args:
+        depth: (H, W) or (H, W, 1) depths [m]; values <= 0 (no reading) and values
+            >= `max_depth_m` or +inf (nothing within range) are dropped.
+        fov_y_deg: Vertical field of view [deg].
+        X_WC: (4, 4) pose of the camera in the world (or a Drake RigidTransform).
+        max_depth_m: The far value of the image [m].
+
+    Raises:
+        ValueError: a bad shape, NaN / -inf depths, or a bad pose or field of view.
+    """
+    d = _check_depth(depth)
+    X = _check_pose(X_WC)
+    far = _finite("max_depth_m", max_depth_m, low=0.0, low_inclusive=False)
+    H, W = d.shape
+    f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
+    # A hair below the far value: post-processing writes exactly `far` (float32).
+    valid = (d > 0.0) & (d < far * (1.0 - 1e-6))
+    v, u = np.mgrid[0:H, 0:W]
+    dn = np.where(valid, d, np.nan)
+    P_C = np.stack([dn * (u - cu) / f, dn * (v - cv) / f, dn], axis=-1)
+
+    # One-sided differences: pick, per axis, the neighbour with the smaller depth step.
+    pad = np.pad(P_C, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+
+    def side_diff(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
+        jf = np.abs(fwd[..., 2])
+        jb = np.abs(bwd[..., 2])
+        jf = np.where(np.isnan(jf), np.inf, jf)
+        jb = np.where(np.isnan(jb), np.inf, jb)
+        return np.where((jf <= jb)[..., None], fwd, bwd)
+
+    c = pad[1:-1, 1:-1]
+    du = side_diff(pad[1:-1, 2:] - c, c - pad[1:-1, :-2])
+    dv = side_diff(pad[2:, 1:-1] - c, c - pad[:-2, 1:-1])
+    n = np.cross(du, dv)
+    n_len = np.linalg.norm(n, axis=-1, keepdims=True)
+    ok = np.isfinite(n_len) & (n_len > 1e-12)
+    # Isolated pixels (no valid neighbour on an axis): assume they face the camera.
+    with np.errstate(invalid="ignore", divide="ignore"):
+        toward = -P_C / np.linalg.norm(P_C, axis=-1, keepdims=True)
+        n = np.where(ok, n / np.where(ok, n_len, 1.0), toward)
+        flip = np.sum(n * P_C, axis=-1, keepdims=True) > 0.0
+    n = np.where(flip, -n, n)
+    R, t = X[:3, :3], X[:3, 3]
+    P_W = P_C @ R.T + t
+    N_W = np.where(valid[..., None], n @ R.T, 0.0)
+    return OrganizedCloud(P_W, N_W, valid, d, f)
+
+
+def depth_to_points(depth, *, fov_y_deg: float, X_WC,
+                    max_depth_m: float = DEFAULT_MAX_DEPTH_M) -> tuple[np.ndarray, np.ndarray]:
+    """World points of a depth image's valid pixels and their normals.
+
+    See `organized_points` for the camera model and the normals.
+
+    Returns:
+        points (N, 3) [m] and unit normals (N, 3) facing the camera, in row-major
+        pixel order, far and invalid pixels dropped.
+    """
+    cloud = organized_points(depth, fov_y_deg=fov_y_deg, X_WC=X_WC, max_depth_m=max_depth_m)
+    return cloud.points[cloud.valid], cloud.normals[cloud.valid]
+
+
+def remove_table(points, *, table_z: float = 0.0,
+                 table_margin_m: float = DEFAULT_TABLE_MARGIN_M) -> np.ndarray:
+    """Mask of the points above the table plane (z >= table_z + table_margin_m).
+
+    The default margin removes the 2 mm sheet the objects lie on and 2 mm of noise.
+    """
+    P = np.asarray(points, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points: expected an (N, 3) array, got shape {P.shape}")
+    cut = _finite("table_z", table_z) + _finite("table_margin_m", table_margin_m, low=0.0)
+    return P[:, 2] >= cut
+
+
+# ----------------------------------------------------------------------------
+# Results.
+
+
+@dataclass(frozen=True)
+class ScoreWeights:
+    """Weights of the score terms (each term in [0, 1]; see the module docstring)."""
+
+    antipodal: float = 1.0
+    centring: float = 1.0
+    clearance: float = 0.5
+    fill: float = 0.5
+    depth: float = 0.5
+    view: float = 0.05
+
+    def validate(self) -> None:
+        for name in ("antipodal", "centring", "clearance", "fill", "depth", "view"):
+            _finite(f"weights.{name}", getattr(self, name), low=0.0)
+
+
+SCORE_TERMS = ("antipodal", "centring", "clearance", "fill", "depth", "view")
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """One detected top-down grasp.
+
+    Attributes:
+        xy_theta: (3,) grasp centre x, y [m] and closing-direction yaw theta [deg] in
+            [0, 180).
+        z: Height of the grasp centre [m].
+        width: What the pads close to [m].
+        score: Its score (higher is better).
+    """
+
+    xy_theta: np.ndarray
+    z: float
+    width: float
+    score: float
+
+    @property
+    def hand_pose(self) -> np.ndarray:
+        """[x, y, z, yaw_deg] of the grasp frame (the format `SceneRenderer` takes)."""
+        return np.array([self.xy_theta[0], self.xy_theta[1], self.z, self.xy_theta[2]])
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(4, 4) X_WG of the grasp frame."""
+        X = np.eye(4)
+        X[:3, :3] = topdown_rotation(np.deg2rad(self.xy_theta[2]))
+        X[:3, 3] = [self.xy_theta[0], self.xy_theta[1], self.z]
+        return X
+
+
+@dataclass(frozen=True)
+class DetectedGrasps:
+    """Detections of one image, best first.
+
+    Attributes:
+        xy_theta: (N, 3) grasp centres x, y [m] and yaw theta [deg] in [0, 180) of
+            the closing direction x_G, in the world.
+        z: (N,) heights of the grasp centres [m].
+        width: (N,) what the pads close to (extent of the closing region) [m].
+        score: (N,) scores, descending.
+        contacts: (N, 2, 3) contact points (-x_G side, +x_G side) [m].
+        contact_normals: (N, 2, 3) their outward unit normals.
+        terms: Score terms by name (`SCORE_TERMS`), each (N,) in [0, 1].
+    """
+
+    xy_theta: np.ndarray
+    z: np.ndarray
+    width: np.ndarray
+    score: np.ndarray
+    contacts: np.ndarray
+    contact_normals: np.ndarray
+    terms: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+    @classmethod
+    def empty(cls) -> DetectedGrasps:
+        return cls(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0),
+                   np.zeros((0, 2, 3)), np.zeros((0, 2, 3)), {k: np.zeros(0) for k in SCORE_TERMS})
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) X_WG of the grasp frames (top-down: R_WG = Rz(theta) Rx(pi))."""
+        th = np.deg2rad(self.xy_theta[:, 2])
+        c, s = np.cos(th), np.sin(th)
+        X = np.zeros((len(self), 4, 4))
+        X[:, 0, 0], X[:, 1, 0] = c, s
+        X[:, 0, 1], X[:, 1, 1] = s, -c
+        X[:, 2, 2] = -1.0
+        X[:, :2, 3] = self.xy_theta[:, :2]
+        X[:, 2, 3] = self.z
+        X[:, 3, 3] = 1.0
+        return X
+
+    def hand_poses(self) -> np.ndarray:
+        """(N, 4) [x, y, z, yaw_deg] of the grasp frames."""
+        return np.column_stack([self.xy_theta[:, :2], self.z, self.xy_theta[:, 2]])
+
+    def best(self) -> Grasp | None:
+        """The top detection, or None when there is none."""
+        if len(self) == 0:
+            return None
+        return Grasp(self.xy_theta[0].copy(), float(self.z[0]), float(self.width[0]),
+                     float(self.score[0]))
+
+
+# ----------------------------------------------------------------------------
+# Detection.
+
+
+def _segments(sorted_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Runs of equal ids in a sorted array: (start positions, run ids, run index of
+    every element)."""
+    flag = np.empty(len(sorted_ids), dtype=bool)
+    if len(sorted_ids):
+        flag[0] = True
+        np.not_equal(sorted_ids[1:], sorted_ids[:-1], out=flag[1:])
+    starts = np.flatnonzero(flag)
+    return starts, sorted_ids[starts], np.cumsum(flag) - 1
+
+
+def _contact_normals(cloud: OrganizedCloud, step_threshold_m: float, far: float):
+    """Per-pixel contact normals and the depth-discontinuity mask.
+
+    At a silhouette (a pixel with an 8-neighbour deeper by more than
+    `step_threshold_m`) the surface below the visible edge is unseen and taken as a
+    vertical wall; its outward normal is the horizontal direction in which the depth
+    grows (a Sobel gradient, which averages a 3 x 3 neighbourhood and so resolves
+    edge directions to a few degrees). Elsewhere the measured normal is used.
+    """
+    d = np.where(cloud.valid, cloud.depth, far)
+    step = (ndimage.maximum_filter(d, size=3, mode="nearest") - d) > step_threshold_m
+    gu = ndimage.sobel(d, axis=1, mode="nearest")
+    gv = ndimage.sobel(d, axis=0, mode="nearest")
+    # Image axes u, v are the camera's x, y; their world directions give the wall normal.
+    return step & cloud.valid, gu, gv
+
+
+def detect_grasps(
+    depth,
+    *,
+    fov_y_deg: float,
+    X_WC,
+    rng: np.random.Generator,
+    mu: float = 0.5,
+    num_samples: int = 200,
+    num_rotations: int = 8,
+    depths=DEFAULT_DEPTHS_M,
+    table_z: float = 0.0,
+    table_margin_m: float = DEFAULT_TABLE_MARGIN_M,
+    max_depth_m: float = DEFAULT_MAX_DEPTH_M,
+    min_points_between: int = 5,
+    min_width_m: float = 0.005,
+    contact_tolerance_m: float = 0.004,
+    step_threshold_m: float = 0.008,
+    occlusion_check: bool = True,
+    occlusion_tolerance_m: float = 0.003,
+    weights: ScoreWeights | None = None,
+) -> DetectedGrasps:
+    """Detects top-down parallel-jaw grasps in one depth image (see the module doc).
+
+    Args:
+        depth: (H, W) depth image [m], e.g. `sensing.postprocess_depth`'s output.
+        fov_y_deg: The camera's vertical field of view [deg].
+        X_WC: (4, 4) camera pose the robot believes it has (or a RigidTransform).
+        rng: Draws the sample points (the only randomness: the same seed and image
+            give the same detections).
+        mu: Friction coefficient of the antipodal (force-closure) test.
+        num_samples: Cloud points to place hands at (all points if fewer). 200 on a
+            64 x 64 image covers a 5 cm object with ~1 sample per pixel.
+        num_rotations: Closing directions per sample, over 180 degrees (8: 22.5 deg).
+        depths: Grasp-centre depths below the local top [m] (non-negative).
+        table_z: Height of the table top in the world [m].
+        table_margin_m: Points below table_z + this are the table / sheet, and the
+            fingertips must stay at or above it [m].
+        max_depth_m: The image's far value [m]; pixels at or beyond it are empty.
+        min_points_between: Fewest visible points in the closing region.
+        min_width_m: Narrowest graspable width [m].
+        contact_tolerance_m: Depth of a contact patch along x_G [m] (about a pixel).
+        step_threshold_m: Depth jump between neighbouring pixels that marks a
+            silhouette [m].
+        occlusion_check: Reject hands whose probe points the camera cannot see as
+            free space (occluded: unknown, maybe occupied).
+        occlusion_tolerance_m: How far behind the measured surface a probe may lie
+            and still count as free [m] (noise, fingertips just above the table).
+        weights: Score weights (default `ScoreWeights()`).
+
+    Returns:
+        `DetectedGrasps`, sorted best first (empty when nothing passes).
+
+    Raises:
+        ValueError: a bad argument (named in the message).
+    """
+    _check_rng(rng)
+    mu = _finite("mu", mu, low=0.0)
+    S_max = _positive_int("num_samples", num_samples)
+    K = _positive_int("num_rotations", num_rotations)
+    dep = np.atleast_1d(np.asarray(depths, dtype=float))
+    if dep.ndim != 1 or len(dep) == 0 or not np.all(np.isfinite(dep)) or np.any(dep < 0):
+        raise ValueError(f"depths: expected a non-empty 1-D sequence of finite depths >= 0 [m], "
+                         f"got {depths!r}")
+    dep = np.unique(dep)  # sorted: a clamped depth then repeats the one before it
+    table_z = _finite("table_z", table_z)
+    table_margin_m = _finite("table_margin_m", table_margin_m, low=0.0)
+    min_points_between = _positive_int("min_points_between", min_points_between)
+    min_width_m = _finite("min_width_m", min_width_m, low=0.0)
+    tol = _finite("contact_tolerance_m", contact_tolerance_m, low=0.0)
+    step_threshold_m = _finite("step_threshold_m", step_threshold_m, low=0.0, low_inclusive=False)
+    occ_tol = _finite("occlusion_tolerance_m", occlusion_tolerance_m, low=0.0)
+    weights = ScoreWeights() if weights is None else weights
+    if not isinstance(weights, ScoreWeights):
+        raise ValueError(f"weights: expected a ScoreWeights, got {type(weights).__name__}")
+    weights.validate()
+    far = _finite("max_depth_m", max_depth_m, low=0.0, low_inclusive=False)
+
+    cloud = organized_points(depth, fov_y_deg=fov_y_deg, X_WC=X_WC, max_depth_m=far)
+    X = _check_pose(X_WC)
+    R_WC, p_WC = X[:3, :3], X[:3, 3]
+    floor = table_z + table_margin_m
+    obj = cloud.valid & (cloud.points[..., 2] >= floor)
+    if not obj.any():
+        return DetectedGrasps.empty()
+
+    # --- Per-pixel attributes of the object points --------------------------------
+    step, gu, gv = _contact_normals(cloud, step_threshold_m, far)
+    wall = gu[..., None] * R_WC[:, 0] + gv[..., None] * R_WC[:, 1]
+    wall[..., 2] = 0.0
+    wall_len = np.linalg.norm(wall, axis=-1, keepdims=True)
+    use_wall = step & (wall_len[..., 0] > 1e-9)
+    cn = np.where(use_wall[..., None], wall / np.maximum(wall_len, 1e-12), cloud.normals)
+    labels_img, n_labels = ndimage.label(obj, structure=np.ones((3, 3), dtype=int))
+    P = cloud.points[obj]  # (M, 3)
+    Nc = cn[obj]
+    is_wall = use_wall[obj]
+    label = labels_img[obj]
+    # Area each point stands for, across the optical axis (for the fill term).
+    area = (cloud.depth[obj] / cloud.focal_px) ** 2
+    M = len(P)
+    # Objects (connected components): centroid and radius for the centring term.
+    cnt_l = np.bincount(label, minlength=n_labels + 1).astype(float)
+    cx_l = np.bincount(label, P[:, 0], minlength=n_labels + 1) / np.maximum(cnt_l, 1)
+    cy_l = np.bincount(label, P[:, 1], minlength=n_labels + 1) / np.maximum(cnt_l, 1)
+    r_pt = np.hypot(P[:, 0] - cx_l[label], P[:, 1] - cy_l[label])
+    rad_l = np.zeros(n_labels + 1)
+    np.maximum.at(rad_l, label, r_pt)
+
+    # --- Samples and their hands' first closing directions --------------------------
+    S = min(S_max, M)
+    samples = np.sort(rng.choice(M, size=S, replace=False))
+    C = P[samples]  # hand axes pass through these points
+    dx = (P[None, :, 0] - C[:, None, 0]).astype(np.float32)
+    dy = (P[None, :, 1] - C[:, None, 1]).astype(np.float32)
+    r2 = dx * dx + dy * dy
+    near = r2 <= np.float32(HAND_FOOTPRINT_RADIUS_M + 1e-6) ** 2
+    s_idx, p_idx = np.nonzero(near)  # sorted by sample: contiguous runs per sample
+    pdx, pdy, pr2 = dx[near], dy[near], r2[near]
+    pz = P[p_idx, 2]
+    starts = np.flatnonzero(np.r_[True, s_idx[1:] != s_idx[:-1]])  # every sample has itself
+
+    h = Nc[samples, :2]
+    h_len = np.linalg.norm(h, axis=1)
+    # Flat tops: the minor axis of the local footprint (points within 3 cm).
+    fp = pr2 <= _FOOTPRINT_RADIUS_M**2
+    cnt = np.bincount(s_idx[fp], minlength=S).astype(float)
+    mx = np.bincount(s_idx[fp], pdx[fp], minlength=S) / cnt
+    my = np.bincount(s_idx[fp], pdy[fp], minlength=S) / cnt
+    cxx = np.bincount(s_idx[fp], pdx[fp] ** 2, minlength=S) / cnt - mx**2
+    cyy = np.bincount(s_idx[fp], pdy[fp] ** 2, minlength=S) / cnt - my**2
+    cxy = np.bincount(s_idx[fp], pdx[fp] * pdy[fp], minlength=S) / cnt - mx * my
+    minor = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy) + 0.5 * np.pi
+    base = np.where(h_len > _MIN_HORIZONTAL_NORMAL, np.arctan2(h[:, 1], h[:, 0]), minor)
+    base = np.mod(base, np.pi)
+
+    # --- Hand-frame coordinates of the neighbours, all K rotations: (K, pairs) -------
+    cb, sb = np.cos(base[s_idx]).astype(np.float32), np.sin(base[s_idx]).astype(np.float32)
+    x0 = pdx * cb + pdy * sb  # along x_G at rotation 0
+    w0 = pdy * cb - pdx * sb  # along -y_G at rotation 0 (only |y| matters)
+    phase = np.pi * np.arange(K) / K
+    c, s = np.cos(phase).astype(np.float32)[:, None], np.sin(phase).astype(np.float32)[:, None]
+    Xg = c * x0 + s * w0
+    aY = np.abs(c * w0 - s * x0)
+    aX = np.abs(Xg)
+    zf = pz.astype(np.float32)[None, :]
+    ninf = np.float32(-np.inf)
+    in_pad_y = aY <= PAD_HALF_WIDTH_M
+    strip = in_pad_y & (aX <= HALF_STROKE_M)
+    finger = in_pad_y & (aX > HALF_STROKE_M) & (aX <= FINGER_OUTER_X_M)
+    palm = (aX <= PALM_HALF_X_M) & (aY <= PALM_HALF_Y_M)
+    top = np.maximum.reduceat(np.where(strip, zf, ninf), starts, axis=1)  # (K, S)
+    finger_z = np.maximum.reduceat(np.where(finger, zf, ninf), starts, axis=1)
+    palm_z = np.maximum.reduceat(np.where(palm, zf, ninf), starts, axis=1)
+    house = np.where(pr2 <= HOUSING_RADIUS_M**2, pz, -np.inf)
+    house_z = np.maximum.reduceat(house, starts)[None, :]  # (1, S): round, any rotation
+
+    # Centre heights (K, S, D): `depths` below the local top, fingertips above the floor.
+    zc = np.maximum(top[..., None].astype(float) - dep, floor + FINGERTIP_Z_M)
+    free = ((finger_z[..., None] < zc - FINGERTIP_Z_M)
+            & (palm_z[..., None] < zc - PALM_FRONT_Z_M)
+            & (house_z[..., None] < zc - HOUSING_FRONT_Z_M))
+    free[..., 1:] &= zc[..., 1:] < zc[..., :-1] - 1e-9  # clamped depths: one copy
+    A = K * S
+    zc = zc.reshape(A, -1)
+    free = free.reshape(A, -1)
+    top = top.reshape(A).astype(float)
+    D = len(dep)
+
+    # --- Closing region and contacts of the collision-free hands --------------------
+    e = np.flatnonzero(strip)  # k-major, then by pair: axis ids a = k * S + s sorted
+    e_k, e_pair = np.divmod(e, len(s_idx))
+    e_axis = e_k * S + s_idx[e_pair]
+    e_x = Xg.ravel()[e]
+    e_pt = p_idx[e_pair]
+    e_z = pz[e_pair]
+    out = {k: [] for k in ("axis", "d", "count", "xmin", "xmax", "c0", "c1", "n0", "n1",
+                           "label", "area")}
+    for di in range(D):  # a handful of depths
+        z_lo = zc[:, di] - PAD_HALF_LENGTH_M
+        m = np.flatnonzero((e_z >= z_lo[e_axis]) & free[e_axis, di])
+        if len(m) == 0:
+            continue
+        ids = e_axis[m]
+        st, grp, gi = _segments(ids)
+        G = len(grp)
+        x = e_x[m]
+        pt = e_pt[m]
+        xmin = np.minimum.reduceat(x, st).astype(float)
+        xmax = np.maximum.reduceat(x, st).astype(float)
+        count = np.diff(np.r_[st, len(m)])
+        lo_m, hi_m = z_lo[ids], z_lo[ids] + 2.0 * PAD_HALF_LENGTH_M
+        zp = P[pt, 2]
+        # Contact height: on a wall, the middle of its part within the pads; on a
+        # visible surface, the point itself (clipped to the pads).
+        zcon = np.where(is_wall[pt], 0.5 * (lo_m + np.minimum(zp, hi_m)),
+                        np.clip(zp, lo_m, hi_m))
+        sides = []
+        lab_sum = np.zeros(G)
+        lab_sq = np.zeros(G)
+        lab_n = np.zeros(G)
+        for patch in (x <= xmin[gi] + tol, x >= xmax[gi] - tol):
+            g = gi[patch]
+            q = pt[patch]
+            num = np.bincount(g, minlength=G).astype(float)
+            pos = np.stack([np.bincount(g, P[q, 0], minlength=G),
+                            np.bincount(g, P[q, 1], minlength=G),
+                            np.bincount(g, zcon[patch], minlength=G)], axis=1) / num[:, None]
+            nrm = np.stack([np.bincount(g, Nc[q, j], minlength=G) for j in range(3)], axis=1)
+            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+            lq = label[q].astype(float)
+            lab_sum += np.bincount(g, lq, minlength=G)
+            lab_sq += np.bincount(g, lq * lq, minlength=G)
+            lab_n += num
+            sides.append((pos, nrm))
+        mean_l = lab_sum / lab_n
+        one_object = np.abs(lab_sq / lab_n - mean_l**2) < 1e-6
+        width = xmax - xmin
+        ok = (count >= min_points_between) & (width >= min_width_m) & one_object
+        ok &= force_closure(sides[0][0], sides[0][1], sides[1][0], sides[1][1], mu=mu)
+        keep = np.flatnonzero(ok)
+        out["axis"].append(grp[keep])
+        out["d"].append(np.full(len(keep), di))
+        out["count"].append(count[keep])
+        out["xmin"].append(xmin[keep])
+        out["xmax"].append(xmax[keep])
+        out["c0"].append(sides[0][0][keep])
+        out["c1"].append(sides[1][0][keep])
+        out["n0"].append(sides[0][1][keep])
+        out["n1"].append(sides[1][1][keep])
+        out["label"].append(np.rint(mean_l[keep]).astype(np.int64))
+        out["area"].append(np.bincount(gi, area[pt], minlength=G)[keep])
+    if not out["axis"] or sum(len(a) for a in out["axis"]) == 0:
+        return DetectedGrasps.empty()
+    r = {k: np.concatenate(v) for k, v in out.items()}
+    axis, di = r["axis"], r["d"]
+    k_of, s_of = np.divmod(axis, S)
+    yaw = base[s_of] + phase[k_of]
+    centre = np.column_stack([C[s_of, :2], zc[axis, di]])
+
+    # --- Occlusion: every probe on the open hand must be seen as free space ----------
+    if occlusion_check:
+        cy_, sy_ = np.cos(yaw), np.sin(yaw)
+        # R_WG = Rz(yaw) Rx(pi): x_G = (c, s, 0), y_G = (s, -c, 0), z_G = (0, 0, -1).
+        pw = np.empty((len(axis), len(PROBES_G), 3))
+        pw[..., 0] = centre[:, None, 0] + cy_[:, None] * PROBES_G[:, 0] + sy_[:, None] * PROBES_G[:, 1]
+        pw[..., 1] = centre[:, None, 1] + sy_[:, None] * PROBES_G[:, 0] - cy_[:, None] * PROBES_G[:, 1]
+        pw[..., 2] = centre[:, None, 2] - PROBES_G[:, 2]
+        pc = (pw - p_WC) @ R_WC
+        H, W = cloud.depth.shape
+        f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.rint(f * pc[..., 0] / pc[..., 2] + cu)
+            v = np.rint(f * pc[..., 1] / pc[..., 2] + cv)
+        inside = (pc[..., 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        ui = np.where(inside, u, 0).astype(np.int64)
+        vi = np.where(inside, v, 0).astype(np.int64)
+        measured = np.where(cloud.valid, cloud.depth, np.where(cloud.depth > 0, np.inf, 0.0))
+        seen_free = inside & (pc[..., 2] <= measured[vi, ui] + occ_tol)
+        vis = seen_free.all(axis=1)
+        r = {k: v_[vis] for k, v_ in r.items()}
+        axis, di, yaw, centre = axis[vis], di[vis], yaw[vis], centre[vis]
+        if len(axis) == 0:
+            return DetectedGrasps.empty()
+
+    # --- Score ------------------------------------------------------------------------
+    width = r["xmax"] - r["xmin"]
+    c0, c1, n0, n1 = r["c0"], r["c1"], r["n0"], r["n1"]
+    line = c1 - c0
+    line /= np.maximum(np.linalg.norm(line, axis=1, keepdims=True), 1e-12)
+    ang0 = np.arccos(np.clip(-np.sum(line * n0, axis=1), -1.0, 1.0))
+    ang1 = np.arccos(np.clip(np.sum(line * n1, axis=1), -1.0, 1.0))
+    cone = np.arctan(mu)
+    antipodal = (np.clip(1.0 - np.maximum(ang0, ang1) / cone, 0.0, 1.0) if cone > 0
+                 else np.ones(len(axis)))
+    lab = r["label"]
+    d_obj = np.hypot(centre[:, 0] - cx_l[lab], centre[:, 1] - cy_l[lab])
+    centring = 1.0 - np.clip(d_obj / np.maximum(rad_l[lab], 1e-6), 0.0, 1.0)
+    clearance = np.clip(np.minimum(HALF_STROKE_M + r["xmin"], HALF_STROKE_M - r["xmax"])
+                        / HALF_STROKE_M, 0.0, 1.0)
+    fill = np.clip(r["area"] / (np.maximum(width, 1e-3) * 2.0 * PAD_HALF_WIDTH_M), 0.0, 1.0)
+    depth_term = np.clip((np.minimum(centre[:, 2] + PAD_HALF_LENGTH_M, top[axis])
+                          - (centre[:, 2] - PAD_HALF_LENGTH_M)) / (2.0 * PAD_HALF_LENGTH_M),
+                         0.0, 1.0)
+    half_view = max(p_WC[2] - table_z, 1e-3) * np.tan(np.deg2rad(float(fov_y_deg)) / 2.0)
+    view = 1.0 - np.clip(np.hypot(centre[:, 0] - p_WC[0], centre[:, 1] - p_WC[1]) / half_view,
+                         0.0, 1.0)
+    terms = {"antipodal": antipodal, "centring": centring, "clearance": clearance,
+             "fill": fill, "depth": depth_term, "view": view}
+    score = sum(getattr(weights, k) * terms[k] for k in SCORE_TERMS)
+    order = np.argsort(-score, kind="stable")
+    theta = np.mod(np.rad2deg(yaw), 180.0)
+    theta = np.where(theta >= 180.0, 0.0, theta)  # mod of a tiny negative can give 180
+    return DetectedGrasps(
+        xy_theta=np.column_stack([centre[:, :2], theta])[order],
+        z=centre[order, 2],
+        width=width[order],
+        score=score[order],
+        contacts=np.stack([c0, c1], axis=1)[order],
+        contact_normals=np.stack([n0, n1], axis=1)[order],
+        terms={k: v_[order] for k, v_ in terms.items()},
+    )
+
+
+def best_grasp(depth, *, fov_y_deg: float, X_WC, rng: np.random.Generator,
+               **kwargs) -> Grasp | None:
+    """The top detection of `detect_grasps` (same arguments), or None."""
+    return detect_grasps(depth, fov_y_deg=fov_y_deg, X_WC=X_WC, rng=rng, **kwargs).best()

@@ -1,0 +1,75 @@
+"""Pictures of an episode: the controller's view at each control step, as in the paper's
+Figure 1 (depth image, candidates coloured by predicted distance, the chosen action, and
+the current gripper pose as a red line)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _pixels(points_G: np.ndarray, *, depth_m: float, X_GC_xyz, focal: float, w: int, h: int):
+    """Pixel (u, v) of points given in the hand frame G at a given depth below the camera
+    (camera and G share their orientation; the camera sits at X_GC_xyz in G)."""
+    P = np.asarray(points_G, float)
+    u = (P[:, 0] - X_GC_xyz[0]) * focal / depth_m + (w / 2 - 0.5)
+    v = (P[:, 1] - X_GC_xyz[1]) * focal / depth_m + (h / 2 - 0.5)
+    return u, v
+
+
+def save_controller_steps(steps, path: str | Path, *, fov_y_deg: float, X_GC_xyz,
+                          max_steps: int = 12, title: str = "") -> Path:
+    """A contact sheet of control steps (see the module docstring)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not steps:
+        raise ValueError("no controller steps to draw (the policy took no closed-loop step)")
+    idx = np.unique(np.linspace(0, len(steps) - 1, min(max_steps, len(steps))).astype(int))
+    cols = min(4, len(idx))
+    rows = int(np.ceil(len(idx) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 3.1 * rows + 0.5), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    sc = None
+    for ax, i in zip(axes.ravel(), idx):
+        s = steps[i]
+        depth = s.depth
+        h, w = depth.shape
+        focal = 0.5 * h / np.tan(np.deg2rad(fov_y_deg) / 2.0)
+        ax.imshow(depth, cmap="gray_r", vmin=np.percentile(depth, 1), vmax=np.percentile(depth, 99))
+        # Candidate hand centres at the depth of the nearest surface in view.
+        d = float(np.percentile(depth, 5))
+        u, v = _pixels(np.column_stack([s.actions[:, :2], np.zeros(len(s.actions))]),
+                       depth_m=d, X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+        finite = np.isfinite(s.distances)
+        sc = ax.scatter(u[finite], v[finite], c=s.distances[finite], cmap="viridis_r", s=6,
+                        vmin=0.0, vmax=max(0.02, float(np.percentile(s.distances[finite], 95))))
+        # Current gripper: a red line across the closing direction (x_G), 85 mm wide.
+        u0, v0 = _pixels(np.array([[-0.0425, 0, 0], [0.0425, 0, 0]]), depth_m=d,
+                         X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+        ax.plot(u0, v0, "-", color="red", lw=2)
+        # Chosen action: where the best candidate would put the closing line (green).
+        a = s.chosen
+        # Rotating by theta about z_G turns x_G toward y_G (camera and G share axes).
+        c, sn = np.cos(np.deg2rad(a[2])), np.sin(np.deg2rad(a[2]))
+        ends = np.array([[a[0] - 0.0425 * c, a[1] - 0.0425 * sn, 0],
+                         [a[0] + 0.0425 * c, a[1] + 0.0425 * sn, 0]])
+        u1, v1 = _pixels(ends, depth_m=d, X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+        ax.plot(u1, v1, "-", color="lime", lw=2)
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_title(f"step {s.iteration}  t={s.time_s:.1f}s  best {1000 * np.nanmin(s.distances):.0f} mm",
+                     fontsize=8)
+    if sc is not None:
+        fig.colorbar(sc, ax=axes.ravel().tolist(), shrink=0.6, label="predicted distance [m]")
+    fig.suptitle(title or "controller steps: red = gripper now, green = best candidate", fontsize=9)
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,149 @@
+"""The closed-loop controller alone and in small diagrams: convergence, r and z schedule,
+the 14 cm stop rule, kinematic noise, the sheet shift."""
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+from drake_grasp.actions import apply_actions
+from drake_grasp.policies import displacement_norm, gaussian_noisy_displacement
+from drake_grasp.scenario import load_scenario
+from drake_grasp.station import gripper_frame_offsets, topdown_pose
+from drake_grasp.systems.controller import GraspController, Phase, hand_to_pose
+from drake_grasp.systems.evaluator import ActionSampler
+
+GOAL = np.array([0.53, -0.02, 20.0])  # world [x, y, yaw_deg] the stand-in CNN points at
+
+
+class StandInEvaluator(LeafSystem):
+    """Predicts the true distance from each candidate's hand pose to GOAL."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
+        self.DeclareAbstractInputPort("X_WG", AbstractValue.Make(RigidTransform()))
+        self.DeclareAbstractOutputPort("predicted_distances", lambda: AbstractValue.Make(np.zeros(0)),
+                                       self._Calc)
+
+    def _Calc(self, context, output):
+        from drake_grasp.grasps import grasp_distance
+
+        actions = self.get_input_port(0).Eval(context)
+        X = self.get_input_port(1).Eval(context)
+        R = X.rotation().matrix()
+        hand = [X.translation()[0], X.translation()[1], np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))]
+        output.set_value(grasp_distance(apply_actions(hand, actions), GOAL))
+
+
+def _image(value, shape=(64, 64), center=None):
+    img = ImageDepth32F(shape[1], shape[0])
+    img.mutable_data[:] = value
+    if center is not None:
+        img.mutable_data[24:40, 24:40, 0] = center
+    return img
+
+
+def _controller_diagram(scenario, depth_image, policy="ctr"):
+    X_BG, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
+    builder = DiagramBuilder()
+    ctrl = builder.AddSystem(GraspController(
+        scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC, X_BG=X_BG,
+        gripper_body_index=0, object_bodies=[], object_points=[], object_ids=[]))
+    c = scenario.controller
+    sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
+                                              theta_deg=c.sample_theta_deg, period_s=c.period_s,
+                                              seed=scenario.seed))
+    ev = builder.AddSystem(StandInEvaluator())
+    depth = builder.AddSystem(ConstantValueSource(AbstractValue.Make(depth_image)))
+    label = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageLabel16I(64, 64))))
+    poses = builder.AddSystem(ConstantValueSource(AbstractValue.Make([RigidTransform()])))
+    grip = builder.AddSystem(ConstantVectorSource(np.zeros(4)))
+    builder.Connect(depth.get_output_port(), ctrl.GetInputPort("depth_image"))
+    builder.Connect(label.get_output_port(), ctrl.GetInputPort("label_image"))
+    builder.Connect(poses.get_output_port(), ctrl.GetInputPort("body_poses"))
+    builder.Connect(grip.get_output_port(), ctrl.GetInputPort("gripper_state"))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"), ctrl.GetInputPort("candidate_actions"))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"), ev.GetInputPort("candidate_actions"))
+    builder.Connect(ctrl.GetOutputPort("X_WG_desired"), ev.GetInputPort("X_WG"))
+    builder.Connect(ev.GetOutputPort("predicted_distances"), ctrl.GetInputPort("predicted_distances"))
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    return sim, ctrl, ctrl.GetMyContextFromRoot(sim.get_context())
+
+
+@pytest.fixture
+def scenario():
+    return load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+
+
+def test_controller_converges_to_the_stand_in_minimum(scenario):
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
+    c = scenario.controller
+    sim.AdvanceTo(c.period_s * (c.iterations + 1.5))
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND and s.stop_reason == "hand at its lowest height"
+    assert s.iteration == c.iterations
+    hand = np.array([s.hand[0], s.hand[1], s.hand[3]])
+    assert np.linalg.norm(hand[:2] - GOAL[:2]) < 0.003
+    assert abs((hand[2] - GOAL[2] + 90) % 180 - 90) < 3.0
+    # z schedule: camera from 0.3 m to 0.15 m in equal steps.
+    assert s.hand[2] + 0.115 == pytest.approx(c.end_camera_height_m, abs=1e-9)
+
+
+def test_each_step_moves_the_fraction_r_and_steps_down(scenario):
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
+    c = scenario.controller
+    sim.AdvanceTo(1.5 * c.period_s)
+    s1 = ctrl.get_controller_state(ctx)
+    rec = s1.last_step
+    np.testing.assert_allclose(rec.moved, c.step_ratio * rec.chosen)
+    assert rec.chosen.tolist() == rec.actions[np.argmin(rec.distances)].tolist()
+    dz = (0.3 - c.end_camera_height_m) / c.iterations
+    assert s1.hand[2] == pytest.approx(rec.hand[2] - dz)
+    expected = apply_actions([rec.hand[0], rec.hand[1], rec.hand[3]], rec.moved[None])[0]
+    assert [s1.hand[0], s1.hand[1], s1.hand[3]] == pytest.approx(list(expected))
+
+
+@pytest.mark.parametrize("near,stops", [(0.139, True), (0.141, False)])
+def test_stop_rule_fires_at_14_cm(scenario, near, stops):
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=near))
+    sim.AdvanceTo(1.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert (s.phase == Phase.DESCEND) == stops
+    if stops:
+        assert "within 0.14 m" in s.stop_reason and s.iteration == 0
+
+
+def test_gaussian_noise_matches_the_formula():
+    rng = np.random.default_rng(0)
+    delta = np.array([0.01, -0.004, 5.0])
+    draws = np.array([gaussian_noisy_displacement(delta, rng, 0.4) for _ in range(20000)])
+    size = displacement_norm(delta)
+    np.testing.assert_allclose(draws.mean(0)[:2], delta[:2], atol=2e-4)
+    assert draws.mean(0)[2] == pytest.approx(delta[2], abs=0.2)
+    np.testing.assert_allclose(draws.std(0), [0.4 * size, 0.4 * size, 0.4 * size / 0.001],
+                               rtol=0.03)
+
+
+def test_offset_model_shifts_the_commanded_pose(scenario):
+    scenario.noise.kind = "offset"
+    scenario.noise.offset_xy_m = [0.02, -0.01]
+    scenario.noise.offset_theta_deg = 10.0
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
+    sim.AdvanceTo(0.0)
+    s = ctrl.get_controller_state(ctx)
+    believed = (0.55, 0.03, 0.1, 30.0)  # 5.8 cm from the start: the full offset applies
+    from dataclasses import replace
+
+    ctx.SetAbstractState(0, replace(s, phase=Phase.CLOSE, grasp=believed))
+    X = ctrl.GetOutputPort("X_WG_desired").Eval(ctx)
+    expected = apply_actions([believed[0], believed[1], believed[3]], np.array([[0.02, -0.01, 10.0]]))[0]
+    X_exp = hand_to_pose((expected[0], expected[1], believed[2], expected[2]))
+    assert np.allclose(X.GetAsMatrix4(), X_exp.GetAsMatrix4(), atol=1e-9)
+    assert np.linalg.norm(X.translation()[:2] - believed[:2]) == pytest.approx(np.hypot(0.02, 0.01))
