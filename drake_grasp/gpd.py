@@ -227,6 +227,9 @@ class OrganizedCloud:
         valid: (H, W) pixels with a depth reading (0 < depth < far value).
         depth: (H, W) the checked depth image [m].
         focal_px: Focal length [pixels].
+        outer_normals: (H, W, 3) unit normals of the surface from each pixel to its
+            deeper neighbours (the hidden side of a silhouette; see
+            `organized_points`).
     """
 
     points: np.ndarray
@@ -234,6 +237,7 @@ class OrganizedCloud:
     valid: np.ndarray
     depth: np.ndarray
     focal_px: float
+    outer_normals: np.ndarray
 
 
 def organized_points(depth, *, fov_y_deg: float, X_WC,
@@ -269,32 +273,41 @@ def organized_points(depth, *, fov_y_deg: float, X_WC,
     dn = np.where(valid, d, np.nan)
     P_C = np.stack([dn * (u - cu) / f, dn * (v - cv) / f, dn], axis=-1)
 
-    # One-sided differences: pick, per axis, the neighbour with the smaller depth step.
+    # One-sided differences. `normals`: per axis the neighbour with the smaller depth
+    # step (the pixel's own surface, not the jump to the table behind a silhouette).
+    # `outer_normals`: per axis the deeper neighbour, i.e. the surface between this
+    # pixel and what lies beyond it: on a continuous surface the same normal, at a
+    # silhouette the "skin" from the edge down to the background, whose tilt tells
+    # a step (a near-vertical skin) from a sloped flank.
     pad = np.pad(P_C, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
-
-    def side_diff(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
-        jf = np.abs(fwd[..., 2])
-        jb = np.abs(bwd[..., 2])
-        jf = np.where(np.isnan(jf), np.inf, jf)
-        jb = np.where(np.isnan(jb), np.inf, jb)
-        return np.where((jf <= jb)[..., None], fwd, bwd)
-
     c = pad[1:-1, 1:-1]
-    du = side_diff(pad[1:-1, 2:] - c, c - pad[1:-1, :-2])
-    dv = side_diff(pad[2:, 1:-1] - c, c - pad[:-2, 1:-1])
-    n = np.cross(du, dv)
-    n_len = np.linalg.norm(n, axis=-1, keepdims=True)
-    ok = np.isfinite(n_len) & (n_len > 1e-12)
-    # Isolated pixels (no valid neighbour on an axis): assume they face the camera.
-    with np.errstate(invalid="ignore", divide="ignore"):
-        toward = -P_C / np.linalg.norm(P_C, axis=-1, keepdims=True)
-        n = np.where(ok, n / np.where(ok, n_len, 1.0), toward)
-        flip = np.sum(n * P_C, axis=-1, keepdims=True) > 0.0
-    n = np.where(flip, -n, n)
+    fu, bu = pad[1:-1, 2:] - c, c - pad[1:-1, :-2]
+    fv, bv = pad[2:, 1:-1] - c, c - pad[:-2, 1:-1]
+
+    def pick(fwd: np.ndarray, bwd: np.ndarray, deeper: bool) -> np.ndarray:
+        # Forward differences grow with depth when the neighbour is deeper, backward
+        # ones when it is shallower; NaN (no neighbour) never wins.
+        jf, jb = fwd[..., 2], -bwd[..., 2]
+        if deeper:
+            use_f = np.nan_to_num(jf, nan=-np.inf) >= np.nan_to_num(jb, nan=-np.inf)
+        else:
+            use_f = (np.nan_to_num(np.abs(jf), nan=np.inf)
+                     <= np.nan_to_num(np.abs(jb), nan=np.inf))
+        return np.where(use_f[..., None], fwd, bwd)
+
+    toward = -P_C / np.linalg.norm(np.nan_to_num(P_C), axis=-1, keepdims=True).clip(1e-12)
     R, t = X[:3, :3], X[:3, 3]
+    out = []
+    for deeper in (False, True):
+        n = np.cross(pick(fu, bu, deeper), pick(fv, bv, deeper))
+        n_len = np.linalg.norm(n, axis=-1, keepdims=True)
+        ok = np.isfinite(n_len) & (n_len > 1e-12)
+        # Isolated pixels (no valid neighbour on an axis): assume they face the camera.
+        n = np.where(ok, n / np.where(ok, n_len, 1.0), toward)
+        n = np.where(np.sum(n * np.nan_to_num(P_C), axis=-1, keepdims=True) > 0.0, -n, n)
+        out.append(np.where(valid[..., None], n @ R.T, 0.0))
     P_W = P_C @ R.T + t
-    N_W = np.where(valid[..., None], n @ R.T, 0.0)
-    return OrganizedCloud(P_W, N_W, valid, d, f)
+    return OrganizedCloud(P_W, out[0], valid, d, f, out[1])
 
 
 def depth_to_points(depth, *, fov_y_deg: float, X_WC,
@@ -565,6 +578,7 @@ def detect_grasps(
     label = labels_img[obj]
     # Area each point stands for, across the optical axis (for the fill term).
     area = (cloud.depth[obj] / cloud.focal_px) ** 2
+    half_px = np.where(is_wall, 0.5 * np.sqrt(area), 0.0)
     M = len(P)
     # Objects (connected components): centroid and radius for the centring term.
     cnt_l = np.bincount(label, minlength=n_labels + 1).astype(float)
@@ -651,10 +665,14 @@ def detect_grasps(
         ids = e_axis[m]
         st, grp, gi = _segments(ids)
         G = len(grp)
-        x = e_x[m]
         pt = e_pt[m]
-        xmin = np.minimum.reduceat(x, st).astype(float)
-        xmax = np.maximum.reduceat(x, st).astype(float)
+        # A silhouette pixel's centre lies up to half a pixel inside the true edge:
+        # extend wall points outward by that much (unbiased widths and clearances).
+        x = e_x[m].astype(float)
+        x_lo = np.maximum(x - half_px[pt], -HALF_STROKE_M)
+        x_hi = np.minimum(x + half_px[pt], HALF_STROKE_M)
+        xmin = np.minimum.reduceat(x_lo, st)
+        xmax = np.maximum.reduceat(x_hi, st)
         count = np.diff(np.r_[st, len(m)])
         lo_m, hi_m = z_lo[ids], z_lo[ids] + 2.0 * PAD_HALF_LENGTH_M
         zp = P[pt, 2]
@@ -666,7 +684,7 @@ def detect_grasps(
         lab_sum = np.zeros(G)
         lab_sq = np.zeros(G)
         lab_n = np.zeros(G)
-        for patch in (x <= xmin[gi] + tol, x >= xmax[gi] - tol):
+        for patch in (x_lo <= xmin[gi] + tol, x_hi >= xmax[gi] - tol):
             g = gi[patch]
             q = pt[patch]
             num = np.bincount(g, minlength=G).astype(float)

@@ -147,3 +147,49 @@ def test_offset_model_shifts_the_commanded_pose(scenario):
     X_exp = hand_to_pose((expected[0], expected[1], believed[2], expected[2]))
     assert np.allclose(X.GetAsMatrix4(), X_exp.GetAsMatrix4(), atol=1e-9)
     assert np.linalg.norm(X.translation()[:2] - believed[:2]) == pytest.approx(np.hypot(0.02, 0.01))
+
+
+@pytest.mark.parametrize("step,shifted", [(2, False), (3, True)])
+def test_shift_after_the_third_iteration_moves_objects_with_the_sheet(library, step, shifted):
+    from drake_grasp.scene import make_scene
+    from drake_grasp.station import MakeGraspStation
+    from drake_grasp.systems.disturbance import SheetDisturbance
+
+    scenario = load_scenario(scenario_name="clutter_shift", scenario_text=(
+        "{seed: 5, policy: scripted, scene: {kind: isolation, object_ids: [tetra_pak_001], pose: lying}}"))
+    scene = make_scene(scenario.scene, scenario.seed, library)
+    station = MakeGraspStation(scenario, scene, library)
+    builder = DiagramBuilder()
+    builder.AddSystem(station.diagram)
+    sd = station.diagram
+    pose = builder.AddSystem(ConstantValueSource(AbstractValue.Make(station.X_WG_start)))
+    builder.Connect(pose.get_output_port(), sd.GetInputPort("X_WG_desired"))
+    grip = builder.AddSystem(ConstantVectorSource([0.085, 40.0]))
+    builder.Connect(grip.get_output_port(), sd.GetInputPort("gripper_command"))
+    dist = builder.AddSystem(SheetDisturbance(scenario.disturbance, seed=scenario.seed, period_s=0.1))
+    status = builder.AddSystem(ConstantVectorSource([float(step), 1.0]))
+    builder.Connect(status.get_output_port(), dist.GetInputPort("control_status"))
+    builder.Connect(dist.GetOutputPort("sheet_desired_state"), sd.GetInputPort("sheet_desired_state"))
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    root = sim.get_mutable_context()
+    station.set_initial_state(sd.GetMyMutableContextFromRoot(root))
+    plant = station.plant
+    pc = plant.GetMyContextFromRoot(root)
+    before = plant.EvalBodyPoseInWorld(pc, station.object_body(0)).translation().copy()
+    sim.AdvanceTo(1.5)
+    after = plant.EvalBodyPoseInWorld(pc, station.object_body(0)).translation()
+    shift = dist.shift
+    moved = np.linalg.norm(after[:2] - before[:2])
+    if shifted:
+        assert dist.trigger_time(dist.GetMyContextFromRoot(root)) == pytest.approx(0.0)
+        # A box (a can would roll) rides on the sheet: it moves by the sheet's displacement at its
+        # position (translation plus the yaw about the sheet centre), within 1 cm.
+        c = np.array(scene.center_xy_m)
+        r = before[:2] - c
+        R = np.array([[np.cos(shift[2]), -np.sin(shift[2])], [np.sin(shift[2]), np.cos(shift[2])]])
+        expected = c + shift[:2] + R @ r
+        assert np.linalg.norm(after[:2] - expected) < 0.01, (after[:2], expected)
+        assert moved > 0.02
+    else:
+        assert moved < 0.002
