@@ -133,6 +133,34 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _cmd_evaluate(args) -> int:
+    from drake_grasp.montecarlo import evaluate
+
+    result = evaluate(experiment=args.experiment, out=args.out, trials=args.trials,
+                      workers=args.workers, scheduler=args.scheduler, seed=args.seed,
+                      objects_dir=args.objects)
+    print(json.dumps({k: result[k] for k in ("records", "ran", "skipped")}))
+    print(f"report: {Path(args.out) / 'report.md'}")
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from drake_grasp.report import make_report
+
+    make_report(args.results)
+    print(Path(args.results) / "report.md")
+    return 0
+
+
+def _cmd_replay(args) -> int:
+    from drake_grasp.montecarlo import replay_trial
+
+    result, out = replay_trial(args.results, trial_id=args.trial, out=args.out)
+    print(json.dumps({"success": result.success, "failure_reason": result.failure_reason,
+                      "out": str(out)}))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -227,6 +255,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch default)")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "
+                                         "write its report; re-running resumes")
+    p.add_argument("--experiment", required=True,
+                   help="sim-distance, perception, isolation, clutter, clutter-shift, "
+                        "sweep-noise, sweep-depth-noise or sweep-offset")
+    p.add_argument("--trials", type=int, default=None,
+                   help="trials per condition (clutter: runs); default: the experiment's")
+    p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the trials on this Dask distributed scheduler instead")
+    p.add_argument("--seed", type=int, default=0, help="base seed of the trials (default 0)")
+    p.add_argument("--out", required=True, help="results folder")
+    p.add_argument("--objects", default=None, metavar="DIR",
+                   help="object library folder (default: built-in objects)")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")
+    p.add_argument("results", help="results folder of 'drake-grasp evaluate'")
+    p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("replay", help="re-run one recorded trial exactly, with its replay page")
+    p.add_argument("results", help="results folder")
+    p.add_argument("--trial", required=True, help="trial id, e.g. isolation/ctr/0003")
+    p.add_argument("--out", default=None, help="output folder (default: RESULTS/replays/<id>)")
+    p.set_defaults(func=_cmd_replay)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

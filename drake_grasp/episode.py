@@ -54,6 +54,8 @@ class EpisodeRun:
     final_plant_state: np.ndarray | None = None
     replay_html: str | None = None
     scene: SceneSpec | None = None
+    # The objects where they are at the end (not settled).
+    final_scene: SceneSpec | None = None
 
 
 def _object_surface_points(library: ObjectLibrary, object_id: str, count: int = 1500) -> np.ndarray:
@@ -247,10 +249,8 @@ def _hand_xy_yaw(X_WG) -> np.ndarray:
                      np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))])
 
 
-def final_distance(plant, plant_context, station, scene: SceneSpec, library, seed: int) -> dict:
-    """The paper's metric for the hand's current pose: its (x, y, theta) distance to the
-    nearest ground-truth grasp of the scene as it is now (objects where they are)."""
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+def _scene_now(plant, plant_context, station, scene: SceneSpec) -> SceneSpec:
+    """The scene with every object where it is now."""
     from drake_grasp.scene import ObjectPlacement
 
     placements = []
@@ -259,8 +259,16 @@ def final_distance(plant, plant_context, station, scene: SceneSpec, library, see
         q = X.rotation().ToQuaternion()
         placements.append(ObjectPlacement(o.object_id, [float(v) for v in X.translation()],
                                           [float(q.w()), float(q.x()), float(q.y()), float(q.z())]))
-    now = SceneSpec(kind=scene.kind, seed=scene.seed, center_xy_m=scene.center_xy_m,
-                    objects=placements, settled=True)
+    return SceneSpec(kind=scene.kind, seed=scene.seed, center_xy_m=list(scene.center_xy_m),
+                     objects=placements, settled=False)
+
+
+def final_distance(plant, plant_context, station, scene: SceneSpec, library, seed: int) -> dict:
+    """The paper's metric for the hand's current pose: its (x, y, theta) distance to the
+    nearest ground-truth grasp of the scene as it is now (objects where they are)."""
+    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+
+    now = _scene_now(plant, plant_context, station, scene)
     grasps = find_grasps(now, library, np.random.default_rng([seed, 61]))
     X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
                                        plant.GetFrameByName("grasp_frame", station.gripper))
@@ -395,7 +403,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
     )
     return EpisodeRun(result=result, depth_frames=frames, steps=steps,
                       final_plant_state=np.array(plant.GetPositionsAndVelocities(plant_context)),
-                      replay_html=replay, scene=scene)
+                      replay_html=replay, scene=scene,
+                      final_scene=_scene_now(plant, plant_context, station, scene))
 
 
 def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title: str = "") -> None:
@@ -426,7 +435,7 @@ def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title:
 
 
 def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str = "",
-                library=None, replay: bool = True) -> EpisodeResult:
+                library=None, replay: bool = True, scene: SceneSpec | None = None) -> EpisodeResult:
     """Runs one episode and writes `episode.json`, `scenario.yaml`, `scene.json`,
     `depth.png`, `controller_steps.png` (closed-loop policies) and (with `replay`)
     `replay.html` into `out_dir`.
@@ -441,7 +450,7 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
     staging.mkdir(parents=True)
     try:
         run = simulate_episode(scenario, scenario_name=scenario_name, library=library,
-                               visualize=replay)
+                               visualize=replay, scene=scene)
         (staging / "scenario.yaml").write_text(dump_scenario(scenario))
         run.scene.save(staging / "scene.json")
         verdict = "success" if run.result.success else "failure"

@@ -65,6 +65,7 @@ Rx(pi). A detection's ``theta`` is the yaw of x_G in degrees modulo 180.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -462,21 +463,53 @@ def _segments(sorted_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return starts, sorted_ids[starts], np.cumsum(flag) - 1
 
 
-def _contact_normals(cloud: OrganizedCloud, step_threshold_m: float, far: float):
-    """Per-pixel contact normals and the depth-discontinuity mask.
+def _contact_normals(cloud: OrganizedCloud, R_WC: np.ndarray, step_threshold_m: float,
+                     far: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel normals for the contact test and the silhouette (step) mask.
 
-    At a silhouette (a pixel with an 8-neighbour deeper by more than
-    `step_threshold_m`) the surface below the visible edge is unseen and taken as a
-    vertical wall; its outward normal is the horizontal direction in which the depth
-    grows (a Sobel gradient, which averages a 3 x 3 neighbourhood and so resolves
-    edge directions to a few degrees). Elsewhere the measured normal is used.
+    A pixel with an 8-neighbour deeper by more than `step_threshold_m` is on a
+    silhouette: what lies below it is hidden, and (occluded space counting as
+    occupied) a wall goes down from it. The wall's steepness: the largest height drop
+    to a neighbour over the pixel's footprint (its width at the pixel's depth times
+    the neighbour's distance in pixels), i.e. with no perspective shift, which a
+    vertical wall seen from off its axis shows but which says nothing about a slope:
+    a step onto the table gives a near-vertical wall, a steep but continuous flank
+    (a sphere's) its true slope. Its azimuth: the direction in which the depth grows,
+    from a Sobel filter (which averages a 3 x 3 neighbourhood and resolves an edge's
+    direction to a few degrees, better than one-sided differences on a pixel
+    staircase). Elsewhere the normal of the surface toward the deeper neighbours
+    (`OrganizedCloud.outer_normals`).
+
+    Returns:
+        (H, W, 3) unit normals and the (H, W) step mask.
     """
     d = np.where(cloud.valid, cloud.depth, far)
-    step = (ndimage.maximum_filter(d, size=3, mode="nearest") - d) > step_threshold_m
-    gu = ndimage.sobel(d, axis=1, mode="nearest")
-    gv = ndimage.sobel(d, axis=0, mode="nearest")
-    # Image axes u, v are the camera's x, y; their world directions give the wall normal.
-    return step & cloud.valid, gu, gv
+    step = ((ndimage.maximum_filter(d, size=3, mode="nearest") - d) > step_threshold_m) & cloud.valid
+    gu = ndimage.sobel(d, axis=1, mode="nearest")  # d(depth)/d(column)
+    gv = ndimage.sobel(d, axis=0, mode="nearest")  # d(depth)/d(row)
+    # Image columns / rows run along the camera's x / y axes: the world direction in
+    # which the depth grows, i.e. away from the raised object, made horizontal.
+    g = gu[..., None] * R_WC[:, 0] + gv[..., None] * R_WC[:, 1]
+    g[..., 2] = 0.0
+    g_len = np.linalg.norm(g, axis=-1, keepdims=True)
+    step &= g_len[..., 0] > 1e-9
+    # Steepest drop per footprint to any 8-neighbour; no neighbour surface (far /
+    # invalid): a drop to far below, i.e. a vertical wall.
+    z = np.where(cloud.valid, cloud.points[..., 2], -np.inf)
+    zp = np.pad(z, 1, constant_values=-np.inf)
+    H, W = z.shape
+    slope = np.zeros((H, W))
+    with np.errstate(invalid="ignore"):
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di or dj:
+                    drop = z - zp[1 + di:1 + di + H, 1 + dj:1 + dj + W]
+                    slope = np.fmax(slope, drop / np.hypot(di, dj))
+    footprint = cloud.depth / cloud.focal_px
+    elevation = np.arctan2(footprint, np.where(np.isfinite(slope), slope, 1e9))
+    wall = g / np.maximum(g_len, 1e-12) * np.cos(elevation)[..., None]
+    wall[..., 2] = np.sin(elevation)
+    return np.where(step[..., None], wall, cloud.outer_normals), step
 
 
 def detect_grasps(
@@ -499,6 +532,7 @@ def detect_grasps(
     occlusion_check: bool = True,
     occlusion_tolerance_m: float = 0.003,
     weights: ScoreWeights | None = None,
+    stats: dict | None = None,
 ) -> DetectedGrasps:
     """Detects top-down parallel-jaw grasps in one depth image (see the module doc).
 
@@ -527,6 +561,9 @@ def detect_grasps(
         occlusion_tolerance_m: How far behind the measured surface a probe may lie
             and still count as free [m] (noise, fingertips just above the table).
         weights: Score weights (default `ScoreWeights()`).
+        stats: Optional dict, filled with how many candidates reached each stage
+            ("points", "samples", "hands", "collision_free", "closing_region",
+            "antipodal", "visible") and the run time ("seconds").
 
     Returns:
         `DetectedGrasps`, sorted best first (empty when nothing passes).
@@ -534,6 +571,7 @@ def detect_grasps(
     Raises:
         ValueError: a bad argument (named in the message).
     """
+    t_start = time.perf_counter()
     _check_rng(rng)
     mu = _finite("mu", mu, low=0.0)
     S_max = _positive_int("num_samples", num_samples)
@@ -555,6 +593,15 @@ def detect_grasps(
         raise ValueError(f"weights: expected a ScoreWeights, got {type(weights).__name__}")
     weights.validate()
     far = _finite("max_depth_m", max_depth_m, low=0.0, low_inclusive=False)
+    if stats is not None and not isinstance(stats, dict):
+        raise ValueError(f"stats: expected a dict or None, got {type(stats).__name__}")
+    st_ = {k: 0 for k in ("points", "samples", "hands", "collision_free", "closing_region",
+                          "antipodal", "visible")}
+
+    def done(result: DetectedGrasps) -> DetectedGrasps:
+        if stats is not None:
+            stats.update(st_, seconds=time.perf_counter() - t_start)
+        return result
 
     cloud = organized_points(depth, fov_y_deg=fov_y_deg, X_WC=X_WC, max_depth_m=far)
     X = _check_pose(X_WC)
@@ -562,15 +609,10 @@ def detect_grasps(
     floor = table_z + table_margin_m
     obj = cloud.valid & (cloud.points[..., 2] >= floor)
     if not obj.any():
-        return DetectedGrasps.empty()
+        return done(DetectedGrasps.empty())
 
     # --- Per-pixel attributes of the object points --------------------------------
-    step, gu, gv = _contact_normals(cloud, step_threshold_m, far)
-    wall = gu[..., None] * R_WC[:, 0] + gv[..., None] * R_WC[:, 1]
-    wall[..., 2] = 0.0
-    wall_len = np.linalg.norm(wall, axis=-1, keepdims=True)
-    use_wall = step & (wall_len[..., 0] > 1e-9)
-    cn = np.where(use_wall[..., None], wall / np.maximum(wall_len, 1e-12), cloud.normals)
+    cn, use_wall = _contact_normals(cloud, R_WC, step_threshold_m, far)
     labels_img, n_labels = ndimage.label(obj, structure=np.ones((3, 3), dtype=int))
     P = cloud.points[obj]  # (M, 3)
     Nc = cn[obj]
@@ -580,6 +622,7 @@ def detect_grasps(
     area = (cloud.depth[obj] / cloud.focal_px) ** 2
     half_px = np.where(is_wall, 0.5 * np.sqrt(area), 0.0)
     M = len(P)
+    st_["points"] = M
     # Objects (connected components): centroid and radius for the centring term.
     cnt_l = np.bincount(label, minlength=n_labels + 1).astype(float)
     cx_l = np.bincount(label, P[:, 0], minlength=n_labels + 1) / np.maximum(cnt_l, 1)
@@ -590,6 +633,7 @@ def detect_grasps(
 
     # --- Samples and their hands' first closing directions --------------------------
     S = min(S_max, M)
+    st_["samples"] = S
     samples = np.sort(rng.choice(M, size=S, replace=False))
     C = P[samples]  # hand axes pass through these points
     dx = (P[None, :, 0] - C[:, None, 0]).astype(np.float32)
@@ -641,7 +685,11 @@ def detect_grasps(
     free = ((finger_z[..., None] < zc - FINGERTIP_Z_M)
             & (palm_z[..., None] < zc - PALM_FRONT_Z_M)
             & (house_z[..., None] < zc - HOUSING_FRONT_Z_M))
-    free[..., 1:] &= zc[..., 1:] < zc[..., :-1] - 1e-9  # clamped depths: one copy
+    distinct = np.ones(zc.shape, dtype=bool)
+    distinct[..., 1:] = zc[..., 1:] < zc[..., :-1] - 1e-9  # clamped depths: one copy
+    free &= distinct
+    st_["hands"] = int(distinct.sum())
+    st_["collision_free"] = int(free.sum())
     A = K * S
     zc = zc.reshape(A, -1)
     free = free.reshape(A, -1)
@@ -702,8 +750,10 @@ def detect_grasps(
         one_object = np.abs(lab_sq / lab_n - mean_l**2) < 1e-6
         width = xmax - xmin
         ok = (count >= min_points_between) & (width >= min_width_m) & one_object
+        st_["closing_region"] += int(ok.sum())
         ok &= force_closure(sides[0][0], sides[0][1], sides[1][0], sides[1][1], mu=mu)
         keep = np.flatnonzero(ok)
+        st_["antipodal"] += len(keep)
         out["axis"].append(grp[keep])
         out["d"].append(np.full(len(keep), di))
         out["count"].append(count[keep])
@@ -716,7 +766,7 @@ def detect_grasps(
         out["label"].append(np.rint(mean_l[keep]).astype(np.int64))
         out["area"].append(np.bincount(gi, area[pt], minlength=G)[keep])
     if not out["axis"] or sum(len(a) for a in out["axis"]) == 0:
-        return DetectedGrasps.empty()
+        return done(DetectedGrasps.empty())
     r = {k: np.concatenate(v) for k, v in out.items()}
     axis, di = r["axis"], r["d"]
     k_of, s_of = np.divmod(axis, S)
@@ -743,10 +793,11 @@ def detect_grasps(
         measured = np.where(cloud.valid, cloud.depth, np.where(cloud.depth > 0, np.inf, 0.0))
         seen_free = inside & (pc[..., 2] <= measured[vi, ui] + occ_tol)
         vis = seen_free.all(axis=1)
+        st_["visible"] = int(vis.sum())
         r = {k: v_[vis] for k, v_ in r.items()}
         axis, di, yaw, centre = axis[vis], di[vis], yaw[vis], centre[vis]
         if len(axis) == 0:
-            return DetectedGrasps.empty()
+            return done(DetectedGrasps.empty())
 
     # --- Score ------------------------------------------------------------------------
     width = r["xmax"] - r["xmin"]
@@ -773,10 +824,12 @@ def detect_grasps(
     terms = {"antipodal": antipodal, "centring": centring, "clearance": clearance,
              "fill": fill, "depth": depth_term, "view": view}
     score = sum(getattr(weights, k) * terms[k] for k in SCORE_TERMS)
+    if not occlusion_check:
+        st_["visible"] = len(axis)
     order = np.argsort(-score, kind="stable")
     theta = np.mod(np.rad2deg(yaw), 180.0)
     theta = np.where(theta >= 180.0, 0.0, theta)  # mod of a tiny negative can give 180
-    return DetectedGrasps(
+    return done(DetectedGrasps(
         xy_theta=np.column_stack([centre[:, :2], theta])[order],
         z=centre[order, 2],
         width=width[order],
@@ -784,7 +837,7 @@ def detect_grasps(
         contacts=np.stack([c0, c1], axis=1)[order],
         contact_normals=np.stack([n0, n1], axis=1)[order],
         terms={k: v_[order] for k, v_ in terms.items()},
-    )
+    ))
 
 
 def best_grasp(depth, *, fov_y_deg: float, X_WC, rng: np.random.Generator,

@@ -1,0 +1,183 @@
+"""The paper's experiments as data: which scenario, policies, noise, disturbance, trials.
+
+An `Experiment` is a named set of `Condition`s (the arms compared) run on the same trial
+seeds, so trial i of every condition sees the same scene (paired comparison).
+`trial_scenario` turns (experiment, condition, trial index, base seed) into the exact
+`Scenario` of that trial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drake_grasp.scenario import Scenario, load_scenario
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One arm of an experiment."""
+
+    name: str
+    policy: str
+    noise: str = "none"          # none | gaussian | offset
+    noise_scale: float = 0.4     # the Gaussian model's factor
+    offset_m: float = 0.0        # constant-offset size (along the closing direction)
+    depth_noise: float = 0.0     # 0 = clean depth; k = k x the default sensor noise model
+    disturbance: str = "none"    # none | shift | moving
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A named experiment: scenario, conditions, default trial count, how trials run."""
+
+    name: str
+    scenario: str
+    conditions: tuple[Condition, ...]
+    trials: int
+    description: str
+    # "episodes": independent trials; "clutter-runs": each trial is a run of repeated
+    # attempts on one pile (grasped objects removed) until 3 consecutive failures.
+    kind: str = "episodes"
+    # Extra YAML overrides applied to the named scenario.
+    scenario_text: str = ""
+    # Isolation: trial i grasps test object i // 4, lying for i % 4 < 3, else upright.
+    per_object_poses: bool = False
+    max_consecutive_failures: int = 3
+    distance_only: bool = False
+    paper: dict = field(default_factory=dict)
+
+
+def _sweep(name: str, values, make) -> tuple[Condition, ...]:
+    out = []
+    for policy in ("ctr", "gpd"):
+        for v in values:
+            out.append(make(f"{policy} {name}={v:g}", policy, v))
+    return tuple(out)
+
+
+EXPERIMENTS: dict[str, Experiment] = {
+    e.name: e
+    for e in (
+        Experiment(
+            name="sim-distance", scenario="random", trials=400, distance_only=True,
+            description="Figure 5 left: final distance to the nearest true grasp, with and "
+                        "without the Gaussian kinematic noise (0.4).",
+            conditions=(
+                Condition("init", "init"),
+                Condition("ctr", "ctr"),
+                Condition("ctr_noise", "ctr", noise="gaussian"),
+                Condition("gpd", "gpd"),
+                Condition("gpd_noise", "gpd", noise="gaussian"),
+            ),
+        ),
+        Experiment(
+            name="perception", scenario="random", trials=400, distance_only=True,
+            description="Figure 5 right: the CNN's one-shot global best vs the same followed "
+                        "by the closed-loop controller.",
+            conditions=(Condition("cnn-only", "cnn-only"), Condition("cnn-ctr", "cnn-ctr")),
+        ),
+        Experiment(
+            name="isolation", scenario="isolation", trials=40, per_object_poses=True,
+            description="Table 1 row 1: the 10 test objects, each in 4 configurations "
+                        "(3 lying, 1 upright).",
+            conditions=(Condition("ctr", "ctr"), Condition("gpd", "gpd")),
+            paper={"ctr": 0.975, "gpd": 0.975},
+        ),
+        Experiment(
+            name="clutter", scenario="clutter", trials=10, kind="clutter-runs",
+            scenario_text="{scene: {clutter_objects: 10, region_half_extent_m: 0.06}}",
+            description="Table 1 row 2: 10 objects poured onto the table; attempts until 3 "
+                        "consecutive failures or nothing left in view; 10 runs.",
+            conditions=(Condition("ctr", "ctr"), Condition("gpd", "gpd")),
+            paper={"ctr": 0.889, "gpd": 0.948},
+        ),
+        Experiment(
+            name="clutter-shift", scenario="clutter_shift", trials=10, kind="clutter-runs",
+            scenario_text="{scene: {clutter_objects: 10, region_half_extent_m: 0.06}}",
+            description="Table 1 row 3: as clutter, the sheet under the pile shifted after the "
+                        "3rd controller iteration of every attempt.",
+            conditions=(Condition("ctr", "ctr", disturbance="shift"),
+                        Condition("gpd", "gpd", disturbance="shift")),
+            paper={"ctr": 0.773, "gpd": 0.225},
+        ),
+        Experiment(
+            name="sweep-noise", scenario="isolation", trials=40, per_object_poses=True,
+            description="Success vs the Gaussian kinematic noise scale.",
+            conditions=_sweep("noise_scale", (0.0, 0.2, 0.4, 0.8), lambda n, p, v: Condition(
+                n, p, noise="gaussian" if v > 0 else "none", noise_scale=v)),
+        ),
+        Experiment(
+            name="sweep-depth-noise", scenario="isolation", trials=40, per_object_poses=True,
+            description="Success vs depth-sensor noise (multiples of the default model).",
+            conditions=_sweep("depth_noise", (0.0, 1.0, 2.0, 4.0), lambda n, p, v: Condition(
+                n, p, depth_noise=v)),
+        ),
+        Experiment(
+            name="sweep-offset", scenario="isolation", trials=40, per_object_poses=True,
+            description="Success vs a constant kinematic offset (along the closing direction).",
+            conditions=_sweep("offset_m", (0.0, 0.01, 0.02, 0.04), lambda n, p, v: Condition(
+                n, p, noise="offset" if v > 0 else "none", offset_m=v)),
+        ),
+    )
+}
+
+
+def get_experiment(name: str) -> Experiment:
+    if name not in EXPERIMENTS:
+        raise ValueError(f"--experiment: unknown {name!r}; known: {sorted(EXPERIMENTS)}")
+    return EXPERIMENTS[name]
+
+
+def trial_seed(base_seed: int, index: int) -> int:
+    """Seed of trial `index` (the same for every condition: paired comparisons)."""
+    return int(np.random.default_rng([int(base_seed), int(index), 71]).integers(2**31 - 1))
+
+
+def trial_scenario(experiment: Experiment, condition: Condition, index: int, *,
+                   base_seed: int, objects_dir: str | None = None, library=None) -> Scenario:
+    """The exact scenario of trial `index` of `condition`."""
+    s = load_scenario(scenario_name=experiment.scenario, scenario_text=experiment.scenario_text)
+    s = dataclasses.replace(s, seed=trial_seed(base_seed, index), policy=condition.policy)
+    if objects_dir:
+        s = dataclasses.replace(s, objects_dir=str(objects_dir))
+    s.noise = dataclasses.replace(s.noise, kind=condition.noise,
+                                  gaussian_scale=condition.noise_scale,
+                                  offset_xy_m=[condition.offset_m, 0.0])
+    if condition.depth_noise > 0:
+        k = condition.depth_noise
+        d = s.depth_noise
+        s.depth_noise = dataclasses.replace(
+            d, enabled=True, sigma_base_m=k * d.sigma_base_m,
+            sigma_quadratic_per_m2=k * d.sigma_quadratic_per_m2,
+            edge_dropout_prob=min(1.0, k * d.edge_dropout_prob),
+            random_dropout_prob=min(1.0, k * d.random_dropout_prob))
+    s.disturbance = dataclasses.replace(s.disturbance, kind=condition.disturbance)
+    if experiment.per_object_poses:
+        if library is None:
+            from drake_grasp.objects import load_library
+
+            library = load_library(objects_dir)
+        ids = library.ids(split=s.scene.split or None)
+        if not ids:
+            raise ValueError(f"the object library has no {s.scene.split!r} objects")
+        # 10 test objects x (3 lying + 1 upright), round-robin over the library's objects.
+        per_category = _one_per_category(ids)
+        obj = per_category[(index // 4) % len(per_category)]
+        pose = "lying" if index % 4 < 3 else "upright"
+        s.scene = dataclasses.replace(s.scene, object_ids=[obj], pose=pose)
+    s.validate()
+    return s
+
+
+def _one_per_category(ids: list[str]) -> list[str]:
+    """The first object id of each category (ids are `<category>_<index>`), else all."""
+    seen, out = set(), []
+    for i in ids:
+        cat = i.rsplit("_", 1)[0]
+        if cat not in seen:
+            seen.add(cat)
+            out.append(i)
+    return out if len(out) > 1 else list(ids)
