@@ -54,7 +54,7 @@ def _sweep(name: str, values, make) -> tuple[Condition, ...]:
     out = []
     for policy in ("ctr", "gpd"):
         for v in values:
-            out.append(make(f"{policy} {name}={v:g}", policy, v))
+            out.append(make(f"{policy}/{name}={v:g}", policy, v))
     return tuple(out)
 
 
@@ -102,6 +102,12 @@ EXPERIMENTS: dict[str, Experiment] = {
             conditions=(Condition("ctr", "ctr", disturbance="shift"),
                         Condition("gpd", "gpd", disturbance="shift")),
             paper={"ctr": 0.773, "gpd": 0.225},
+        ),
+        Experiment(
+            name="smoke", scenario="isolation", trials=3, per_object_poses=True,
+            description="A tiny experiment for checking the pipeline: INIT and the scripted "
+                        "grasp (no CNN), a few seconds per trial.",
+            conditions=(Condition("init", "init"), Condition("scripted", "scripted")),
         ),
         Experiment(
             name="sweep-noise", scenario="isolation", trials=40, per_object_poses=True,

@@ -97,10 +97,13 @@ DEFAULT_DEPTHS_M = (0.0, 0.01, 0.02)
 # Below this horizontal component a normal gives no closing direction (flat tops):
 # sin(12 deg), as `grasps.sample_grasp_candidates`.
 _MIN_HORIZONTAL_NORMAL = 0.2
+# Half length along y_G of the window in which the balance term measures the
+# object's extent [m]: the hand's half width, roughly.
+_BALANCE_HALF_WINDOW_M = 0.04
 # Radius of the footprint whose minor axis orients hands on flat tops [m].
 _FOOTPRINT_RADIUS_M = 0.03
 
-# Probe points on the open hand for the occlusion check, in G [m]: each finger
+# Probe points on the open hand for the view and occlusion checks, in G [m]: each finger
 # (inner face, middle, outer face) x (both edges, middle) x (tip, centre, pad top),
 # the palm's front face and the housing's front ring. Inset 1 mm from the faces so
 # that a probe is inside the part, not on its boundary.
@@ -125,6 +128,8 @@ def _probe_points() -> np.ndarray:
 
 
 PROBES_G = _probe_points()
+# The fingers' and the palm's probes: the first rows of PROBES_G.
+NUM_VIEW_PROBES = 2 * len(_FX) * len(_FY) * len(_FZ) + 9 * 3
 
 
 # ----------------------------------------------------------------------------
@@ -348,17 +353,18 @@ class ScoreWeights:
 
     antipodal: float = 1.0
     centring: float = 1.0
+    balance: float = 1.0
     clearance: float = 0.5
     fill: float = 0.5
     depth: float = 0.5
     view: float = 0.05
 
     def validate(self) -> None:
-        for name in ("antipodal", "centring", "clearance", "fill", "depth", "view"):
+        for name in SCORE_TERMS:
             _finite(f"weights.{name}", getattr(self, name), low=0.0)
 
 
-SCORE_TERMS = ("antipodal", "centring", "clearance", "fill", "depth", "view")
+SCORE_TERMS = ("antipodal", "centring", "balance", "clearance", "fill", "depth", "view")
 
 
 @dataclass(frozen=True)
@@ -527,9 +533,10 @@ def detect_grasps(
     max_depth_m: float = DEFAULT_MAX_DEPTH_M,
     min_points_between: int = 5,
     min_width_m: float = 0.005,
-    contact_tolerance_m: float = 0.004,
+    contact_tolerance_m: float = 0.002,
+    finger_margin_m: float = 0.002,
     step_threshold_m: float = 0.008,
-    occlusion_check: bool = True,
+    occlusion_check: bool = False,
     occlusion_tolerance_m: float = 0.003,
     weights: ScoreWeights | None = None,
     stats: dict | None = None,
@@ -553,7 +560,11 @@ def detect_grasps(
         max_depth_m: The image's far value [m]; pixels at or beyond it are empty.
         min_points_between: Fewest visible points in the closing region.
         min_width_m: Narrowest graspable width [m].
-        contact_tolerance_m: Depth of a contact patch along x_G [m] (about a pixel).
+        contact_tolerance_m: Depth of a contact patch along x_G [m]; at least one
+            pixel's footprint is used (the cloud cannot resolve less).
+        finger_margin_m: Free space demanded between the open fingers and any
+            visible point [m]: the widths and positions seen in a 64 x 64 image
+            are uncertain by a few millimetres.
         step_threshold_m: Depth jump between neighbouring pixels that marks a
             silhouette [m].
         occlusion_check: Reject hands whose probe points the camera cannot see as
@@ -563,7 +574,7 @@ def detect_grasps(
         weights: Score weights (default `ScoreWeights()`).
         stats: Optional dict, filled with how many candidates reached each stage
             ("points", "samples", "hands", "collision_free", "closing_region",
-            "antipodal", "visible") and the run time ("seconds").
+            "antipodal", "in_view", "visible") and the run time ("seconds").
 
     Returns:
         `DetectedGrasps`, sorted best first (empty when nothing passes).
@@ -586,6 +597,7 @@ def detect_grasps(
     min_points_between = _positive_int("min_points_between", min_points_between)
     min_width_m = _finite("min_width_m", min_width_m, low=0.0)
     tol = _finite("contact_tolerance_m", contact_tolerance_m, low=0.0)
+    margin = _finite("finger_margin_m", finger_margin_m, low=0.0, high=HALF_STROKE_M)
     step_threshold_m = _finite("step_threshold_m", step_threshold_m, low=0.0, low_inclusive=False)
     occ_tol = _finite("occlusion_tolerance_m", occlusion_tolerance_m, low=0.0)
     weights = ScoreWeights() if weights is None else weights
@@ -596,7 +608,7 @@ def detect_grasps(
     if stats is not None and not isinstance(stats, dict):
         raise ValueError(f"stats: expected a dict or None, got {type(stats).__name__}")
     st_ = {k: 0 for k in ("points", "samples", "hands", "collision_free", "closing_region",
-                          "antipodal", "visible")}
+                          "antipodal", "in_view", "visible")}
 
     def done(result: DetectedGrasps) -> DetectedGrasps:
         if stats is not None:
@@ -620,7 +632,13 @@ def detect_grasps(
     label = labels_img[obj]
     # Area each point stands for, across the optical axis (for the fill term).
     area = (cloud.depth[obj] / cloud.focal_px) ** 2
-    half_px = np.where(is_wall, 0.5 * np.sqrt(area), 0.0)
+    # A silhouette's true edge lies between its last pixel's centre and the next
+    # pixel's: up to one pixel footprint beyond the point (the collision tests grow
+    # the hand by that much around such points), half a pixel on average (widths and
+    # contacts are pushed out by that much).
+    px_all = np.sqrt(area)
+    px_wall = np.where(is_wall, px_all, 0.0)
+    half_px = 0.5 * px_wall
     M = len(P)
     st_["points"] = M
     # Objects (connected components): centroid and radius for the centring term.
@@ -639,7 +657,7 @@ def detect_grasps(
     dx = (P[None, :, 0] - C[:, None, 0]).astype(np.float32)
     dy = (P[None, :, 1] - C[:, None, 1]).astype(np.float32)
     r2 = dx * dx + dy * dy
-    near = r2 <= np.float32(HAND_FOOTPRINT_RADIUS_M + 1e-6) ** 2
+    near = r2 <= np.float32(HAND_FOOTPRINT_RADIUS_M + px_wall.max() + 1e-6) ** 2
     s_idx, p_idx = np.nonzero(near)  # sorted by sample: contiguous runs per sample
     pdx, pdy, pr2 = dx[near], dy[near], r2[near]
     pz = P[p_idx, 2]
@@ -666,18 +684,21 @@ def detect_grasps(
     phase = np.pi * np.arange(K) / K
     c, s = np.cos(phase).astype(np.float32)[:, None], np.sin(phase).astype(np.float32)[:, None]
     Xg = c * x0 + s * w0
-    aY = np.abs(c * w0 - s * x0)
+    Yg = c * w0 - s * x0  # -y_G (only symmetric tests and extents use it)
+    aY = np.abs(Yg)
     aX = np.abs(Xg)
     zf = pz.astype(np.float32)[None, :]
     ninf = np.float32(-np.inf)
-    in_pad_y = aY <= PAD_HALF_WIDTH_M
-    strip = in_pad_y & (aX <= HALF_STROKE_M)
-    finger = in_pad_y & (aX > HALF_STROKE_M) & (aX <= FINGER_OUTER_X_M)
-    palm = (aX <= PALM_HALF_X_M) & (aY <= PALM_HALF_Y_M)
+    strip = (aY <= PAD_HALF_WIDTH_M) & (aX <= HALF_STROKE_M)
+    # Collisions: the hand's parts are grown by a pixel around silhouette points.
+    hp = px_wall[p_idx].astype(np.float32)[None, :]
+    finger = ((aY - hp <= PAD_HALF_WIDTH_M) & (aX + hp > HALF_STROKE_M - margin)
+              & (aX - hp <= FINGER_OUTER_X_M))
+    palm = (aX - hp <= PALM_HALF_X_M) & (aY - hp <= PALM_HALF_Y_M)
     top = np.maximum.reduceat(np.where(strip, zf, ninf), starts, axis=1)  # (K, S)
     finger_z = np.maximum.reduceat(np.where(finger, zf, ninf), starts, axis=1)
     palm_z = np.maximum.reduceat(np.where(palm, zf, ninf), starts, axis=1)
-    house = np.where(pr2 <= HOUSING_RADIUS_M**2, pz, -np.inf)
+    house = np.where(np.sqrt(pr2) - hp[0] <= HOUSING_RADIUS_M, pz, -np.inf)
     house_z = np.maximum.reduceat(house, starts)[None, :]  # (1, S): round, any rotation
 
     # Centre heights (K, S, D): `depths` below the local top, fingertips above the floor.
@@ -714,8 +735,7 @@ def detect_grasps(
         st, grp, gi = _segments(ids)
         G = len(grp)
         pt = e_pt[m]
-        # A silhouette pixel's centre lies up to half a pixel inside the true edge:
-        # extend wall points outward by that much (unbiased widths and clearances).
+        # Silhouette points pushed out by half a pixel: unbiased widths, clearances.
         x = e_x[m].astype(float)
         x_lo = np.maximum(x - half_px[pt], -HALF_STROKE_M)
         x_hi = np.minimum(x + half_px[pt], HALF_STROKE_M)
@@ -732,7 +752,8 @@ def detect_grasps(
         lab_sum = np.zeros(G)
         lab_sq = np.zeros(G)
         lab_n = np.zeros(G)
-        for patch in (x_lo <= xmin[gi] + tol, x_hi >= xmax[gi] - tol):
+        tol_pt = np.maximum(tol, px_all[pt])
+        for patch in (x_lo <= xmin[gi] + tol_pt, x_hi >= xmax[gi] - tol_pt):
             g = gi[patch]
             q = pt[patch]
             num = np.bincount(g, minlength=G).astype(float)
@@ -773,31 +794,38 @@ def detect_grasps(
     yaw = base[s_of] + phase[k_of]
     centre = np.column_stack([C[s_of, :2], zc[axis, di]])
 
-    # --- Occlusion: every probe on the open hand must be seen as free space ----------
+    # --- View and occlusion: probe points on the open hand -------------------------
+    # Out of the view nothing is known: the fingers and the palm (their probes) must
+    # be in the image, else an object cut by the image border looks narrower or
+    # lower than it is. (Not the housing: 31 mm up, 8 cm across, it would keep
+    # hands off objects that merely reach toward the border.)
+    # Optionally (`occlusion_check`) every probe must also be seen as free space.
+    cy_, sy_ = np.cos(yaw), np.sin(yaw)
+    # R_WG = Rz(yaw) Rx(pi): x_G = (c, s, 0), y_G = (s, -c, 0), z_G = (0, 0, -1).
+    pw = np.empty((len(axis), len(PROBES_G), 3))
+    pw[..., 0] = centre[:, None, 0] + cy_[:, None] * PROBES_G[:, 0] + sy_[:, None] * PROBES_G[:, 1]
+    pw[..., 1] = centre[:, None, 1] + sy_[:, None] * PROBES_G[:, 0] - cy_[:, None] * PROBES_G[:, 1]
+    pw[..., 2] = centre[:, None, 2] - PROBES_G[:, 2]
+    pc = (pw - p_WC) @ R_WC
+    H, W = cloud.depth.shape
+    f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.rint(f * pc[..., 0] / pc[..., 2] + cu)
+        v = np.rint(f * pc[..., 1] / pc[..., 2] + cv)
+    inside = (pc[..., 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    keep = inside[:, :NUM_VIEW_PROBES].all(axis=1)
+    st_["in_view"] = int(keep.sum())
     if occlusion_check:
-        cy_, sy_ = np.cos(yaw), np.sin(yaw)
-        # R_WG = Rz(yaw) Rx(pi): x_G = (c, s, 0), y_G = (s, -c, 0), z_G = (0, 0, -1).
-        pw = np.empty((len(axis), len(PROBES_G), 3))
-        pw[..., 0] = centre[:, None, 0] + cy_[:, None] * PROBES_G[:, 0] + sy_[:, None] * PROBES_G[:, 1]
-        pw[..., 1] = centre[:, None, 1] + sy_[:, None] * PROBES_G[:, 0] - cy_[:, None] * PROBES_G[:, 1]
-        pw[..., 2] = centre[:, None, 2] - PROBES_G[:, 2]
-        pc = (pw - p_WC) @ R_WC
-        H, W = cloud.depth.shape
-        f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.rint(f * pc[..., 0] / pc[..., 2] + cu)
-            v = np.rint(f * pc[..., 1] / pc[..., 2] + cv)
-        inside = (pc[..., 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         ui = np.where(inside, u, 0).astype(np.int64)
         vi = np.where(inside, v, 0).astype(np.int64)
+        # No reading (depth 0): unknown; far (+inf or the far value): seen free.
         measured = np.where(cloud.valid, cloud.depth, np.where(cloud.depth > 0, np.inf, 0.0))
-        seen_free = inside & (pc[..., 2] <= measured[vi, ui] + occ_tol)
-        vis = seen_free.all(axis=1)
-        st_["visible"] = int(vis.sum())
-        r = {k: v_[vis] for k, v_ in r.items()}
-        axis, di, yaw, centre = axis[vis], di[vis], yaw[vis], centre[vis]
-        if len(axis) == 0:
-            return done(DetectedGrasps.empty())
+        keep &= (pc[..., 2] <= measured[vi, ui] + occ_tol).all(axis=1)
+    st_["visible"] = int(keep.sum())
+    r = {k: v_[keep] for k, v_ in r.items()}
+    axis, di, yaw, centre = axis[keep], di[keep], yaw[keep], centre[keep]
+    if len(axis) == 0:
+        return done(DetectedGrasps.empty())
 
     # --- Score ------------------------------------------------------------------------
     width = r["xmax"] - r["xmin"]
@@ -812,6 +840,24 @@ def detect_grasps(
     lab = r["label"]
     d_obj = np.hypot(centre[:, 0] - cx_l[lab], centre[:, 1] - cy_l[lab])
     centring = 1.0 - np.clip(d_obj / np.maximum(rad_l[lab], 1e-6), 0.0, 1.0)
+    # Balance: the object's extent along y_G between the fingers, within the pads'
+    # reach (z >= their lower edge) and `_BALANCE_HALF_WINDOW_M` of the centre,
+    # should be symmetric about the centre (a bottle's cap held across its middle,
+    # not by its rim). Over each survivor's neighbour pairs, grouped by survivor.
+    k_of, s_of = np.divmod(axis, S)
+    ends = np.r_[starts[1:], len(s_idx)]
+    lens = ends[s_of] - starts[s_of]
+    owner = np.repeat(np.arange(len(axis)), lens)
+    pos = starts[s_of][owner] + np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+    bx, by = Xg[k_of[owner], pos], Yg[k_of[owner], pos]
+    inb = ((np.abs(bx) <= HALF_STROKE_M) & (np.abs(by) <= _BALANCE_HALF_WINDOW_M)
+           & (pz[pos] >= (centre[:, 2] - PAD_HALF_LENGTH_M)[owner]))
+    first = np.r_[0, np.cumsum(lens)[:-1]]
+    y_lo = np.minimum.reduceat(np.where(inb, by, np.inf), first)
+    y_hi = np.maximum.reduceat(np.where(inb, by, -np.inf), first)
+    with np.errstate(invalid="ignore"):
+        mid = np.abs(0.5 * (y_lo + y_hi))
+    balance = 1.0 - np.clip(np.nan_to_num(mid, nan=0.0) / _BALANCE_HALF_WINDOW_M, 0.0, 1.0)
     clearance = np.clip(np.minimum(HALF_STROKE_M + r["xmin"], HALF_STROKE_M - r["xmax"])
                         / HALF_STROKE_M, 0.0, 1.0)
     fill = np.clip(r["area"] / (np.maximum(width, 1e-3) * 2.0 * PAD_HALF_WIDTH_M), 0.0, 1.0)
@@ -821,14 +867,18 @@ def detect_grasps(
     half_view = max(p_WC[2] - table_z, 1e-3) * np.tan(np.deg2rad(float(fov_y_deg)) / 2.0)
     view = 1.0 - np.clip(np.hypot(centre[:, 0] - p_WC[0], centre[:, 1] - p_WC[1]) / half_view,
                          0.0, 1.0)
-    terms = {"antipodal": antipodal, "centring": centring, "clearance": clearance,
+    terms = {"antipodal": antipodal, "centring": centring, "balance": balance,
+             "clearance": clearance,
              "fill": fill, "depth": depth_term, "view": view}
     score = sum(getattr(weights, k) * terms[k] for k in SCORE_TERMS)
-    if not occlusion_check:
-        st_["visible"] = len(axis)
     order = np.argsort(-score, kind="stable")
-    theta = np.mod(np.rad2deg(yaw), 180.0)
+    yaw_deg = np.mod(np.rad2deg(yaw), 360.0)
+    theta = np.mod(yaw_deg, 180.0)
     theta = np.where(theta >= 180.0, 0.0, theta)  # mod of a tiny negative can give 180
+    # Reported x_G is at theta: list the contacts along it (-x_G side first).
+    flip = (yaw_deg >= 180.0) & (yaw_deg < 360.0)
+    c0, c1 = np.where(flip[:, None], c1, c0), np.where(flip[:, None], c0, c1)
+    n0, n1 = np.where(flip[:, None], n1, n0), np.where(flip[:, None], n0, n1)
     return done(DetectedGrasps(
         xy_theta=np.column_stack([centre[:, :2], theta])[order],
         z=centre[order, 2],

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import shutil
 import time
 import traceback
 from dataclasses import dataclass
@@ -177,7 +178,7 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
     scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
                               objects_dir=objects_dir, library=library)
     prefix = f"{task.trial_id}/attempt"
-    done = sorted((r for r in load_records(out, missing_ok=True)
+    done = sorted((r for r in load_records(out)
                    if r.trial_id.startswith(prefix)), key=lambda r: r.attempt_index)
     records = list(done)
     failures = 0
@@ -251,7 +252,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         {"records": number of trial records, "ran": tasks run now, "skipped": tasks
         already done, "summary": the report's summary (when `report`)}.
     """
-    from drake_grasp.results import load_records, read_run_info, write_run_info
+    from drake_grasp.results import done_trial_ids, load_records, read_run_info, write_run_info
 
     exp = get_experiment(experiment)
     out = Path(out)
@@ -271,16 +272,16 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     info["created"] = old.get("created") if old else time.strftime("%Y-%m-%dT%H:%M:%S")
     write_run_info(out, info)
     tasks = plan_tasks(exp, trials=trials, seed=seed)
-    records = load_records(out, missing_ok=True)
-    done_ids = {r.trial_id for r in records}
+    records = load_records(out) if exp.kind == "clutter-runs" else []
+    done_ids = done_trial_ids(out)
     if exp.kind == "clutter-runs":
         todo = [t for t in tasks if not _clutter_run_finished(out, t, exp, records)]
     else:
         todo = [t for t in tasks if t.trial_id not in done_ids]
     _execute(todo, out=str(out), workers=workers, scheduler=scheduler, objects_dir=objects_dir,
              progress=progress, fail_trials=tuple(fail_trials), total=len(tasks),
-             initial=len(tasks) - len(todo), records=records)
-    result = {"records": len(load_records(out, missing_ok=True)), "ran": len(todo),
+             initial=len(tasks) - len(todo))
+    result = {"records": len(load_records(out)), "ran": len(todo),
               "skipped": len(tasks) - len(todo)}
     if report:
         from drake_grasp.report import make_report
@@ -290,14 +291,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
 
 
 def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trials, total,
-             initial, records):
+             initial):
     from tqdm import tqdm
 
-    stats: dict = {}
-    for r in records:
-        s = stats.setdefault(r.condition, [0, 0])
-        s[0] += int(r.success)
-        s[1] += 1
+    stats: dict = {}  # running successes / attempts per condition, this session
     bar = tqdm(total=total, initial=initial, unit="trial", disable=not progress,
                desc="evaluate", dynamic_ncols=True)
 
@@ -342,7 +339,7 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.episode import run_episode
-    from drake_grasp.results import load_records
+    from drake_grasp.results import load_records, replay_path
     from drake_grasp.scenario import Scenario
     from drake_grasp.scene import SceneSpec
 
@@ -353,5 +350,10 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     rec = matches[0]
     scenario = yaml_load_typed(schema=Scenario, data=rec.scenario_yaml)
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
-    out = Path(out) if out else results_dir / "replays" / trial_id.replace("/", "__")
-    return run_episode(scenario, out_dir=out, scenario_name=rec.scenario_name, scene=scene), out
+    page = replay_path(results_dir, trial_id)
+    out = Path(out) if out else page.with_suffix("")
+    result = run_episode(scenario, out_dir=out, scenario_name=rec.scenario_name, scene=scene)
+    if out == page.with_suffix(""):
+        # The report links failed trials to replays/<trial>.html.
+        shutil.copyfile(out / "replay.html", page)
+    return result, out

@@ -1,0 +1,870 @@
+"""Figures and tables from Monte Carlo results directories (see `drake_grasp.results`).
+
+`make_report(dir)` writes, into the results dir (or `out_dir`):
+
+- `summary.json`: per-condition statistics (success rate with Wilson 95% interval,
+  final-distance statistics, failure classes), the figures written, the paper's numbers
+  that apply, and the target checks;
+- `report.md`: a Table-1-style success table next to the paper's numbers, Figure-5-style
+  histograms of the final distance to the closest true grasp (3 cm bins), the target check
+  of the experiment at hand, sweep curves for "name=value" conditions, failure-class counts
+  and links to the replay pages of failed trials;
+- the PNG figures the report shows.
+
+`make_combined_report(dirs, out_dir)` does the same over several experiments (the three
+Table 1 rows side by side, the Figure 5 panels), to publish reference results.
+
+Conventions: success rates are fractions in summary.json and percentages in report.md.
+Every trial of a grasping condition counts as an attempt, simulation errors included (they
+are failures of the system under test, and are listed by class, not hidden). INIT trials
+attempt no grasp: their conditions carry distance statistics only.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import re
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from drake_grasp.results import (FAILURE_CLASSES, REPLAYS_DIR, TrialRecord, atomic_write_bytes,
+                                 atomic_write_text, load_records, read_run_info, replay_path,
+                                 wilson_interval)
+
+BIN_M = 0.03  # the paper's Figure 5 bin size
+HIST_MAX_M = 0.30  # last regular bin edge; farther trials go to an overflow bin
+
+# Figure 5 (left): kinematic noise comparison; (right): perception, one-shot vs closed loop.
+NOISE_CONDITIONS = ("init", "ctr", "ctr_noise", "gpd", "gpd_noise")
+PERCEPTION_CONDITIONS = ("cnn-only", "cnn-ctr")
+CONDITION_LABELS = {
+    "init": "INIT", "ctr": "CTR no noise", "ctr_noise": "CTR with noise",
+    "gpd": "GPD no noise", "gpd_noise": "GPD with noise",
+    "cnn-only": "CNN only", "cnn-ctr": "CNN+CTR",
+}
+# Spellings other modules or people may use for the same arms.
+_CONDITION_ALIASES = {
+    "ctr_no_noise": "ctr", "ctr-no-noise": "ctr", "ctr-noise": "ctr_noise",
+    "ctr_with_noise": "ctr_noise", "gpd_no_noise": "gpd", "gpd-no-noise": "gpd",
+    "gpd-noise": "gpd_noise", "gpd_with_noise": "gpd_noise", "cnn_only": "cnn-only",
+    "cnn_ctr": "cnn-ctr", "cnn+ctr": "cnn-ctr",
+}
+DISTANCE_ONLY_CONDITIONS = ("init",)
+
+TABLE1_EXPERIMENTS = ("isolation", "clutter", "clutter-shift")
+_EXPERIMENT_ALIASES = {
+    "clutter-rotations": "clutter-shift", "clutter-with-rotations": "clutter-shift",
+    "shift": "clutter-shift", "clutter-shifted": "clutter-shift",
+    "figure5": "sim-distance", "fig5": "sim-distance", "simdistance": "sim-distance",
+}
+
+# Table 1 of the paper (real UR5). Counts are the ones stated in the text; where the printed
+# rate differs from the stated counts, both are kept and the note says so.
+PAPER_TABLE1: dict[str, dict] = {
+    "isolation": {
+        "row": "Objects in isolation",
+        "ctr": {"rate_percent": 97.5, "successes": 39, "attempts": 40},
+        "gpd": {"rate_percent": 97.5, "successes": None, "attempts": None,
+                "note": "the text says only that GPD achieves the same rate"},
+    },
+    "clutter": {
+        "row": "Clutter",
+        "ctr": {"rate_percent": 88.9, "successes": 66, "attempts": 74,
+                "note": "the text's 8 failures of 74 give 89.2%; Table 1 prints 88.9%"},
+        "gpd": {"rate_percent": 94.8, "successes": 91, "attempts": 96},
+    },
+    "clutter-shift": {
+        "row": "Clutter with rotations (pile shifted once per trial)",
+        "ctr": {"rate_percent": 77.3, "successes": 58, "attempts": 75},
+        "gpd": {"rate_percent": 22.5, "successes": 11, "attempts": 49,
+                "note": "the text's 38 failures of 49 give 22.4%; Table 1 prints 22.5%"},
+    },
+}
+PAPER_FIGURE5 = {
+    "source": "Viereck et al. 2017, Figure 5 (400 simulated trials per scenario, 3 cm bins)",
+    "claims": [
+        "without kinematic noise CTR and GPD reach a grasp about equally well",
+        "with kinematic noise (0.4 w |delta|, w ~ N(0, 1) per step) CTR compensates, GPD does not",
+        "CNN+CTR ends closer to a true grasp than the one-shot CNN prediction alone",
+    ],
+    "note": "the paper prints no numbers for Figure 5; compare shapes, not values",
+}
+
+# Targets from the project's issue, per experiment.
+_TOL = 1e-9
+
+
+@dataclass
+class Results:
+    """One results directory, loaded."""
+
+    results_dir: Path
+    experiment: str
+    run_info: dict
+    records: list[TrialRecord]
+
+
+# --------------------------------------------------------------------------- loading
+
+def canonical_experiment(name: str) -> str:
+    """Lower-case, '-'-separated experiment name with known aliases resolved."""
+    key = re.sub(r"[\s_]+", "-", str(name).strip().lower())
+    return _EXPERIMENT_ALIASES.get(key, key)
+
+
+def canonical_condition(name: str) -> str:
+    """Condition name with known aliases resolved ("cnn_only" -> "cnn-only")."""
+    key = str(name).strip().lower()
+    return _CONDITION_ALIASES.get(key, key)
+
+
+def load_results(results_dir: str | os.PathLike) -> Results:
+    """Loads the records and run info of a results dir.
+
+    The experiment name comes from run.json's "experiment", else from the records.
+
+    Raises:
+        ValueError: The dir has no trial records (named in the message), or a record is corrupt.
+    """
+    results_dir = Path(results_dir)
+    if not results_dir.is_dir():
+        raise ValueError(f"{results_dir}: results dir does not exist")
+    records = load_records(results_dir)
+    if not records:
+        raise ValueError(f"{results_dir}: no trial records in {results_dir / 'trials'} "
+                         "(nothing to report; has the run started?)")
+    try:
+        run_info = read_run_info(results_dir)
+    except FileNotFoundError:
+        run_info = {}
+    experiment = run_info.get("experiment")
+    if not isinstance(experiment, str) or not experiment:
+        experiment = "+".join(sorted({r.experiment for r in records}))
+    return Results(results_dir, experiment, run_info, records)
+
+
+# --------------------------------------------------------------------------- statistics
+
+def _is_distance_only(condition: str, records: Sequence[TrialRecord]) -> bool:
+    if canonical_condition(condition) in DISTANCE_ONLY_CONDITIONS:
+        return True
+    return all(r.policy.lower() == "init"
+               or (r.failure_reason or "").lower().startswith("init")
+               or r.extra.get("distance_only") is True for r in records)
+
+
+def distance_histogram(distances: Iterable[float], *, bin_m: float = BIN_M,
+                       max_m: float = HIST_MAX_M) -> tuple[list[float], list[int]]:
+    """Counts per bin [k*bin_m, (k+1)*bin_m) up to max_m, plus one overflow bin (>= max_m).
+
+    Returns:
+        (bin edges [m] including max_m, counts with len(edges) entries: the last one is the
+        overflow bin).
+    """
+    nbins = int(round(max_m / bin_m))
+    edges = [round(k * bin_m, 10) for k in range(nbins + 1)]
+    counts = [0] * (nbins + 1)
+    for d in distances:
+        # floor division with a tiny tolerance so 0.03 - 1e-16 stays in bin 0 and 0.03 goes to 1
+        k = int(math.floor(d / bin_m + 1e-9)) if d >= 0 else 0
+        counts[min(k, nbins)] += 1
+    return edges, counts
+
+
+def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
+    """Statistics of one condition (see the module docstring for the conventions).
+
+    `fraction_within_3cm` is over all trials of the condition: a trial whose distance was
+    not measured (e.g. a simulation error) counts as not within 3 cm. It is None when no
+    trial has a distance.
+    """
+    distance_only = _is_distance_only(condition, records)
+    dists = [r.final_distance_m for r in records if r.final_distance_m is not None]
+    classes = {c: 0 for c in FAILURE_CLASSES}
+    for r in records:
+        classes[r.failure_class] += 1
+    out: dict[str, Any] = {
+        "policies_run": sorted({r.policy for r in records}),
+        "trials": len(records),
+        "distance_only": distance_only,
+        "success_rate": None, "n": None, "successes": None, "ci95": None,
+    }
+    if not distance_only:
+        n = len(records)
+        k = sum(1 for r in records if r.success)
+        lo, hi = wilson_interval(k, n)
+        out.update(success_rate=k / n, n=n, successes=k, ci95=[lo, hi])
+    edges, counts = distance_histogram(dists)
+    out.update({
+        "distance_n": len(dists),
+        "mean_final_distance_m": statistics.fmean(dists) if dists else None,
+        "median_final_distance_m": statistics.median(dists) if dists else None,
+        "fraction_within_3cm": (sum(1 for d in dists if d < BIN_M - _TOL) / len(records)
+                                if dists else None),
+        "histogram": {"bin_edges_m": edges, "counts": counts,
+                      "note": "last count: distances >= the last edge"},
+        "failure_classes": classes,
+        "config_hashes": sorted({r.config_hash for r in records}),
+        "code_versions": sorted({r.code_version for r in records}),
+    })
+    return out
+
+
+def _condition_order(name: str) -> tuple:
+    canon = canonical_condition(name)
+    known = NOISE_CONDITIONS + PERCEPTION_CONDITIONS
+    if canon in known:
+        return (0, known.index(canon), "")
+    sweep = parse_sweep_condition(name)
+    if sweep is not None:
+        series, param, value = sweep
+        v = _as_float(value)
+        return (2, series or "", param, 0 if v is not None else 1, v if v is not None else 0.0, value)
+    return (1, 0, name)
+
+
+def summarize(records: Sequence[TrialRecord]) -> dict[str, dict]:
+    """`summarize_condition` for every condition, in a stable order (paper arms first)."""
+    by_condition: dict[str, list[TrialRecord]] = {}
+    for r in records:
+        by_condition.setdefault(r.condition, []).append(r)
+    return {c: summarize_condition(c, by_condition[c])
+            for c in sorted(by_condition, key=_condition_order)}
+
+
+def _lookup(policies: dict[str, dict], canonical: str) -> tuple[str, dict] | None:
+    for name, stats in policies.items():
+        if canonical_condition(name) == canonical:
+            return name, stats
+    return None
+
+
+# --------------------------------------------------------------------------- targets
+
+def _target(tid: str, experiment: str, description: str, value: float | None,
+            threshold: float, comparison: str, units: str, note: str = "", *,
+            value_units: str = "%") -> dict:
+    if value is None:
+        return {"id": tid, "experiment": experiment, "description": description, "value": None,
+                "value_units": value_units, "threshold": threshold, "comparison": comparison,
+                "units": units, "met": None, "margin": None,
+                "note": note or "not evaluated: data missing"}
+    margin = value - threshold if comparison == ">=" else threshold - value
+    met = margin >= -_TOL if comparison == ">=" else margin > _TOL
+    return {"id": tid, "experiment": experiment, "description": description, "value": value,
+            "value_units": value_units, "threshold": threshold, "comparison": comparison,
+            "units": units, "met": bool(met), "margin": margin, "note": note}
+
+
+def _rate_percent(stats: dict | None) -> float | None:
+    if stats is None or stats.get("n") in (None, 0):
+        return None
+    return 100.0 * stats["successes"] / stats["n"]
+
+
+def check_targets(experiment: str, policies: dict[str, dict]) -> list[dict]:
+    """The project's targets that apply to `experiment`, each met/missed and by how much.
+
+    Targets: CTR success >= 97.5% (isolation), >= 94.8% (clutter), >= 90% and >= 40
+    points above GPD (clutter-shift); sim-distance: CTR with noise keeps >= 70% of trials
+    in the first 3 cm bin while GPD with noise does not. `margin` > 0 means met with room
+    to spare (percentage points).
+
+    Args:
+        experiment: Experiment name (aliases resolved with `canonical_experiment`).
+        policies: `summarize(...)` output.
+
+    Returns:
+        Target dicts (id, description, value, threshold, comparison, units, met, margin,
+        note); [] for an experiment without targets.
+    """
+    exp = canonical_experiment(experiment)
+    get = lambda c: (_lookup(policies, c) or (None, None))[1]  # noqa: E731
+    out = []
+    thresholds = {"isolation": 97.5, "clutter": 94.8, "clutter-shift": 90.0}
+    if exp in thresholds:
+        ctr = get("ctr")
+        missing = "" if ctr is not None else "not evaluated: no 'ctr' condition"
+        out.append(_target(f"{exp}/ctr-success", exp,
+                           f"CTR grasp success >= {thresholds[exp]:g}% ({exp})",
+                           _rate_percent(ctr), thresholds[exp], ">=", "points", missing))
+    if exp == "clutter-shift":
+        ctr, gpd = _rate_percent(get("ctr")), _rate_percent(get("gpd"))
+        diff = None if ctr is None or gpd is None else ctr - gpd
+        out.append(_target("clutter-shift/ctr-minus-gpd", exp,
+                           "CTR success >= 40 points above GPD (clutter-shift)", diff, 40.0, ">=",
+                           "points", "" if diff is not None else
+                           "not evaluated: needs both 'ctr' and 'gpd' conditions",
+                           value_units=" points"))
+    has_noise_arms = get("ctr_noise") is not None and get("gpd_noise") is not None
+    if exp == "sim-distance" or (exp not in thresholds and has_noise_arms):
+        for cond, cmp, desc in (("ctr_noise", ">=", "CTR with noise: >= 70% of trials within 3 cm"),
+                                ("gpd_noise", "<", "GPD with noise: < 70% of trials within 3 cm")):
+            stats = get(cond)
+            frac = None if stats is None or stats.get("fraction_within_3cm") is None \
+                else 100.0 * stats["fraction_within_3cm"]
+            out.append(_target(f"sim-distance/{cond}-within-3cm", "sim-distance", desc, frac,
+                               70.0, cmp, "points", "" if frac is not None else
+                               f"not evaluated: no '{cond}' distances"))
+    return out
+
+
+def _target_line(t: dict) -> str:
+    if t["met"] is None:
+        return f"- **not evaluated** {t['description']}: {t['note']}"
+    verdict = "met" if t["met"] else "missed"
+    how = (f"by {abs(t['margin']):.1f} {t['units']}" if abs(t["margin"]) > _TOL
+           else "exactly at the threshold")
+    line = f"- **{verdict}** {t['description']}: {t['value']:.1f}{t['value_units']} ({verdict} {how})"
+    return line + (f"; {t['note']}" if t["note"] else "")
+
+
+# --------------------------------------------------------------------------- figures
+
+def _new_figure(width: float, height: float):
+    # The object API with an explicit Agg canvas: no pyplot global state, so reports can be
+    # made from threads and under any configured backend.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save_png(fig, path: Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def _figure5_panels(policies: dict[str, dict], experiment: str) -> list[tuple[str, list[str]]]:
+    """[(panel title, condition names present)] in Figure 5 order; empty groups are left out."""
+    exp = canonical_experiment(experiment)
+    panels = []
+    # Table 1 experiments have ctr/gpd arms too, but no noise comparison: say what is shown.
+    noise_title = "CTR vs GPD" if exp in TABLE1_EXPERIMENTS else "kinematic noise"
+    for title, group in ((noise_title, NOISE_CONDITIONS),
+                         ("perception: one-shot vs closed loop", PERCEPTION_CONDITIONS)):
+        names = [hit[0] for c in group if (hit := _lookup(policies, c)) is not None
+                 and hit[1]["distance_n"] > 0]
+        if names:
+            panels.append((f"{exp}: {title}" if exp else title, names))
+    return panels
+
+
+def plot_distance_histograms(panels: list[tuple[str, list[tuple[str, list[float], int]]]],
+                             path: str | os.PathLike, *, bin_m: float = BIN_M,
+                             max_m: float = HIST_MAX_M) -> Path:
+    """Grouped-bar histograms of the final distance, one panel per entry (Figure 5 style).
+
+    Bars are fractions of each condition's trials (conditions may differ in trial count;
+    trials without a distance count in the denominator); the last group collects distances
+    >= max_m.
+
+    Args:
+        panels: [(title, [(label, final distances [m], number of trials)])].
+        path: PNG file to write (atomically).
+        bin_m: Bin width [m].
+        max_m: Start of the overflow bin [m].
+    """
+    import numpy as np
+
+    fig = _new_figure(6.4 * len(panels), 3.8)
+    nbins = int(round(max_m / bin_m))
+    for i, (title, series) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        width = 0.8 / max(1, len(series))
+        x = np.arange(nbins + 1)
+        for j, (label, dists, trials) in enumerate(series):
+            _, counts = distance_histogram(dists, bin_m=bin_m, max_m=max_m)
+            frac = np.asarray(counts, float) / max(1, trials)
+            ax.bar(x - 0.4 + width * (j + 0.5), frac, width=width, label=f"{label} (n={trials})")
+        ax.set_xticks(x)
+        ax.set_xticklabels([f"{100 * k * bin_m:g}-{100 * (k + 1) * bin_m:g}" for k in range(nbins)]
+                           + [f"≥{100 * max_m:g}"], fontsize=7, rotation=45)
+        ax.set_xlabel(f"final distance to closest true grasp [cm], {100 * bin_m:g} cm bins")
+        ax.set_ylabel("fraction of trials")
+        ax.set_ylim(0, 1)
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=8)
+    return _save_png(fig, Path(path))
+
+
+def _condition_distances(records: Sequence[TrialRecord], condition: str) -> tuple[list[float], int]:
+    sel = [r for r in records if r.condition == condition]
+    return [r.final_distance_m for r in sel if r.final_distance_m is not None], len(sel)
+
+
+_SWEEP_RE = re.compile(r"^(?:(?P<series>[^=/:]+)[/:])?(?P<name>[A-Za-z_][\w.\-]*)=(?P<value>[^=]+)$")
+
+
+def parse_sweep_condition(condition: str) -> tuple[str | None, str, str] | None:
+    """"noise_scale=0.4" -> (None, "noise_scale", "0.4"); "ctr/noise_scale=0.4" ->
+    ("ctr", "noise_scale", "0.4"); None for a condition that is not a sweep point."""
+    m = _SWEEP_RE.match(condition.strip())
+    if m is None:
+        return None
+    return m.group("series"), m.group("name"), m.group("value")
+
+
+def _as_float(text: str) -> float | None:
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _sweeps(policies: dict[str, dict]) -> dict[str, dict[str | None, list[tuple[str, str, dict]]]]:
+    """{param: {series: [(value text, condition, stats)]}} for the "name=value" conditions."""
+    out: dict[str, dict] = {}
+    for cond, stats in policies.items():
+        parsed = parse_sweep_condition(cond)
+        if parsed is None:
+            continue
+        series, name, value = parsed
+        out.setdefault(name, {}).setdefault(series, []).append((value, cond, stats))
+    return out
+
+
+def plot_sweep(param: str, series: dict[str | None, list[tuple[str, str, dict]]], path: Path) -> Path:
+    """Success rate vs the swept value (Wilson 95% error bars), and the fraction of trials
+    within 3 cm when distances were measured. Non-numeric values are spaced evenly."""
+    values = sorted({v for pts in series.values() for v, _, _ in pts},
+                    key=lambda v: (_as_float(v) is None, _as_float(v) or 0.0, v))
+    numeric = all(_as_float(v) is not None for v in values)
+    xpos = {v: (_as_float(v) if numeric else float(i)) for i, v in enumerate(values)}
+    has_success = any(s["n"] for pts in series.values() for _, _, s in pts)
+    has_dist = any(s["fraction_within_3cm"] is not None for pts in series.values() for _, _, s in pts)
+    kinds = [k for k, on in (("success", has_success), ("within", has_dist)) if on] or ["success"]
+    fig = _new_figure(5.2 * len(kinds), 3.6)
+    for i, kind in enumerate(kinds):
+        ax = fig.add_subplot(1, len(kinds), i + 1)
+        for label, pts in sorted(series.items(), key=lambda kv: kv[0] or ""):
+            pts = sorted(pts, key=lambda p: xpos[p[0]])
+            if kind == "success":
+                pts = [p for p in pts if p[2]["n"]]
+                ys = [p[2]["success_rate"] for p in pts]
+                lo = [y - p[2]["ci95"][0] for y, p in zip(ys, pts)]
+                hi = [p[2]["ci95"][1] - y for y, p in zip(ys, pts)]
+                ax.errorbar([xpos[p[0]] for p in pts], ys, yerr=[lo, hi], marker="o", capsize=3,
+                            label=label or "all")
+            else:
+                pts = [p for p in pts if p[2]["fraction_within_3cm"] is not None]
+                ax.plot([xpos[p[0]] for p in pts], [p[2]["fraction_within_3cm"] for p in pts],
+                        marker="s", label=label or "all")
+        if not numeric:
+            ax.set_xticks([xpos[v] for v in values])
+            ax.set_xticklabels(values)
+        ax.set_xlabel(param)
+        ax.set_ylabel("grasp success rate (Wilson 95% CI)" if kind == "success"
+                      else "fraction of trials within 3 cm")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        if len(series) > 1 or next(iter(series)) is not None:
+            ax.legend(fontsize=8)
+    return _save_png(fig, path)
+
+
+# --------------------------------------------------------------------------- markdown pieces
+
+def _pct(x: float | None, digits: int = 1) -> str:
+    return "—" if x is None else f"{100 * x:.{digits}f}%"
+
+
+def _ci(stats: dict) -> str:
+    return "—" if not stats.get("ci95") else f"[{_pct(stats['ci95'][0])}, {_pct(stats['ci95'][1])}]"
+
+
+def _cm(x: float | None) -> str:
+    return "—" if x is None else f"{100 * x:.2f} cm"
+
+
+def _md_escape(text: str, limit: int = 160) -> str:
+    text = " ".join(str(text).split()).replace("|", "\\|")
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _paper_cell(exp: str, condition: str) -> str:
+    row = PAPER_TABLE1.get(exp, {})
+    paper = row.get(canonical_condition(condition))
+    if paper is None:
+        return "—"
+    counts = (f" ({paper['successes']}/{paper['attempts']})" if paper.get("attempts") else "")
+    return f"{paper['rate_percent']:.1f}%{counts}"
+
+
+def _success_table(exp: str, policies: dict[str, dict]) -> list[str]:
+    rows = [(c, s) for c, s in policies.items() if not s["distance_only"]]
+    if not rows:
+        return ["No grasping conditions (distance-only trials)."]
+    paper_row = PAPER_TABLE1.get(exp)
+    head = "| condition | successes / attempts | rate | Wilson 95% CI |"
+    sep = "|---|---|---|---|"
+    if paper_row:
+        head += f" paper (Table 1, {paper_row['row']}) |"
+        sep += "---|"
+    lines = [head, sep]
+    for c, s in rows:
+        line = f"| {c} | {s['successes']} / {s['n']} | {_pct(s['success_rate'])} | {_ci(s)} |"
+        if paper_row:
+            line += f" {_paper_cell(exp, c)} |"
+        lines.append(line)
+    if paper_row:
+        notes = [f"{c.upper()}: {p['note']}" for c in ("ctr", "gpd") if (p := paper_row[c]).get("note")]
+        lines += ["", "Paper: real UR5 robot, Table 1 of Viereck et al. 2017"
+                  + (f" ({'; '.join(notes)})" if notes else "") + "."]
+    return lines
+
+
+def _distance_table(policies: dict[str, dict]) -> list[str]:
+    lines = ["| condition | trials | with distance | mean | median | within 3 cm |",
+             "|---|---|---|---|---|---|"]
+    for c, s in policies.items():
+        if s["distance_n"] == 0:
+            continue
+        lines.append(f"| {c} | {s['trials']} | {s['distance_n']} | {_cm(s['mean_final_distance_m'])} | "
+                     f"{_cm(s['median_final_distance_m'])} | {_pct(s['fraction_within_3cm'])} |")
+    return lines if len(lines) > 2 else ["No trial has a final distance."]
+
+
+def _failure_table(policies: dict[str, dict]) -> list[str]:
+    lines = ["| condition | " + " | ".join(FAILURE_CLASSES) + " |",
+             "|---" * (len(FAILURE_CLASSES) + 1) + "|"]
+    for c, s in policies.items():
+        lines.append(f"| {c} | " + " | ".join(str(s["failure_classes"][k]) for k in FAILURE_CLASSES) + " |")
+    return lines
+
+
+def _failed_replay_links(res: Results, policies: dict[str, dict], out_dir: Path,
+                         limit: int = 200) -> list[str]:
+    failed = [r for r in res.records
+              if not r.success and not policies[r.condition]["distance_only"]]
+    linked = []
+    for r in failed:
+        page = replay_path(res.results_dir, r.trial_id)
+        if page.is_file():
+            rel = Path(os.path.relpath(page, out_dir)).as_posix()
+            reason = _md_escape(r.failure_reason or "no reason recorded")
+            # Reasons usually start with their class ("missed: ..."); say it once.
+            why = reason if reason.lower().startswith(r.failure_class) else f"{r.failure_class}: {reason}"
+            linked.append(f"- [{r.trial_id}]({rel}) — {why}")
+    lines = linked[:limit]
+    if len(linked) > limit:
+        lines.append(f"- … and {len(linked) - limit} more in `{REPLAYS_DIR}/`")
+    if not failed:
+        return ["No failed grasp attempts."]
+    if len(linked) < len(failed):
+        lines += ([""] if lines else []) + [
+            f"{len(failed) - len(linked)} of {len(failed)} failed trials have no replay page "
+            f"in `{REPLAYS_DIR}/`."]
+    return lines
+
+
+def _relpath(path: Path, out_dir: Path) -> str:
+    return Path(os.path.relpath(path, out_dir)).as_posix()
+
+
+def _paper_for(exp: str, policies: dict[str, dict]) -> dict:
+    paper: dict[str, Any] = {}
+    if exp in PAPER_TABLE1:
+        paper["table1"] = PAPER_TABLE1[exp]
+    if _figure5_panels(policies, exp) or exp == "sim-distance":
+        paper["figure5"] = PAPER_FIGURE5
+    return paper
+
+
+def _write_json(path: Path, data: dict) -> None:
+    atomic_write_text(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- one experiment
+
+def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path, *,
+                         prefix: str, level: str = "##",
+                         histogram: bool = True) -> tuple[list[str], list[Path], list[dict]]:
+    """Markdown sections, figures written and targets of one results dir."""
+    exp = canonical_experiment(res.experiment)
+    figures: list[Path] = []
+    md: list[str] = []
+
+    md += [f"{level} Grasp success (Table 1 style)", ""] + _success_table(exp, policies) + [""]
+
+    md += [f"{level} Final distance to the closest true grasp (Figure 5 style)", ""]
+    panels = _figure5_panels(policies, exp) if histogram else []
+    if panels:
+        path = out_dir / f"{prefix}figure5_distance_histogram.png"
+        plot_distance_histograms(
+            [(t, [(CONDITION_LABELS.get(canonical_condition(c), c),
+                   *_condition_distances(res.records, c)) for c in names])
+             for t, names in panels], path)
+        figures.append(path)
+        md += [f"![final distance histograms]({_relpath(path, out_dir)})", ""]
+    md += _distance_table(policies) + [""]
+    if "figure5" in _paper_for(exp, policies):
+        md += [f"Paper (Figure 5, {PAPER_FIGURE5['note']}): " + "; ".join(PAPER_FIGURE5["claims"]) + ".", ""]
+
+    targets = check_targets(exp, policies)
+    md += [f"{level} Target check ({exp})", ""]
+    md += [_target_line(t) for t in targets] if targets else ["No targets for this experiment."]
+    md += [""]
+
+    sweeps = _sweeps(policies)
+    if sweeps:
+        md += [f"{level} Sweeps", ""]
+        for param, series in sorted(sweeps.items()):
+            safe = re.sub(r"[^A-Za-z0-9._-]", "_", param)
+            path = out_dir / f"{prefix}sweep_{safe}.png"
+            plot_sweep(param, series, path)
+            figures.append(path)
+            md += [f"![sweep over {param}]({_relpath(path, out_dir)})", ""]
+
+    md += [f"{level} Failure classes", ""] + _failure_table(policies) + [""]
+    md += [f"{level} Failed trials with replays", ""] + _failed_replay_links(res, policies, out_dir) + [""]
+    return md, figures, targets
+
+
+def _header(res: Results, out_dir: Path) -> list[str]:
+    versions = sorted({r.code_version for r in res.records})
+    hashes = sorted({r.config_hash for r in res.records})
+    conds = sorted({r.condition for r in res.records}, key=_condition_order)
+    lines = [f"- results dir: `{res.results_dir}`",
+             f"- trials: {len(res.records)} in {len(conds)} conditions ({', '.join(conds)})",
+             f"- code version: {', '.join(versions)}; config hashes: {len(hashes)}"]
+    created = res.run_info.get("created_utc") or res.run_info.get("created")
+    if created:
+        lines.append(f"- run created: {created}")
+    return lines
+
+
+def make_report(results_dir: str | os.PathLike, *, out_dir: str | os.PathLike | None = None) -> dict:
+    """Writes `summary.json`, `report.md` and PNG figures for one results dir.
+
+    Args:
+        results_dir: A dir laid out as `drake_grasp.results` describes.
+        out_dir: Where to write (default: the results dir).
+
+    Returns:
+        The summary (as written to summary.json): {"experiment", "results_dir", "policies":
+        {condition: stats}, "figures": [paths relative to out_dir], "paper": {...},
+        "targets": [...]}.
+
+    Raises:
+        ValueError: No trial records (the dir is named), or a corrupt record.
+    """
+    res = load_results(results_dir)
+    out = Path(out_dir) if out_dir is not None else res.results_dir
+    out.mkdir(parents=True, exist_ok=True)
+    policies = summarize(res.records)
+    exp = canonical_experiment(res.experiment)
+    sections, figures, targets = _experiment_sections(res, policies, out, prefix="")
+    md = [f"# Results: {res.experiment}", ""] + _header(res, out) + [""] + sections
+    summary = {
+        "experiment": res.experiment,
+        "results_dir": str(res.results_dir),
+        "policies": policies,
+        "figures": [_relpath(p, out) for p in figures],
+        "paper": _paper_for(exp, policies),
+        "targets": targets,
+        "run_info": res.run_info,
+    }
+    _write_json(out / "summary.json", summary)
+    atomic_write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
+    return summary
+
+
+# --------------------------------------------------------------------------- several experiments
+
+def _load_many(results_dirs: Sequence[str | os.PathLike]) -> list[Results]:
+    if not results_dirs:
+        raise ValueError("no results dirs given")
+    loaded = [load_results(d) for d in results_dirs]
+    seen: dict[str, Path] = {}
+    for res in loaded:
+        exp = canonical_experiment(res.experiment)
+        if exp in seen:
+            raise ValueError(f"experiment {exp!r} appears in both {seen[exp]} and {res.results_dir}; "
+                             "give one results dir per experiment")
+        seen[exp] = res.results_dir
+    return loaded
+
+
+def _table1_cell(stats: dict | None) -> tuple[str, str]:
+    if stats is None or not stats.get("n"):
+        return "—", "—"
+    return f"{_pct(stats['success_rate'])} ({stats['successes']}/{stats['n']})", _ci(stats)
+
+
+def table1_rows(loaded: Sequence[Results]) -> dict[str, dict]:
+    """{experiment: {"row", "ctr": {"sim": stats|None, "paper": {...}}, "gpd": ...}} for the
+    Table 1 experiments present, in the paper's row order."""
+    by_exp = {canonical_experiment(r.experiment): summarize(r.records) for r in loaded}
+    rows = {}
+    for exp in TABLE1_EXPERIMENTS:
+        if exp not in by_exp:
+            continue
+        policies = by_exp[exp]
+        rows[exp] = {"row": PAPER_TABLE1[exp]["row"]}
+        for cond in ("ctr", "gpd"):
+            hit = _lookup(policies, cond)
+            rows[exp][cond] = {"sim": None if hit is None else
+                               {k: hit[1][k] for k in ("success_rate", "n", "successes", "ci95")},
+                               "paper": PAPER_TABLE1[exp][cond]}
+    return rows
+
+
+def table1_markdown(loaded: Sequence[Results]) -> str:
+    """Table 1 with the simulated rates (Wilson 95% CI) beside the paper's robot rates."""
+    rows = table1_rows(loaded)
+    if not rows:
+        names = ", ".join(f"{r.results_dir} ({r.experiment})" for r in loaded)
+        raise ValueError(f"no Table 1 experiment ({', '.join(TABLE1_EXPERIMENTS)}) among: {names}")
+    lines = ["| scenario | CTR (sim) | CTR 95% CI | CTR (paper) | GPD (sim) | GPD 95% CI | GPD (paper) |",
+             "|---|---|---|---|---|---|---|"]
+    for exp, row in rows.items():
+        cells = []
+        for cond in ("ctr", "gpd"):
+            rate, ci = _table1_cell(row[cond]["sim"])
+            cells += [rate, ci, _paper_cell(exp, cond)]
+        lines.append(f"| {row['row']} (`{exp}`) | " + " | ".join(cells) + " |")
+    notes = [f"{PAPER_TABLE1[e]['row']}, {c.upper()}: {p['note']}" for e in rows for c in ("ctr", "gpd")
+             if (p := PAPER_TABLE1[e][c]).get("note")]
+    lines += ["", "Sim: this simulation, every trial of the condition an attempt. Paper: real UR5 robot, "
+              "Table 1 of Viereck et al. 2017 (counts from the text)."]
+    lines += [f"- {n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+def _figure5_sources(loaded: Sequence[Results]) -> dict[str, tuple[Results, str, dict]]:
+    """{canonical condition: (results, condition name, stats)} for the Figure 5 arms, taken
+    from the experiments that are not Table 1 rows (those have their own ctr/gpd arms)."""
+    found: dict[str, tuple[Results, str, dict]] = {}
+    for res in loaded:
+        if canonical_experiment(res.experiment) in TABLE1_EXPERIMENTS:
+            continue
+        policies = summarize(res.records)
+        for canon in NOISE_CONDITIONS + PERCEPTION_CONDITIONS:
+            hit = _lookup(policies, canon)
+            if hit is None or hit[1]["distance_n"] == 0:
+                continue
+            if canon in found:
+                raise ValueError(f"Figure 5 condition {canon!r} is in both {found[canon][0].results_dir} "
+                                 f"and {res.results_dir}; give one results dir per condition")
+            found[canon] = (res, hit[0], hit[1])
+    return found
+
+
+def plot_figure5(loaded: Sequence[Results], path: str | os.PathLike, *, bin_m: float = BIN_M,
+                 max_m: float = HIST_MAX_M) -> Path | None:
+    """Figure 5: left panel the kinematic-noise arms, right panel the perception arms
+    (whichever are present). Returns the PNG written, None when no arm has distances."""
+    found = _figure5_sources(loaded)
+    panels = []
+    for title, group in (("Kinematic noise (Figure 5 left)", NOISE_CONDITIONS),
+                         ("Perception (Figure 5 right)", PERCEPTION_CONDITIONS)):
+        series = [(CONDITION_LABELS[c], *_condition_distances(found[c][0].records, found[c][1]))
+                  for c in group if c in found]
+        if series:
+            panels.append((title, series))
+    if not panels:
+        return None
+    return plot_distance_histograms(panels, Path(path), bin_m=bin_m, max_m=max_m)
+
+
+def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike, *,
+                  bin_m: float = BIN_M, max_m: float = HIST_MAX_M) -> Path:
+    """Figure 5 from sim-distance (and perception) results dirs into `out_path` (PNG).
+
+    Raises:
+        ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named).
+    """
+    if not (bin_m > 0 and max_m > bin_m):
+        raise ValueError(f"need 0 < bin_m < max_m, got bin_m={bin_m}, max_m={max_m}")
+    loaded = _load_many(results_dirs)
+    path = plot_figure5(loaded, out_path, bin_m=bin_m, max_m=max_m)
+    if path is None:
+        names = ", ".join(str(r.results_dir) for r in loaded)
+        raise ValueError(f"no Figure 5 condition ({', '.join(NOISE_CONDITIONS + PERCEPTION_CONDITIONS)}) "
+                         f"with final distances in: {names}")
+    return path
+
+
+def write_table1(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike) -> Path:
+    """Table 1 (Markdown) from isolation / clutter / clutter-shift results dirs."""
+    loaded = _load_many(results_dirs)
+    text = "# Table 1: grasp success, CTR vs GPD\n\n" + table1_markdown(loaded)
+    return atomic_write_text(Path(out_path), text)
+
+
+def make_combined_report(results_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike) -> dict:
+    """One `report.md` / `summary.json` over several experiments (one results dir each).
+
+    Shows Table 1 with the three rows side by side (those present), the Figure 5 panels
+    from the non-Table-1 experiments, every target check, and each experiment's own
+    sections (figures prefixed with the experiment name).
+
+    Args:
+        results_dirs: One results dir per experiment.
+        out_dir: Where to write.
+
+    Returns:
+        The summary: {"experiments": {experiment: {"results_dir", "policies", "targets",
+        "figures"}}, "table1": ..., "figures": [...], "paper": {...}, "targets": [...]}.
+
+    Raises:
+        ValueError: No dirs, an empty dir, or two dirs of one experiment.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    loaded = _load_many(results_dirs)
+    md = ["# Reference results", "",
+          f"{len(loaded)} experiments: " + ", ".join(f"`{r.experiment}` ({len(r.records)} trials)"
+                                                    for r in loaded), ""]
+    figures: list[Path] = []
+    all_targets: list[dict] = []
+    experiments: dict[str, dict] = {}
+
+    rows = table1_rows(loaded)
+    if rows:
+        md += ["## Table 1: grasp success, CTR vs GPD", "", table1_markdown(loaded)]
+    fig5 = plot_figure5(loaded, out / "figure5.png")
+    if fig5 is not None:
+        figures.append(fig5)
+        md += ["## Figure 5: final distance to the closest true grasp", "",
+               f"![Figure 5]({_relpath(fig5, out)})", "",
+               f"Paper ({PAPER_FIGURE5['note']}): " + "; ".join(PAPER_FIGURE5["claims"]) + ".", ""]
+
+    sections: list[str] = []
+    for res in loaded:
+        exp = canonical_experiment(res.experiment)
+        policies = summarize(res.records)
+        prefix = re.sub(r"[^A-Za-z0-9._-]", "_", exp) + "_"
+        # The combined Figure 5 already shows the arms of the non-Table-1 experiments.
+        sec, figs, targets = _experiment_sections(res, policies, out, prefix=prefix, level="###",
+                                                  histogram=exp in TABLE1_EXPERIMENTS)
+        figures += figs
+        all_targets += targets
+        experiments[res.experiment] = {"results_dir": str(res.results_dir), "policies": policies,
+                                       "targets": targets, "figures": [_relpath(p, out) for p in figs],
+                                       "run_info": res.run_info}
+        sections += [f"## Experiment `{res.experiment}`", ""] + _header(res, out) + [""] + sec
+
+    md += ["## Target check", ""]
+    md += [_target_line(t) for t in all_targets] if all_targets else ["No targets apply."]
+    md += [""] + sections
+    summary = {
+        "experiments": experiments,
+        "table1": rows,
+        "figures": [_relpath(p, out) for p in figures],
+        "paper": {"table1": PAPER_TABLE1, "figure5": PAPER_FIGURE5},
+        "targets": all_targets,
+    }
+    _write_json(out / "summary.json", summary)
+    atomic_write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
+    return summary

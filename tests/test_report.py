@@ -1,0 +1,222 @@
+"""Reports from results directories (drake_grasp.report) and the analysis scripts. Fast."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from drake_grasp.report import make_combined_report, make_report
+from drake_grasp.results import (TrialRecord, classify_failure, replay_path, write_record,
+                                 write_run_info)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_record(trial_id, **overrides) -> TrialRecord:
+    values = dict(
+        trial_id=trial_id, experiment="isolation", condition="ctr", policy="ctr", noise="none",
+        noise_scale=None, depth_noise=False, offset_m=None, disturbance={},
+        scenario_name="isolation", scenario_yaml="seed: 0\n", seed=0, config_hash="abc123",
+        code_version="0.1.0", success=True, failure_class="none", failure_reason=None,
+        final_distance_m=0.01, sim_time_s=6.5, wall_time_s=3.25, control_steps=75,
+        object_ids=["mug_03"], grasped_object_id=None, run_index=None, attempt_index=None, extra={})
+    values.update(overrides)
+    return TrialRecord(**values)
+
+
+def _trial(experiment, condition, i, *, success, distance, reason=None, policy=None, **kw):
+    policy = policy or condition.split("_")[0]
+    failure_class = classify_failure(success, reason, **({"exception": RuntimeError()}
+                                                         if reason and reason.startswith("simulation") else {}))
+    return make_record(f"{experiment}/{condition}/{i:04d}", experiment=experiment, condition=condition,
+                       policy=policy, success=success, failure_reason=None if success else reason,
+                       failure_class=failure_class, final_distance_m=distance, seed=i,
+                       noise="gaussian" if condition.endswith("_noise") else "none", **kw)
+
+
+def _fill(results_dir, experiment, spec):
+    """spec: {condition: [(success, distance, reason), ...]}"""
+    write_run_info(results_dir, {"experiment": experiment, "settings": {"trials": 8}})
+    for condition, trials in spec.items():
+        for i, (success, distance, reason) in enumerate(trials):
+            write_record(results_dir, _trial(experiment, condition, i, success=success,
+                                             distance=distance, reason=reason))
+
+
+MISSED = "missed: nothing between the pads after closing"
+SIM_SPEC = {
+    "init": [(False, 0.10, "init: no grasp attempted")] * 8,
+    "ctr": [(True, 0.01, None)] * 7 + [(False, 0.05, MISSED)],
+    "ctr_noise": [(True, 0.02, None)] * 6 + [(False, 0.04, "slipped: left the pads"),
+                                             (False, None, "simulation error: RuntimeError")],
+    "gpd": [(True, 0.015, None)] * 8,
+    "gpd_noise": [(True, 0.01, None)] * 2 + [(False, 0.08, MISSED)] * 6,
+}
+
+
+@pytest.fixture
+def sim_dir(tmp_path):
+    d = tmp_path / "sim-distance"
+    _fill(d, "sim-distance", SIM_SPEC)
+    # a replay page for one failed trial only
+    page = replay_path(d, "sim-distance/gpd_noise/0003")
+    page.parent.mkdir(parents=True)
+    page.write_text("<html></html>")
+    return d
+
+
+def test_make_report_sim_distance(sim_dir):
+    summary = make_report(sim_dir)
+    on_disk = json.loads((sim_dir / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(summary))
+    assert summary["experiment"] == "sim-distance"
+    p = summary["policies"]
+    assert list(p) == ["init", "ctr", "ctr_noise", "gpd", "gpd_noise"]
+    assert (p["ctr"]["successes"], p["ctr"]["n"]) == (7, 8)
+    assert p["ctr"]["success_rate"] == 7 / 8
+    assert p["ctr"]["ci95"] == pytest.approx([0.5291, 0.9776], abs=5e-5)
+    assert (p["ctr_noise"]["successes"], p["ctr_noise"]["n"]) == (6, 8)
+    assert p["ctr_noise"]["ci95"] == pytest.approx([0.4093, 0.9285], abs=5e-5)
+    assert p["gpd"]["ci95"] == pytest.approx([0.6756, 1.0], abs=5e-5)
+    assert p["gpd_noise"]["ci95"] == pytest.approx([0.0715, 0.5907], abs=5e-5)
+    # INIT: distance statistics only
+    assert p["init"]["distance_only"] and p["init"]["success_rate"] is None and p["init"]["ci95"] is None
+    assert p["init"]["mean_final_distance_m"] == pytest.approx(0.10)
+    assert p["init"]["fraction_within_3cm"] == 0.0
+    assert p["init"]["failure_classes"]["none"] == 8
+    # a trial without a distance counts as outside the first bin
+    assert p["ctr_noise"]["fraction_within_3cm"] == 6 / 8
+    assert p["ctr_noise"]["distance_n"] == 7
+    assert p["ctr_noise"]["median_final_distance_m"] == pytest.approx(0.02)
+    assert p["ctr_noise"]["failure_classes"] == {
+        "none": 6, "missed": 0, "slipped": 1, "collision": 0, "shifted-away": 0, "timeout": 0,
+        "simulation-error": 1}
+    assert p["gpd_noise"]["histogram"]["counts"][:3] == [2, 0, 6]
+    assert p["ctr"]["histogram"]["counts"][1] == 1  # 0.05 m falls in [3, 6) cm
+    targets = {t["id"]: t for t in summary["targets"]}
+    assert targets["sim-distance/ctr_noise-within-3cm"]["met"] is True
+    assert targets["sim-distance/ctr_noise-within-3cm"]["margin"] == pytest.approx(5.0)
+    assert targets["sim-distance/gpd_noise-within-3cm"]["met"] is True
+    assert summary["figures"] == ["figure5_distance_histogram.png"]
+    png = sim_dir / "figure5_distance_histogram.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    md = (sim_dir / "report.md").read_text()
+    assert "![final distance histograms](figure5_distance_histogram.png)" in md
+    assert "| ctr | 7 / 8 | 87.5% | [52.9%, 97.8%] |" in md
+    assert "init |" not in md.split("## Final distance")[0]  # INIT is not in the success table
+    assert "**met** CTR with noise: >= 70% of trials within 3 cm: 75.0% (met by 5.0 points)" in md
+    assert "(replays/sim-distance__gpd_noise__0003.html)" in md
+    assert "replays/sim-distance__gpd_noise__0004.html" not in md
+    assert "Figure 5" in md and "compare shapes, not values" in md
+    leftovers = [f.name for f in sim_dir.rglob(".*")]
+    assert leftovers == []
+
+
+def test_make_report_table1_experiment_with_paper_numbers(tmp_path):
+    d = tmp_path / "cs"
+    _fill(d, "clutter-shift", {"ctr": [(True, 0.01, None)] * 19 + [(False, 0.2, MISSED)],
+                               "gpd": [(True, 0.01, None)] * 5 + [(False, 0.2, MISSED)] * 15})
+    out = tmp_path / "report"
+    summary = make_report(d, out_dir=out)
+    assert not (d / "report.md").exists() and (out / "report.md").exists()
+    p = summary["policies"]
+    assert p["ctr"]["ci95"] == pytest.approx([0.7639, 0.9911], abs=5e-5)
+    assert p["gpd"]["ci95"] == pytest.approx([0.1119, 0.4687], abs=5e-5)
+    assert summary["paper"]["table1"]["ctr"]["rate_percent"] == 77.3
+    md = (out / "report.md").read_text()
+    assert "| ctr | 19 / 20 | 95.0% | [76.4%, 99.1%] | 77.3% (58/75) |" in md
+    assert "| gpd | 5 / 20 | 25.0% | [11.2%, 46.9%] | 22.5% (11/49) |" in md
+    assert "**met** CTR grasp success >= 90% (clutter-shift): 95.0% (met by 5.0 points)" in md
+    assert "**met** CTR success >= 40 points above GPD (clutter-shift): 70.0 points (met by 30.0 points)" in md
+    assert "16 of 16 failed trials have no replay page in `replays/`." in md
+
+
+def test_isolation_target_missed_by_how_much(tmp_path):
+    d = tmp_path / "iso"
+    _fill(d, "isolation", {"ctr": [(True, 0.01, None)] * 38 + [(False, 0.1, MISSED)] * 2})
+    summary = make_report(d)
+    (t,) = summary["targets"]
+    assert t["met"] is False and t["margin"] == pytest.approx(-2.5)
+    md = (d / "report.md").read_text()
+    assert "**missed** CTR grasp success >= 97.5% (isolation): 95.0% (missed by 2.5 points)" in md
+    assert "97.5% (39/40)" in md
+
+
+def test_sweep_dir_produces_sweep_figure(tmp_path):
+    d = tmp_path / "sweep"
+    spec = {f"noise_scale={s}": [(True, 0.01, None)] * k + [(False, 0.1, MISSED)] * (8 - k)
+            for s, k in (("0.0", 8), ("0.2", 6), ("0.4", 3))}
+    _fill(d, "noise-sweep", spec)
+    summary = make_report(d)
+    assert "sweep_noise_scale.png" in summary["figures"]
+    assert (d / "sweep_noise_scale.png").read_bytes()[:4] == b"\x89PNG"
+    assert [summary["policies"][c]["successes"] for c in summary["policies"]] == [8, 6, 3]
+    assert "![sweep over noise_scale](sweep_noise_scale.png)" in (d / "report.md").read_text()
+
+
+def test_empty_dir_fails_clearly(tmp_path):
+    with pytest.raises(ValueError, match=f"{tmp_path}.*no trial records"):
+        make_report(tmp_path)
+    with pytest.raises(ValueError, match="does not exist"):
+        make_report(tmp_path / "nope")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_combined_report(tmp_path, sim_dir):
+    iso, cs = tmp_path / "iso", tmp_path / "cs"
+    _fill(iso, "isolation", {"ctr": [(True, 0.01, None)] * 40, "gpd": [(True, 0.01, None)] * 39
+                             + [(False, 0.1, MISSED)]})
+    _fill(cs, "clutter-shift", {"ctr": [(True, 0.01, None)] * 18 + [(False, 0.2, MISSED)] * 2,
+                                "gpd": [(True, 0.01, None)] * 10 + [(False, 0.2, MISSED)] * 10})
+    out = tmp_path / "published"
+    summary = make_combined_report([iso, cs, sim_dir], out)
+    assert list(summary["table1"]) == ["isolation", "clutter-shift"]
+    assert summary["table1"]["isolation"]["gpd"]["sim"]["successes"] == 39
+    assert "figure5.png" in summary["figures"] and (out / "figure5.png").exists()
+    for f in summary["figures"]:
+        assert (out / f).is_file()
+    met = {t["id"]: t["met"] for t in summary["targets"]}
+    assert met == {"isolation/ctr-success": True, "clutter-shift/ctr-success": True,
+                   "clutter-shift/ctr-minus-gpd": True, "sim-distance/ctr_noise-within-3cm": True,
+                   "sim-distance/gpd_noise-within-3cm": True}
+    md = (out / "report.md").read_text()
+    # 90% - 50% is exactly the 40-point target
+    assert "above GPD (clutter-shift): 40.0 points (met exactly at the threshold)" in md
+    assert "| Objects in isolation (`isolation`) | 100.0% (40/40) |" in md
+    assert "97.5% (39/40)" in md and "77.3% (58/75)" in md
+    # replay links are relative to the combined report's folder
+    assert "(../sim-distance/replays/sim-distance__gpd_noise__0003.html)" in md
+    with pytest.raises(ValueError, match="isolation.*both"):
+        make_combined_report([iso, iso], tmp_path / "x")
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "analysis" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_analysis_scripts(tmp_path, sim_dir, capsys):
+    iso = tmp_path / "iso"
+    _fill(iso, "isolation", {"ctr": [(True, 0.01, None)] * 39 + [(False, 0.1, MISSED)],
+                             "gpd": [(True, 0.01, None)] * 40})
+    figure5, table1 = _script("figure5"), _script("table1")
+    for module in (figure5, table1):
+        with pytest.raises(SystemExit) as e:
+            module.main(["--help"])
+        assert e.value.code == 0
+    assert "--bin-cm" in capsys.readouterr().out
+    assert figure5.main([str(sim_dir), "--out", str(tmp_path / "f5.png")]) == 0
+    assert (tmp_path / "f5.png").read_bytes()[:4] == b"\x89PNG"
+    assert table1.main([str(iso), "--out", str(tmp_path / "t1.md")]) == 0
+    text = (tmp_path / "t1.md").read_text()
+    assert "| Objects in isolation (`isolation`) | 97.5% (39/40) |" in text and "100.0% (40/40)" in text
+    with pytest.raises(SystemExit) as e:  # no Figure 5 arm there: a clear error, exit 2
+        figure5.main([str(iso / "none")])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        table1.main([str(sim_dir), "--out", str(tmp_path / "t2.md")])
+    assert e.value.code == 2
+    assert "no Table 1 experiment" in capsys.readouterr().err
