@@ -214,6 +214,23 @@ def bench_cnn(rounds: int = 8) -> dict:
     }
 
 
+def bench_trials_per_hour(trials: int = 6, workers: int = 2) -> dict:
+    """Physical CTR trials of the isolation experiment per hour on 2 local workers
+    (worker start-up included; each worker keeps the CNN and meshes across trials)."""
+    import tempfile
+
+    from drake_grasp.montecarlo import evaluate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        result = evaluate(experiment="isolation", out=tmp, trials=trials, workers=workers,
+                          seed=BENCH_SEED, conditions=["ctr"], progress=False, report=False)
+        wall = time.perf_counter() - t0
+    return {"trials_per_hour": round(result["records"] / wall * 3600, 1),
+            "trials_per_hour_detail": {"trials": result["records"], "wall_s": round(wall, 1),
+                                       "workers": workers}}
+
+
 BENCHMARKS = {
     "rtf_isolation": bench_rtf_isolation,
     "rtf_clutter5": bench_rtf_clutter5,
@@ -222,6 +239,7 @@ BENCHMARKS = {
     "cnn": bench_cnn,
     "controller_step_ms": bench_controller_step_ms,
     "rtf_ctr_clutter5": bench_rtf_ctr_clutter5,
+    "trials_per_hour": bench_trials_per_hour,
 }
 
 

@@ -138,7 +138,8 @@ def _cmd_evaluate(args) -> int:
 
     result = evaluate(experiment=args.experiment, out=args.out, trials=args.trials,
                       workers=args.workers, scheduler=args.scheduler, seed=args.seed,
-                      objects_dir=args.objects)
+                      objects_dir=args.objects,
+                      conditions=[c for c in args.conditions.split(",") if c] or None)
     print(json.dumps({k: result[k] for k in ("records", "ran", "skipped")}))
     print(f"report: {Path(args.out) / 'report.md'}")
     return 0
@@ -270,6 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="results folder")
     p.add_argument("--objects", default=None, metavar="DIR",
                    help="object library folder (default: built-in objects)")
+    p.add_argument("--conditions", default="",
+                   help="comma-separated subset of the experiment's conditions (default: all)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

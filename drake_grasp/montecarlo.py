@@ -40,12 +40,19 @@ class TrialTask:
         return f"{self.experiment}/{self.condition}/{self.index:04d}"
 
 
-def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int) -> list[TrialTask]:
+def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
+               conditions: list[str] | None = None) -> list[TrialTask]:
     n = experiment.trials if trials is None else int(trials)
     if n < 1:
         raise ValueError(f"--trials: expected >= 1, got {n}")
-    return [TrialTask(experiment.name, c.name, i, int(seed))
-            for i in range(n) for c in experiment.conditions]
+    names = [c.name for c in experiment.conditions]
+    if conditions:
+        unknown = [c for c in conditions if c not in names]
+        if unknown:
+            raise ValueError(f"--conditions: {unknown} not in experiment "
+                             f"{experiment.name}; its conditions: {names}")
+        names = [c for c in names if c in conditions]
+    return [TrialTask(experiment.name, c, i, int(seed)) for i in range(n) for c in names]
 
 
 def _condition(experiment: Experiment, name: str) -> Condition:
@@ -245,7 +252,8 @@ def _clutter_run_finished(out: Path, task: TrialTask, experiment: Experiment, re
 
 def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, workers: int = 2,
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
-             progress: bool = True, report: bool = True, fail_trials: tuple = ()) -> dict:
+             conditions: list[str] | None = None, progress: bool = True, report: bool = True,
+             fail_trials: tuple = ()) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     Returns:
@@ -271,7 +279,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
                                  f"{info[key]!r}; use another --out")
     info["created"] = old.get("created") if old else time.strftime("%Y-%m-%dT%H:%M:%S")
     write_run_info(out, info)
-    tasks = plan_tasks(exp, trials=trials, seed=seed)
+    tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     records = load_records(out) if exp.kind == "clutter-runs" else []
     done_ids = done_trial_ids(out)
     if exp.kind == "clutter-runs":
