@@ -15,47 +15,59 @@ Pipeline (`detect_grasps`):
 
 1. Back-projection (`organized_points`, `depth_to_points`): world points of the valid
    pixels and surface normals from neighbour differences in the organised image.
-2. Table removal: points below ``table_z + table_margin_m`` are the table / sheet.
+2. Table removal (`remove_table`): points below ``table_z + table_margin_m`` are the
+   table and the 2 mm sheet.
 3. Candidates, as in ten Pas & Platt: `num_samples` cloud points drawn with the
    given `rng`; about each, `num_rotations` top-down hands whose first closing
    direction is the local surface normal projected to the horizontal plane (or, on
    flat tops where the normal is vertical, the minor axis of the local footprint),
    the others evenly spaced over 180 degrees (so the perpendicular is among them);
    each at several `depths` below the local top (the highest point between the
-   pads), never with the fingertips below ``table_z + table_margin_m``.
-4. Tests per hand (all vectorised over hands x neighbouring points):
+   pads), raised where needed to keep the fingertips at ``table_z + table_margin_m``.
+4. Tests per hand (vectorised over hands x neighbouring points):
    * collision: one view sees only the top of things, so the space below every
      visible point is taken as occupied (a column down to the table). A finger, the
      palm or the housing, swept straight down to its final pose, is free only if no
-     visible point lies inside its footprint at or above its lowest face. Then an
-     occlusion check: probe points on the open fingers, the palm and the housing
-     must be seen as free space (in front of the measured depth), which rejects
-     hands reaching into shadows behind tall objects.
+     visible point lies inside its footprint at or above its lowest face. Around
+     silhouette points the parts are grown by a pixel (the true edge lies up to a
+     pixel beyond the last pixel seen on the object) and the fingers' inner faces
+     by `finger_margin_m`.
    * closing region: at least `min_points_between` visible points whose columns
-     cross the box the pads sweep (85 mm x 22 mm x 38 mm), spanning a width of at
-     least `min_width_m`; the pads close to its extent along x_G.
-   * antipodal contacts: the extreme points along -x_G and +x_G (patches of depth
-     `contact_tolerance_m`) must lie on the same connected object and pass the
-     two-contact force-closure test (`grasps.force_closure`, friction `mu`). The
-     normal of a contact on a depth discontinuity (an object's silhouette) is the
-     horizontal direction of the depth drop, i.e. the wall of the occupied column,
-     which the camera cannot see; elsewhere it is the measured surface normal.
-5. Score (`ScoreWeights`, the terms are in [0, 1] and returned per grasp):
-   ``score = w_a * antipodal + w_c * centring + w_l * clearance + w_f * fill +
-   w_d * depth + w_v * view`` with
-   * antipodal: ``1 - max(angle_1, angle_2) / atan(mu)``, the contact normals'
+     cross the box the pads sweep (85 mm x 22 mm x 38 mm), spanning at least
+     `min_width_m`; the pads close to its extent along x_G.
+   * antipodal contacts: the extreme points along -x_G and +x_G (patches one pixel
+     deep) must lie on the same connected object and pass the two-contact
+     force-closure test (`grasps.force_closure`, friction `mu`). At a silhouette
+     the surface below the edge is hidden: its normal gets the azimuth of the depth
+     gradient and the tilt of the drop to the neighbouring pixels (a near-vertical
+     wall for a step onto the table, the true slope for a steep, curved flank);
+     elsewhere it is the measured normal.
+   * view: the fingers and the palm must lie inside the image (nothing is known
+     beyond its border; an object cut by it looks narrower than it is).
+   * occlusion (optional, `occlusion_check`): probe points on the open hand must
+     be seen as free space, i.e. in front of the measured depth; stricter than the
+     column model (it also keeps fingers out of the shadows beside tall objects,
+     where a box's side is empty but a sphere's bulge hides).
+5. Score (`ScoreWeights`; each term in [0, 1], returned per grasp in `terms`):
+   ``score = sum_i w_i * term_i`` over
+   * antipodal (w 1): ``1 - max(angle_1, angle_2) / atan(mu)``, the contact normals'
      margin inside the friction cone;
-   * centring: ``1 - d / r``, d the xy distance from the grasp centre to the
-     centroid of the grasped object's visible points, r that object's radius
-     (grasps near the middle of an object hold it balanced);
-   * clearance: ``min(42.5 mm + x_min, 42.5 mm - x_max) / 42.5 mm``, the smaller gap
-     between a contact and its open finger (largest for a hand centred on the
-     object: the most tolerance to position errors along the closing direction);
-   * fill: the fraction of the pads' closing area (width x 22 mm) that visible
-     points cover (low where the pads hang over an object's end);
-   * depth: the fraction of the 38 mm pads below the local top (more contact);
-   * view: ``1 - d / h``, d the xy distance to the camera axis, h the half width of
-     the view at the table; a tie-breaker (weight 0.05 by default).
+   * centring (w 1): ``1 - d / r``, d the xy distance from the grasp centre to the
+     centroid of the grasped object's visible points (its connected component in
+     the image), r that object's largest distance from it: grasps near the middle
+     of an object hold it balanced;
+   * balance (w 1): ``1 - |y_mid| / 40 mm``, y_mid the middle of the object's
+     extent along y_G between the fingers, within the pads' reach and 40 mm of the
+     centre: the pads centred on the part they hold (across a cap, not its rim);
+   * clearance (w 0.5): ``min(42.5 mm + x_min, 42.5 mm - x_max) / 42.5 mm``, the
+     smaller gap between a contact and its open finger (largest for a hand centred
+     on the object: the most tolerance to errors along the closing direction);
+   * fill (w 0.5): the fraction of the pads' closing area (width x 22 mm) that
+     visible points cover (low where the pads hang over an object's end);
+   * depth (w 1): the fraction of the 38 mm pads below the local top (more contact
+     area; pads that stick out above an object touch its top edges);
+   * view (w 0.05): ``1 - d / h``, d the xy distance to the camera, h the half width
+     of the view at the table: only a tie-breaker.
    Detections come sorted by score, best first.
 
 Conventions (`drake_grasp.grasps`): the grasp frame G sits between the pads, z_G is
@@ -128,8 +140,6 @@ def _probe_points() -> np.ndarray:
 
 
 PROBES_G = _probe_points()
-# The fingers' and the palm's probes: the first rows of PROBES_G.
-NUM_VIEW_PROBES = 2 * len(_FX) * len(_FY) * len(_FZ) + 9 * 3
 
 
 # ----------------------------------------------------------------------------
@@ -356,7 +366,7 @@ class ScoreWeights:
     balance: float = 1.0
     clearance: float = 0.5
     fill: float = 0.5
-    depth: float = 0.5
+    depth: float = 1.0
     view: float = 0.05
 
     def validate(self) -> None:
@@ -408,8 +418,9 @@ class DetectedGrasps:
         z: (N,) heights of the grasp centres [m].
         width: (N,) what the pads close to (extent of the closing region) [m].
         score: (N,) scores, descending.
-        contacts: (N, 2, 3) contact points (-x_G side, +x_G side) [m].
-        contact_normals: (N, 2, 3) their outward unit normals.
+        contacts: (N, 2, 3) centroids of the two contact patches as seen (-x_G side
+            first) [m].
+        contact_normals: (N, 2, 3) their mean outward unit normals.
         terms: Score terms by name (`SCORE_TERMS`), each (N,) in [0, 1].
     """
 
@@ -490,7 +501,8 @@ def _contact_normals(cloud: OrganizedCloud, R_WC: np.ndarray, step_threshold_m: 
         (H, W, 3) unit normals and the (H, W) step mask.
     """
     d = np.where(cloud.valid, cloud.depth, far)
-    step = ((ndimage.maximum_filter(d, size=3, mode="nearest") - d) > step_threshold_m) & cloud.valid
+    deepest = ndimage.maximum_filter(d, size=3, mode="nearest")
+    step = (deepest - d > step_threshold_m) & cloud.valid
     gu = ndimage.sobel(d, axis=1, mode="nearest")  # d(depth)/d(column)
     gv = ndimage.sobel(d, axis=0, mode="nearest")  # d(depth)/d(row)
     # Image columns / rows run along the camera's x / y axes: the world direction in
@@ -534,7 +546,7 @@ def detect_grasps(
     min_points_between: int = 5,
     min_width_m: float = 0.005,
     contact_tolerance_m: float = 0.002,
-    finger_margin_m: float = 0.002,
+    finger_margin_m: float = 0.004,
     step_threshold_m: float = 0.008,
     occlusion_check: bool = False,
     occlusion_tolerance_m: float = 0.003,
@@ -795,11 +807,12 @@ def detect_grasps(
     centre = np.column_stack([C[s_of, :2], zc[axis, di]])
 
     # --- View and occlusion: probe points on the open hand -------------------------
-    # Out of the view nothing is known: the fingers and the palm (their probes) must
-    # be in the image, else an object cut by the image border looks narrower or
-    # lower than it is. (Not the housing: 31 mm up, 8 cm across, it would keep
-    # hands off objects that merely reach toward the border.)
-    # Optionally (`occlusion_check`) every probe must also be seen as free space.
+    # Out of the view nothing is known. Where the image border next to a probe shows
+    # an object, the object may go on under that part of the hand (an object cut by
+    # the border looks narrower or lower than it is): rejected. Where it shows the
+    # table, the table is taken to go on.
+    # Optionally (`occlusion_check`) every probe in the view must be seen as free
+    # space: in front of the measured depth.
     cy_, sy_ = np.cos(yaw), np.sin(yaw)
     # R_WG = Rz(yaw) Rx(pi): x_G = (c, s, 0), y_G = (s, -c, 0), z_G = (0, 0, -1).
     pw = np.empty((len(axis), len(PROBES_G), 3))
@@ -809,18 +822,21 @@ def detect_grasps(
     pc = (pw - p_WC) @ R_WC
     H, W = cloud.depth.shape
     f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.rint(f * pc[..., 0] / pc[..., 2] + cu)
-        v = np.rint(f * pc[..., 1] / pc[..., 2] + cv)
-    inside = (pc[..., 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    keep = inside[:, :NUM_VIEW_PROBES].all(axis=1)
+    front = pc[..., 2] > 1e-6  # behind the camera: nothing known
+    zc_safe = np.where(front, pc[..., 2], 1.0)
+    u = np.rint(f * pc[..., 0] / zc_safe + cu)
+    v = np.rint(f * pc[..., 1] / zc_safe + cv)
+    inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    ui = np.clip(np.where(front, u, 0), 0, W - 1).astype(np.int64)
+    vi = np.clip(np.where(front, v, 0), 0, H - 1).astype(np.int64)
+    view_ok = front & (inside | ~obj[vi, ui])
+    keep = view_ok.all(axis=1)
     st_["in_view"] = int(keep.sum())
     if occlusion_check:
-        ui = np.where(inside, u, 0).astype(np.int64)
-        vi = np.where(inside, v, 0).astype(np.int64)
         # No reading (depth 0): unknown; far (+inf or the far value): seen free.
         measured = np.where(cloud.valid, cloud.depth, np.where(cloud.depth > 0, np.inf, 0.0))
-        keep &= (pc[..., 2] <= measured[vi, ui] + occ_tol).all(axis=1)
+        seen_free = ~inside | (pc[..., 2] <= measured[vi, ui] + occ_tol)
+        keep &= (front & seen_free).all(axis=1)
     st_["visible"] = int(keep.sum())
     r = {k: v_[keep] for k, v_ in r.items()}
     axis, di, yaw, centre = axis[keep], di[keep], yaw[keep], centre[keep]

@@ -133,8 +133,8 @@ def test_box_points_lie_on_the_box_and_normals_face_the_camera():
     points, normals = depth_to_points(depth, fov_y_deg=FOV_Y_DEG, X_WC=X_WC)
     top = points[:, 2] > TABLE_TOP_Z_M + 0.039
     assert top.sum() > 150  # 5 x 12 cm at ~4 mm per pixel
-    np.testing.assert_allclose(points[top, :2], np.clip(points[top, :2], [0.475, -0.06], [0.525, 0.06]),
-                               atol=1e-9)
+    inside = np.clip(points[top, :2], [0.475, -0.06], [0.525, 0.06])
+    np.testing.assert_allclose(points[top, :2], inside, atol=1e-9)
     # All normals point toward the camera.
     assert np.all(np.sum(normals * (X_WC[:3, 3] - points), axis=1) > 0)
 

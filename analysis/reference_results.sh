@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Reference results committed under analysis/results/ (sizes chosen for a 2-core CPU
+# machine; the paper's full sizes are the experiments' defaults: drop --trials).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DG=${DG:-drake-grasp}
+R=analysis/results
+$DG evaluate --experiment isolation --workers 2 --seed 0 --out $R/isolation
+$DG evaluate --experiment sim-distance --trials 40 --workers 2 --seed 0 --out $R/sim-distance
+$DG evaluate --experiment clutter --trials 3 --workers 2 --seed 0 --out $R/clutter
+$DG evaluate --experiment clutter-shift --trials 3 --workers 2 --seed 0 --out $R/clutter-shift
+python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
+python analysis/figure5.py $R/sim-distance --out $R/figure5.png
