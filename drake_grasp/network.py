@@ -691,6 +691,7 @@ def save_weights(
     os.close(fd)
     try:
         safetensors.torch.save_file(tensors, tmp, metadata=header)
+        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only; weights are meant to be shared
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
