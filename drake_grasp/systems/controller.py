@@ -31,7 +31,12 @@ from drake_grasp.policies import (
     offset_fraction,
 )
 from drake_grasp.scenario import Scenario
-from drake_grasp.systems.supervisor import interpolate_pose, min_jerk
+from drake_grasp.systems.supervisor import (
+    grasp_motion_next,
+    interpolate_pose,
+    judge_failure_reason,
+    min_jerk,
+)
 
 CLOSED_LOOP = ("ctr", "cnn-ctr")
 ONE_SHOT = ("gpd", "cnn-only")
@@ -307,19 +312,15 @@ class GraspController(LeafSystem):
                 new = replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=s.hand)
         elif s.phase == Phase.SERVO:
             new = self._ctr_step(context, s, t)
-        elif s.phase == Phase.DESCEND and elapsed >= m.descend_time_s:
-            new = replace(s, phase=Phase.CLOSE, phase_start_s=t)
-        elif s.phase == Phase.CLOSE:
-            v = self._gripper_state.Eval(context)[2:]
-            if (elapsed > 0.3 and np.abs(v).max() < 1e-3) or elapsed >= m.close_time_s:
-                new = replace(s, phase=Phase.LIFT, phase_start_s=t,
-                              held_after_close=self._held_object(context) is not None)
-        elif s.phase == Phase.LIFT and elapsed >= m.lift_time_s:
-            new = replace(s, phase=Phase.HOLD, phase_start_s=t)
-        elif s.phase == Phase.HOLD and elapsed >= m.hold_time_s:
-            new = replace(s, phase=Phase.JUDGE, phase_start_s=t)
         elif s.phase == Phase.JUDGE:
             new = replace(s, phase=Phase.DONE, phase_start_s=t, outcome=self._Judge(context, s))
+        elif s.phase != Phase.DONE:
+            speed = float(np.abs(self._gripper_state.Eval(context)[2:]).max())
+            nxt = grasp_motion_next(s.phase.value, elapsed, m, speed)
+            if nxt is not None:
+                new = replace(s, phase=Phase(nxt), phase_start_s=t)
+                if nxt == "lift":
+                    new = replace(new, held_after_close=self._held_object(context) is not None)
         if new is not s:
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
 
@@ -382,12 +383,7 @@ class GraspController(LeafSystem):
             P = self._object_points[held] @ X.rotation().matrix().T + X.translation()
             lowest = float(P[:, 2].min())
         success = held is not None and lowest >= self._s.judge.min_lift_m
-        if success:
-            reason = None
-        elif not s.held_after_close:
-            reason = "missed: nothing between the pads after closing"
-        else:
-            reason = "slipped: the object left the pads during lift/hold"
+        reason = judge_failure_reason(success, s.held_after_close)
         return {"success": bool(success), "failure_reason": reason,
                 "object_lowest_point_m": lowest,
                 "grasped_object_id": self._object_ids[held] if held is not None else None,

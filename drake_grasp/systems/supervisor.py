@@ -41,6 +41,32 @@ class SupervisorState:
     outcome: dict = field(default_factory=dict)
 
 
+def grasp_motion_next(mode: str, elapsed: float, motion: ScriptedGraspConfig,
+                      finger_speed: float) -> str | None:
+    """The predefined grasp motion every policy ends with: the phase that follows `mode`
+    ("descend" -> "close" -> "lift" -> "hold" -> "judge") once its time is up, or None.
+    Closing ends when the fingers have stopped (after 0.3 s) or after `close_time_s`."""
+    if mode == "descend" and elapsed >= motion.descend_time_s:
+        return "close"
+    if mode == "close" and ((elapsed > 0.3 and finger_speed < 1e-3)
+                            or elapsed >= motion.close_time_s):
+        return "lift"
+    if mode == "lift" and elapsed >= motion.lift_time_s:
+        return "hold"
+    if mode == "hold" and elapsed >= motion.hold_time_s:
+        return "judge"
+    return None
+
+
+def judge_failure_reason(success: bool, held_after_close: bool) -> str | None:
+    """Why a grasp failed: nothing was ever held, or what was held got away."""
+    if success:
+        return None
+    if not held_after_close:
+        return "missed: nothing between the pads after closing"
+    return "slipped: the object left the pads during lift/hold"
+
+
 def min_jerk(s: float) -> float:
     """Smooth 0 -> 1 time scaling with zero start/end velocity and acceleration."""
     s = min(max(s, 0.0), 1.0)
@@ -159,20 +185,15 @@ class ScriptedGraspSupervisor(LeafSystem):
         new = s
         if s.mode == Mode.APPROACH and elapsed >= m.approach_time_s:
             new = replace(s, mode=Mode.DESCEND, mode_start_s=t)
-        elif s.mode == Mode.DESCEND and elapsed >= m.descend_time_s:
-            new = replace(s, mode=Mode.CLOSE, mode_start_s=t)
-        elif s.mode == Mode.CLOSE:
-            v = self._gripper_state.Eval(context)[2:]
-            settled = elapsed > 0.3 and np.abs(v).max() < 1e-3
-            if settled or elapsed >= m.close_time_s:
-                new = replace(s, mode=Mode.LIFT, mode_start_s=t,
-                              held_after_close=self._holding(context))
-        elif s.mode == Mode.LIFT and elapsed >= m.lift_time_s:
-            new = replace(s, mode=Mode.HOLD, mode_start_s=t)
-        elif s.mode == Mode.HOLD and elapsed >= m.hold_time_s:
-            new = replace(s, mode=Mode.JUDGE, mode_start_s=t)
         elif s.mode == Mode.JUDGE:
             new = replace(s, mode=Mode.DONE, mode_start_s=t, outcome=self._Judge(context, s))
+        else:
+            speed = float(np.abs(self._gripper_state.Eval(context)[2:]).max())
+            nxt = grasp_motion_next(s.mode.value, elapsed, m, speed)
+            if nxt is not None:
+                new = replace(s, mode=Mode(nxt), mode_start_s=t)
+                if nxt == "lift":
+                    new = replace(new, held_after_close=self._holding(context))
         if new is not s:
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
 
@@ -181,12 +202,7 @@ class ScriptedGraspSupervisor(LeafSystem):
         holding = self._holding(context)
         lifted = lowest >= self._judge.min_lift_m
         success = lifted and holding
-        if success:
-            reason = None
-        elif not s.held_after_close:
-            reason = "missed: nothing between the pads after closing"
-        else:
-            reason = "slipped: the object left the pads during lift/hold"
+        reason = judge_failure_reason(success, s.held_after_close)
         return {"success": success, "failure_reason": reason,
                 "object_lowest_point_m": lowest, "held_after_close": s.held_after_close}
 
