@@ -407,33 +407,6 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                       final_scene=_scene_now(plant, plant_context, station, scene))
 
 
-def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title: str = "") -> None:
-    """A grid of wrist depth images over the episode (time and mode under each)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    if not frames:
-        raise ValueError("no depth frames to draw")
-    idx = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
-    cols = min(6, len(idx))
-    rows = int(np.ceil(len(idx) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(2.0 * cols, 2.2 * rows + 0.4), squeeze=False)
-    all_depth = np.concatenate([frames[i][2].ravel() for i in idx])
-    vmin, vmax = np.percentile(all_depth, 1), np.percentile(all_depth, 99)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for ax, i in zip(axes.ravel(), idx):
-        t, mode, depth = frames[i]
-        ax.imshow(depth, cmap="viridis_r", vmin=vmin, vmax=vmax)
-        ax.set_title(f"t={t:.1f}s {mode}", fontsize=8)
-    fig.suptitle(title or "wrist depth images (near = yellow)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
 def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str = "",
                 library=None, replay: bool = True, scene: SceneSpec | None = None) -> EpisodeResult:
     """Runs one episode and writes `episode.json`, `scenario.yaml`, `scene.json`,
@@ -454,10 +427,11 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
         (staging / "scenario.yaml").write_text(dump_scenario(scenario))
         run.scene.save(staging / "scene.json")
         verdict = "success" if run.result.success else "failure"
+        from drake_grasp.pictures import save_controller_steps, save_depth_contact_sheet
+
         save_depth_contact_sheet(run.depth_frames, staging / "depth.png",
                                  title=f"{scenario_name} {scenario.policy} seed {scenario.seed}: {verdict}")
         if run.steps:
-            from drake_grasp.pictures import save_controller_steps
             from drake_grasp.station import gripper_frame_offsets
 
             save_controller_steps(

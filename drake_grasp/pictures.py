@@ -9,6 +9,43 @@ from pathlib import Path
 import numpy as np
 
 
+def contact_sheet(count: int, max_panels: int, *, cols: int, panel_in: tuple):
+    """(figure, axes, picked indices) for a grid showing up to `max_panels` of `count`
+    items spread evenly over the sequence; every axis starts switched off."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    idx = np.unique(np.linspace(0, count - 1, min(max_panels, count)).astype(int))
+    cols = min(cols, len(idx))
+    rows = int(np.ceil(len(idx) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(panel_in[0] * cols, panel_in[1] * rows + 0.5),
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    return fig, axes, idx
+
+
+def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title: str = "") -> None:
+    """A grid of wrist depth images over the episode (time and mode under each)."""
+    import matplotlib.pyplot as plt
+
+    if not frames:
+        raise ValueError("no depth frames to draw")
+    fig, axes, idx = contact_sheet(len(frames), max_frames, cols=6, panel_in=(2.0, 2.2))
+    all_depth = np.concatenate([frames[i][2].ravel() for i in idx])
+    vmin, vmax = np.percentile(all_depth, 1), np.percentile(all_depth, 99)
+    for ax, i in zip(axes.ravel(), idx):
+        t, mode, depth = frames[i]
+        ax.imshow(depth, cmap="viridis_r", vmin=vmin, vmax=vmax)
+        ax.set_title(f"t={t:.1f}s {mode}", fontsize=8)
+    fig.suptitle(title or "wrist depth images (near = yellow)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def _pixels(points_G: np.ndarray, *, depth_m: float, X_GC_xyz, focal: float, w: int, h: int):
     """Pixel (u, v) of points given in the hand frame G at a given depth below the camera
     (camera and G share their orientation; the camera sits at X_GC_xyz in G)."""
@@ -21,19 +58,11 @@ def _pixels(points_G: np.ndarray, *, depth_m: float, X_GC_xyz, focal: float, w: 
 def save_controller_steps(steps, path: str | Path, *, fov_y_deg: float, X_GC_xyz,
                           max_steps: int = 12, title: str = "") -> Path:
     """A contact sheet of control steps (see the module docstring)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     if not steps:
         raise ValueError("no controller steps to draw (the policy took no closed-loop step)")
-    idx = np.unique(np.linspace(0, len(steps) - 1, min(max_steps, len(steps))).astype(int))
-    cols = min(4, len(idx))
-    rows = int(np.ceil(len(idx) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 3.1 * rows + 0.5), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
+    fig, axes, idx = contact_sheet(len(steps), max_steps, cols=4, panel_in=(3.0, 3.1))
     sc = None
     for ax, i in zip(axes.ravel(), idx):
         s = steps[i]
