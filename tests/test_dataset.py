@@ -100,3 +100,16 @@ def test_other_config_in_the_same_folder_is_refused(reference):
     out, _ = reference
     with pytest.raises(ValueError, match="different configuration"):
         _generate(out, seed=6)
+
+
+def test_same_dataset_on_a_dask_local_cluster(reference, tmp_path):
+    from dask.distributed import LocalCluster
+
+    out, manifest = reference
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        dask_manifest = _generate(tmp_path / "dask", scheduler=cluster.scheduler_address)
+    assert dask_manifest["num_labels"] == manifest["num_labels"]
+    a, b = DepthGraspDataset(out), DepthGraspDataset(tmp_path / "dask")
+    for i in range(len(a)):
+        np.testing.assert_array_equal(a[i]["labels"], b[i]["labels"])
