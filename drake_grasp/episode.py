@@ -282,8 +282,6 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
                      scene: SceneSpec | None = None, record_depth: bool = True,
                      visualize: bool | None = None, model=None) -> EpisodeRun:
     """Samples and settles the scene, builds the diagram and runs the episode to its end."""
-    from pydrake.systems.analysis import Simulator
-
     wall_start = time.perf_counter()
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:

@@ -35,14 +35,14 @@ from pydrake.geometry import (
     RenderCameraCore,
     RenderEngineVtkParams,
 )
-from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.inverse_kinematics import (
     DifferentialInverseKinematicsIntegrator,
     DifferentialInverseKinematicsParameters,
     InverseKinematics,
 )
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
-from pydrake.multibody.tree import SpatialInertia, UnitInertia
+from pydrake.multibody.tree import SpatialInertia
 from pydrake.solvers import Solve
 from pydrake.systems.controllers import InverseDynamics
 from pydrake.systems.framework import DiagramBuilder

@@ -1,6 +1,5 @@
 """Dataset generation: paper-format shards, determinism, resume after a kill, corruption."""
 
-import json
 import os
 import signal
 import subprocess
@@ -12,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from drake_grasp.dataset import DatasetConfig, DepthGraspDataset, generate_dataset, load_manifest
+from drake_grasp.dataset import DatasetConfig, DepthGraspDataset, generate_dataset
 from drake_grasp.scenario import load_scenario
 
 TINY = dict(images_per_scene=3, offsets_per_image=5, scenes_per_shard=1)

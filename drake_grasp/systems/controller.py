@@ -26,7 +26,6 @@ from drake_grasp.grasps import points_between_pads, topdown_rotation
 from drake_grasp.policies import (
     central_min_depth,
     choose_action,
-    displacement_norm,
     gaussian_noisy_displacement,
     offset_fraction,
 )
@@ -198,7 +197,6 @@ class GraspController(LeafSystem):
 
     def _object_top_under(self, depth: np.ndarray, hand) -> float:
         """Height of the highest surface between the open fingers, from the depth image."""
-        cam = self._s.camera
         h, w = depth.shape
         cam_z = self._camera_height(hand)
         c_off = self._X_GC.translation()  # camera position in G
