@@ -24,10 +24,14 @@ BENCH_SEED = 3
 
 
 def _machine() -> dict:
-    import pydrake
+    from importlib.metadata import PackageNotFoundError, version
 
+    try:
+        drake_version = version("drake")
+    except PackageNotFoundError:
+        drake_version = "unknown"
     info = {"platform": platform.platform(), "python": platform.python_version(),
-            "cpus": os.cpu_count(), "drake": getattr(pydrake, "__version__", "unknown")}
+            "cpus": os.cpu_count(), "drake": drake_version}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
