@@ -193,3 +193,44 @@ def test_shift_after_the_third_iteration_moves_objects_with_the_sheet(library, s
         assert moved > 0.02
     else:
         assert moved < 0.002
+
+
+def test_target_mode_keeps_candidates_on_the_target(scenario):
+    """The stand-in prefers GOAL (just left of the target's pixels); the target covers the
+    image's right side: every chosen action must put the hand over the target."""
+    depth = _image(0.25)
+    labels = ImageLabel16I(64, 64)
+    labels.mutable_data[:] = 0
+    labels.mutable_data[:, 40:, 0] = 7  # the target's pixels
+    X_BG, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
+    builder = DiagramBuilder()
+    ctrl = builder.AddSystem(GraspController(
+        scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC, X_BG=X_BG,
+        gripper_body_index=0, object_bodies=[], object_points=[], object_ids=[], target_label=7))
+    c = scenario.controller
+    sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
+                                              theta_deg=c.sample_theta_deg, period_s=c.period_s))
+    ev = builder.AddSystem(StandInEvaluator())
+    for port, value in (("depth_image", depth), ("label_image", labels),
+                        ("body_poses", [RigidTransform()])):
+        src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(value)))
+        builder.Connect(src.get_output_port(), ctrl.GetInputPort(port))
+    grip = builder.AddSystem(ConstantVectorSource(np.zeros(4)))
+    builder.Connect(grip.get_output_port(), ctrl.GetInputPort("gripper_state"))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"), ctrl.GetInputPort("candidate_actions"))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"), ev.GetInputPort("candidate_actions"))
+    builder.Connect(ctrl.GetOutputPort("X_WG_desired"), ev.GetInputPort("X_WG"))
+    builder.Connect(ev.GetOutputPort("predicted_distances"), ctrl.GetInputPort("predicted_distances"))
+    sim = Simulator(builder.Build())
+    ctx = ctrl.GetMyContextFromRoot(sim.get_context())
+    sim.AdvanceTo(1.5 * c.period_s)
+    rec = ctrl.get_controller_state(ctx).last_step
+    focal = 0.5 * 64 / np.tan(np.deg2rad(scenario.camera.fov_y_deg) / 2)
+    u = (rec.chosen[0] - X_GC.translation()[0]) * focal / 0.25 + 31.5
+    assert u >= 39.5, u  # on the target's pixels
+    # Without target mode the same step heads for GOAL, off the target.
+    sim2, ctrl2, ctx2 = _controller_diagram(scenario, depth)
+    sim2.AdvanceTo(1.5 * c.period_s)
+    u2 = (ctrl2.get_controller_state(ctx2).last_step.chosen[0] - X_GC.translation()[0]) * focal / 0.25 + 31.5
+    assert u2 < 39.5, u2
