@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import shutil
+import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -362,6 +362,7 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     out = Path(out) if out else page.with_suffix("")
     result = run_episode(scenario, out_dir=out, scenario_name=rec.scenario_name, scene=scene)
     if out == page.with_suffix(""):
-        # The report links failed trials to replays/<trial>.html.
-        shutil.copyfile(out / "replay.html", page)
+        # The report links failed trials to replays/<trial>.html; the episode's other
+        # files stay in the folder beside it.
+        os.replace(out / "replay.html", page)
     return result, out
