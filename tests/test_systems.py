@@ -88,3 +88,46 @@ def test_supervisor_plans_from_the_true_pose_and_walks_its_modes():
     # Start of the approach: the desired pose is the start pose.
     assert sup.GetOutputPort("X_WG_desired").Eval(ctx).translation() == pytest.approx([0.5, 0, 0.2])
     del state
+
+
+def test_distance_evaluator_alone_matches_the_direct_form():
+    import torch
+    from pydrake.systems.sensors import ImageDepth32F
+
+    from drake_grasp.network import DistanceCNN, NetworkConfig
+    from drake_grasp.systems.evaluator import DistanceEvaluator
+
+    model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(4))
+    system = DistanceEvaluator(model)
+    ctx = system.CreateDefaultContext()
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.2, 0.3, (64, 64)).astype(np.float32)
+    image = ImageDepth32F(64, 64)
+    image.mutable_data[:, :, 0] = depth
+    actions = np.column_stack([rng.uniform(-0.04, 0.04, (16, 2)), rng.uniform(-45, 45, 16)])
+    system.GetInputPort("depth_image").FixValue(ctx, image)
+    system.GetInputPort("candidate_actions").FixValue(ctx, actions)
+    got = system.GetOutputPort("predicted_distances").Eval(ctx)
+    with torch.no_grad():
+        direct = model.forward_direct(model.preprocess(np.repeat(depth[None], 16, 0)),
+                                      torch.as_tensor(actions, dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(got, direct, rtol=1e-4, atol=1e-6)
+
+
+def test_action_sampler_alone_is_deterministic_per_seed_and_step():
+    from drake_grasp.systems.evaluator import ActionSampler
+
+    system = ActionSampler(num_candidates=32, xy_m=0.04, theta_deg=45.0, period_s=0.1, seed=5)
+    ctx = system.CreateDefaultContext()
+    port = system.GetOutputPort("candidate_actions")
+    first = np.array(port.Eval(ctx))
+    assert first.shape == (32, 3)
+    assert np.abs(first[:, :2]).max() <= 0.04 and np.abs(first[:, 2]).max() <= 45.0
+    ctx.SetTime(0.1)
+    second = np.array(port.Eval(ctx))
+    assert not np.array_equal(first, second)  # a fresh draw every control step
+    other = system.CreateDefaultContext()
+    other.SetTime(0.1)
+    np.testing.assert_array_equal(port.Eval(other), second)  # same (seed, step), same draw
+    system.set_seed(other, 6)
+    assert not np.array_equal(port.Eval(other), second)
