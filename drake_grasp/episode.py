@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp import __version__
-from drake_grasp.objects import ObjectLibrary, load_library
+from drake_grasp.objects import ObjectLibrary, load_library, visual_mesh
 from drake_grasp.scenario import Scenario, dump_scenario
 from drake_grasp.scene import SceneSpec, make_scene
 
@@ -61,8 +61,7 @@ class EpisodeRun:
 def _object_surface_points(library: ObjectLibrary, object_id: str, count: int = 1500) -> np.ndarray:
     import trimesh
 
-    info = library.get(object_id)
-    mesh = trimesh.load(str(Path(info.directory) / "visual.obj"), force="mesh")
+    mesh = visual_mesh(library.get(object_id), process=True)
     points, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
     return np.vstack([np.asarray(points), np.asarray(mesh.vertices)])
 

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
@@ -177,13 +175,6 @@ def _positive_int(name: str, value: int) -> int:
 # Scene geometry.
 
 
-@lru_cache(maxsize=1024)
-def _load_surface_mesh(path: str):
-    import trimesh
-
-    return trimesh.load(path, force="mesh", process=False)
-
-
 def _quat_wxyz_to_matrix(quat_wxyz) -> np.ndarray:
     """Rotation matrix of a (w, x, y, z) quaternion (normalised first)."""
     q = np.asarray(quat_wxyz, dtype=float)
@@ -212,10 +203,12 @@ def scene_meshes(spec, library) -> list:
     """
     import trimesh
 
+    from drake_grasp.objects import visual_mesh
+
     meshes = []
     for placement in spec.objects:
         info = library.get(placement.object_id)
-        local = _load_surface_mesh(str(Path(info.directory) / "visual.obj"))
+        local = visual_mesh(info)
         R = _quat_wxyz_to_matrix(placement.quat_wxyz)
         t = np.asarray(placement.xyz, dtype=float)
         meshes.append(trimesh.Trimesh(np.asarray(local.vertices) @ R.T + t,

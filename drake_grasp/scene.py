@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp.assets import make_parser
-from drake_grasp.objects import ObjectLibrary
+from drake_grasp.objects import ObjectLibrary, visual_mesh
 from drake_grasp.scenario import SceneConfig
 
 TABLE_URI = "package://drake_grasp/scene/table.urdf"
@@ -190,11 +190,7 @@ def _quat_wxyz(R: np.ndarray) -> list[float]:
 
 
 def _object_vertices(library: ObjectLibrary, object_id: str) -> np.ndarray:
-    import trimesh
-
-    info = library.get(object_id)
-    mesh = trimesh.load(str(Path(info.directory) / "visual.obj"), force="mesh", process=False)
-    return np.asarray(mesh.vertices, dtype=float)
+    return np.asarray(visual_mesh(library.get(object_id)).vertices, dtype=float)
 
 
 def scene_top_z(spec: SceneSpec, library: ObjectLibrary) -> float:

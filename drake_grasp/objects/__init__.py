@@ -37,6 +37,7 @@ from drake_grasp.objects.library import (
     builtin_library_dir,
     default_cache_root,
     load_library,
+    visual_mesh,
     write_procedural_object,
 )
 from drake_grasp.objects.model_files import BODY_NAME
@@ -54,6 +55,7 @@ __all__ = [
     "ObjectInfo",
     "ObjectLibrary",
     "UnknownObjectError",
+    "visual_mesh",
     "builtin_ids",
     "builtin_library_dir",
     "default_cache_root",

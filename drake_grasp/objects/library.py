@@ -11,11 +11,12 @@ import json
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 from drake_grasp.objects import categories as cat
 from drake_grasp.objects.geometry import union_mesh
-from drake_grasp.objects.model_files import META_FILE, MODEL_FILE, write_object_dir
+from drake_grasp.objects.model_files import META_FILE, MODEL_FILE, VISUAL_FILE, write_object_dir
 
 CACHE_ENV = "DRAKE_GRASP_CACHE"
 
@@ -118,6 +119,21 @@ def _check_model(model_path: Path, oid: str) -> None:
         raise ValueError(f"{model_path}: expected a URDF <robot ...>, found <{root.tag}>")
     if root.get("name") != oid:
         raise ValueError(f"{model_path}: model name {root.get('name')!r}, expected the object id {oid!r}")
+
+
+@lru_cache(maxsize=1024)
+def _load_mesh(path: str, process: bool):
+    import trimesh
+
+    return trimesh.load(path, force="mesh", process=process)
+
+
+def visual_mesh(info: ObjectInfo, *, process: bool = False):
+    """The object's visual (surface) mesh in its own frame, read once per process.
+
+    The mesh is shared between callers: treat it as read-only.
+    """
+    return _load_mesh(str(Path(info.directory) / VISUAL_FILE), bool(process))
 
 
 def default_cache_root() -> Path:
