@@ -1,0 +1,98 @@
+"""Where a result came from: the code version and content checksums of inputs.
+
+Pure Python (no Drake, no torch), so every floor of the package can use it. The code
+version is what run folders, dataset manifests and trained weights record, and what a
+resumed run compares before it adds anything to an existing folder.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import subprocess
+from pathlib import Path
+
+from drake_grasp import __version__
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+@functools.lru_cache(maxsize=None)
+def git_commit() -> str | None:
+    """The commit of the checkout this package runs from, or None.
+
+    None when the package is installed (site-packages) rather than run from a git
+    checkout, or when git is unavailable. A checkout with uncommitted changes gets
+    "+dirty" appended, because the commit alone would not say which code ran.
+    """
+    root = _PACKAGE_DIR.parent
+    if not (root / ".git").exists():
+        return None
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"],
+                                capture_output=True, text=True, timeout=10, env=env)
+        if commit.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
+                                "--untracked-files=no", "--", "drake_grasp", "models",
+                                "diagrams"],
+                               capture_output=True, text=True, timeout=10, env=env)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    sha = commit.stdout.strip()[:12]
+    if not sha:
+        return None
+    return sha + ("+dirty" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+
+
+def code_version() -> str:
+    """Package version plus the git commit when run from a checkout.
+
+    Examples: "0.1.0+git.1a2b3c4d5e6f", "0.1.0+git.1a2b3c4d5e6f+dirty" (uncommitted changes
+    to the package, models or diagrams), "0.1.0+unknown" (an installed package: the commit
+    it was built from is not known).
+    """
+    commit = git_commit()
+    return f"{__version__}+git.{commit}" if commit else f"{__version__}+unknown"
+
+
+def file_sha256(path: str | os.PathLike, *, chunk: int = 1 << 20) -> str:
+    """SHA-256 hex digest of a file's bytes.
+
+    Raises:
+        FileNotFoundError: naming the file when it does not exist.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (expected a file to checksum)")
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def tree_sha256(root: str | os.PathLike, *, suffixes: tuple[str, ...] | None = None) -> str:
+    """SHA-256 over the relative paths and bytes of every file under `root`, in sorted
+    order (hidden files and folders skipped), so two folders with the same content have
+    the same digest wherever they lie.
+
+    Args:
+        root: A folder.
+        suffixes: Only files with one of these suffixes (e.g. (".urdf", ".obj")), or all.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such folder (expected a folder to checksum)")
+    h = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root)
+        if any(part.startswith(".") for part in rel.parts):
+            continue
+        if suffixes is not None and path.suffix.lower() not in suffixes:
+            continue
+        h.update(rel.as_posix().encode() + b"\0")
+        h.update(file_sha256(path).encode() + b"\n")
+    return h.hexdigest()
