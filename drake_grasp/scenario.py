@@ -7,6 +7,10 @@ resolved scenario is written beside every output with `yaml_dump_typed`.
 
 
 import dataclasses
+import difflib
+import math
+import numbers
+import typing
 from dataclasses import dataclass, field
 
 # No `from __future__ import annotations` here: yaml_load_typed reads the field types
@@ -230,52 +234,194 @@ class Scenario:
     visualize: bool = False
 
     def validate(self) -> None:
-        """Raises ValueError naming the key and the expected values."""
-        if self.scene.kind not in SCENE_KINDS:
-            raise ValueError(f"scene.kind: got {self.scene.kind!r}, expected one of {SCENE_KINDS}")
-        if self.policy not in POLICIES:
-            raise ValueError(f"policy: got {self.policy!r}, expected one of {POLICIES}")
-        if self.noise.kind not in NOISE_KINDS:
-            raise ValueError(f"noise.kind: got {self.noise.kind!r}, expected one of {NOISE_KINDS}")
-        if self.disturbance.kind not in DISTURBANCE_KINDS:
-            raise ValueError(f"disturbance.kind: got {self.disturbance.kind!r}, "
-                             f"expected one of {DISTURBANCE_KINDS}")
+        """Checks every field: its type and its allowed range.
+
+        Raises:
+            ValueError: naming the first bad key (dotted, e.g. `gripper.grip_force_n`),
+                its value and the allowed values.
+        """
+        for key, value in (("scene.kind", self.scene.kind), ("policy", self.policy),
+                           ("noise.kind", self.noise.kind),
+                           ("disturbance.kind", self.disturbance.kind),
+                           ("scene.pose", self.scene.pose), ("scene.split", self.scene.split),
+                           ("plant.contact_model", self.plant.contact_model),
+                           ("plant.discrete_contact_approximation",
+                            self.plant.discrete_contact_approximation),
+                           ("plant.contact_surface_representation",
+                            self.plant.contact_surface_representation)):
+            allowed = _CHOICES[key]
+            if value not in allowed:
+                why = _CHOICE_REASONS.get(key, "")
+                raise ValueError(f"{key}: got {value!r}, expected one of {allowed}{why}")
+        for key, (low, high, low_open, high_open, unit) in _RANGES.items():
+            _check_number(key, _get(self, key), low, high, low_open, high_open, unit,
+                          integer=key in _INTEGER_KEYS)
+        for key in ("target", "objects_dir"):
+            if not isinstance(getattr(self, key), str):
+                raise ValueError(f"{key}: expected a string, got {getattr(self, key)!r}")
+        if not isinstance(self.visualize, bool):
+            raise ValueError(f"visualize: expected true or false, got {self.visualize!r}")
+        ids = self.scene.object_ids
+        if not isinstance(ids, list) or not all(isinstance(i, str) and i for i in ids):
+            raise ValueError(f"scene.object_ids: expected a list of object ids (strings), got {ids!r}")
+        for key in ("scene.center_xy_m", "noise.offset_xy_m", "disturbance.velocity_m_s"):
+            value = _get(self, key)
+            if (not isinstance(value, list) or len(value) != 2
+                    or not all(_is_real(v) and math.isfinite(v) for v in value)):
+                raise ValueError(f"{key}: expected [x, y] (two finite numbers), got {value!r}")
         c = self.controller
-        if c.iterations < 1 or c.num_candidates < 1 or c.period_s <= 0:
-            raise ValueError("controller.iterations/num_candidates/period_s: expected positive values")
-        if not 0.0 < c.step_ratio <= 1.0:
-            raise ValueError(f"controller.step_ratio: got {c.step_ratio}, expected (0, 1]")
-        if not 0.0 < c.end_camera_height_m <= self.arm.start_camera_height_m:
-            raise ValueError("controller.end_camera_height_m: expected 0 < end <= "
-                             "arm.start_camera_height_m")
-        if len(self.noise.offset_xy_m) != 2:
-            raise ValueError(f"noise.offset_xy_m: expected [x, y], got {self.noise.offset_xy_m}")
-        if self.scene.pose not in ("lying", "upright", "any"):
-            raise ValueError(f"scene.pose: got {self.scene.pose!r}, expected lying|upright|any")
-        if not 1 <= self.scene.num_objects_min <= self.scene.num_objects_max:
+        if not c.end_camera_height_m <= self.arm.start_camera_height_m:
+            raise ValueError(
+                f"controller.end_camera_height_m: got {c.end_camera_height_m}, expected 0 < end <= "
+                f"arm.start_camera_height_m ({self.arm.start_camera_height_m})")
+        if not self.scene.num_objects_min <= self.scene.num_objects_max:
             raise ValueError(
                 "scene.num_objects_min/num_objects_max: expected 1 <= min <= max, got "
                 f"{self.scene.num_objects_min}, {self.scene.num_objects_max}"
             )
-        if len(self.scene.center_xy_m) != 2:
-            raise ValueError(f"scene.center_xy_m: expected [x, y], got {self.scene.center_xy_m}")
-        if self.seed < 0:
-            raise ValueError(f"seed: expected a non-negative integer, got {self.seed}")
-        if not 0.0 < self.gripper.grip_force_n <= 235.0:
+        if not self.camera.depth_min_m < self.camera.depth_max_m:
             raise ValueError(
-                f"gripper.grip_force_n: got {self.gripper.grip_force_n}, expected (0, 235] N"
-            )
-        if not 0.0 < self.gripper.open_width_m <= 0.085:
-            raise ValueError(
-                f"gripper.open_width_m: got {self.gripper.open_width_m}, expected (0, 0.085] m"
-            )
-        if self.camera.width <= 0 or self.camera.height <= 0:
-            raise ValueError("camera.width/height: expected positive pixel counts")
-        if not 0.0 < self.camera.depth_min_m < self.camera.depth_max_m:
-            raise ValueError("camera.depth_min_m/depth_max_m: expected 0 < min < max")
-        if self.max_sim_time_s <= 0:
-            raise ValueError(f"max_sim_time_s: expected > 0, got {self.max_sim_time_s}")
-        self.depth_noise.validate()
+                f"camera.depth_min_m/depth_max_m: expected 0 < min < max, got "
+                f"{self.camera.depth_min_m}, {self.camera.depth_max_m}")
+        d = self.disturbance
+        if not d.shift_min_m <= d.shift_max_m:
+            raise ValueError(f"disturbance.shift_min_m/shift_max_m: expected min <= max, got "
+                             f"{d.shift_min_m}, {d.shift_max_m}")
+        try:
+            self.depth_noise.validate()
+        except ValueError as e:
+            raise ValueError(f"depth_noise: {e}") from None
+
+
+# --------------------------------------------------------------------------- validation
+# Allowed values of every tunable, checked by `Scenario.validate` (the message names the
+# dotted key, the value and this range).
+
+_INF = math.inf
+# key: (low, high, low_open, high_open, unit). An infinite bound means "any finite value".
+_RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
+    # The depth post-processor keeps the seed in a double parameter: exact below 2**53.
+    "seed": (0, 2**53, False, True, ""),
+    "max_sim_time_s": (0, _INF, True, True, "s"),
+    "camera.width": (1, 4096, False, False, "px"),
+    "camera.height": (1, 4096, False, False, "px"),
+    "camera.fov_y_deg": (0, 180, True, True, "deg"),
+    "camera.depth_min_m": (0, _INF, True, True, "m"),
+    "camera.depth_max_m": (0, _INF, True, True, "m"),
+    "camera.fps": (0, _INF, True, True, "Hz"),
+    # Robotiq 2F-85 datasheet: 20-235 N; lower forces are allowed for slip studies.
+    "gripper.grip_force_n": (0, 235, True, False, "N"),
+    "gripper.closing_speed_m_s": (0, _INF, True, True, "m/s"),
+    "gripper.open_width_m": (0, 0.085, True, False, "m"),  # 85 mm stroke
+    "arm.start_camera_height_m": (0, _INF, True, True, "m"),
+    "arm.ik_time_step_s": (0, _INF, True, True, "s"),
+    "arm.max_tcp_speed_m_s": (0, _INF, True, True, "m/s"),
+    "arm.max_tcp_angular_speed_rad_s": (0, _INF, True, True, "rad/s"),
+    "arm.joint_velocity_fraction": (0, 1, True, False, ""),
+    # Object counts are capped so a typo (1000 for 10) does not hang scene settling.
+    "scene.num_objects_min": (1, 100, False, False, ""),
+    "scene.num_objects_max": (1, 100, False, False, ""),
+    "scene.clutter_objects": (1, 100, False, False, ""),
+    "scene.region_half_extent_m": (0, _INF, True, True, "m"),
+    "scene.settle_speed_tol_m_s": (0, _INF, True, True, "m/s"),
+    "scene.settle_max_time_s": (0, _INF, True, True, "s"),
+    "scripted.approach_time_s": (0, _INF, True, True, "s"),
+    "scripted.pregrasp_height_m": (0, _INF, False, True, "m"),
+    "scripted.descend_time_s": (0, _INF, True, True, "s"),
+    "scripted.close_time_s": (0, _INF, True, True, "s"),
+    "scripted.lift_height_m": (0, _INF, True, True, "m"),
+    "scripted.lift_time_s": (0, _INF, True, True, "s"),
+    "scripted.hold_time_s": (0, _INF, False, True, "s"),
+    "scripted.grasp_depth_below_top_m": (0, _INF, False, True, "m"),
+    "scripted.min_grasp_height_m": (0, _INF, False, True, "m"),
+    "judge.min_lift_m": (0, _INF, False, True, "m"),
+    "judge.min_holding_width_m": (0, 0.085, False, False, "m"),
+    "controller.period_s": (0, _INF, True, True, "s"),
+    "controller.iterations": (1, 10_000, False, False, ""),
+    "controller.step_ratio": (0, 1, True, False, ""),
+    "controller.end_camera_height_m": (0, _INF, True, True, "m"),
+    "controller.stop_distance_m": (0, _INF, False, True, "m"),
+    "controller.stop_window_fraction": (0, 1, True, False, ""),
+    "controller.num_candidates": (1, 1_000_000, False, False, ""),
+    "controller.sample_xy_m": (0, _INF, False, True, "m"),
+    "controller.sample_theta_deg": (0, 180, False, False, "deg"),
+    "controller.global_candidates": (1, 1_000_000, False, False, ""),
+    "controller.torch_threads": (0, 1024, False, False, ""),  # 0: one thread
+    "noise.gaussian_scale": (0, _INF, False, True, ""),
+    "noise.offset_theta_deg": (-_INF, _INF, True, True, "deg"),
+    "noise.offset_ramp_m": (0, _INF, False, True, "m"),
+    "disturbance.after_iterations": (0, _INF, False, True, ""),
+    "disturbance.shift_min_m": (0, _INF, False, True, "m"),
+    "disturbance.shift_max_m": (0, _INF, False, True, "m"),
+    "disturbance.shift_max_yaw_deg": (0, 180, False, False, "deg"),
+    "disturbance.shift_duration_s": (0, _INF, True, True, "s"),
+    # The station is a discrete (SAP-family) plant: a zero time step is a continuous plant.
+    "plant.time_step": (0, _INF, True, True, "s"),
+    "plant.penetration_allowance": (0, _INF, True, True, "m"),
+    "plant.stiction_tolerance": (0, _INF, True, True, "m/s"),
+    "plant.sap_near_rigid_threshold": (0, _INF, False, True, ""),
+}
+_INTEGER_KEYS = {"seed", "camera.width", "camera.height", "scene.num_objects_min",
+                 "scene.num_objects_max", "scene.clutter_objects", "controller.iterations",
+                 "controller.num_candidates", "controller.global_candidates",
+                 "controller.torch_threads", "disturbance.after_iterations"}
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "scene.kind": SCENE_KINDS,
+    "policy": POLICIES,
+    "noise.kind": NOISE_KINDS,
+    "disturbance.kind": DISTURBANCE_KINDS,
+    "scene.pose": ("lying", "upright", "any"),
+    "scene.split": ("train", "test", ""),
+    "plant.contact_model": ("hydroelastic_with_fallback", "hydroelastic", "point"),
+    "plant.discrete_contact_approximation": ("lagged", "sap", "similar"),
+    "plant.contact_surface_representation": ("polygon", "triangle"),
+}
+_CHOICE_REASONS = {
+    "plant.discrete_contact_approximation":
+        " (the arm's in-plant PD gains and the gripper's coupler constraint need a "
+        "SAP-family solver; TAMSI ignores both)",
+}
+
+
+def _get(scenario: "Scenario", key: str):
+    value = scenario
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _bound_text(value) -> str:
+    if value == 2**53:
+        return "2**53"
+    if float(value).is_integer() and abs(value) < 1e7:
+        return str(int(value))
+    return f"{value:g}"
+
+
+def _range_text(low, high, low_open, high_open, unit, integer) -> str:
+    unit = f" {unit}" if unit else ""
+    kind = "an integer" if integer else "a finite number"
+    if math.isinf(low) and math.isinf(high):
+        return f"a finite number{unit}"
+    if math.isinf(high):
+        return f"{kind} {'>' if low_open else '>='} {_bound_text(low)}{unit}"
+    return (f"{kind} in {'(' if low_open else '['}{_bound_text(low)}, {_bound_text(high)}"
+            f"{')' if high_open else ']'}{unit}")
+
+
+def _check_number(key, value, low, high, low_open, high_open, unit, *, integer) -> None:
+    expected = _range_text(low, high, low_open, high_open, unit, integer)
+    ok = isinstance(value, numbers.Integral) if integer else _is_real(value)
+    ok = ok and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (low < value if low_open else low <= value) and (
+            math.isinf(high) or (value < high if high_open else value <= high))
+    if not ok:
+        raise ValueError(f"{key}: got {value!r}, expected {expected}")
 
 
 def scenario_file_path(scenario_file: "str | Path | None") -> Path:
@@ -285,15 +431,138 @@ def scenario_file_path(scenario_file: "str | Path | None") -> Path:
     return Path(scenario_file)
 
 
-def list_scenarios(scenario_file: str | Path | None = None) -> list[str]:
-    """Names of the scenarios in a scenarios file (keys not starting with '_')."""
-    import yaml
+def _describe(value) -> str:
+    text = repr(value)
+    if len(text) > 60:
+        text = text[:57] + "..."
+    return f"{text} ({type(value).__name__})"
 
-    path = scenario_file_path(scenario_file)
-    data = yaml.safe_load(path.read_text())
+
+def _parse_yaml(text: str, where: str):
+    """YAML text -> plain data (dicts, lists, scalars), parsed as Drake's loader does."""
+    from pydrake.common.yaml import yaml_load_data
+
+    try:
+        # private=True: keep "_" keys here; the callers drop them where Drake does.
+        return yaml_load_data(text, private=True)
+    except Exception as e:  # yaml.YAMLError and its kin, with line and column
+        detail = " ".join(str(e).split())
+        raise ValueError(f"{where}: not valid YAML ({type(e).__name__}: {detail})") from None
+
+
+def _read_scenarios_file(path: Path) -> dict:
+    """The parsed scenarios file: scenario name -> raw YAML data."""
+    if not path.is_file():
+        what = " (that is a folder)" if path.is_dir() else ""
+        raise FileNotFoundError(f"scenario file not found: {path}{what}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from None
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read the scenario file ({e.strerror})") from None
+    data = _parse_yaml(text, str(path))
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of scenario names to scenarios")
-    return [k for k in data if not str(k).startswith("_")]
+        raise ValueError(f"{path}: expected a mapping of scenario names to scenarios, "
+                         f"got {_describe(data)}")
+    for name in data:
+        if not isinstance(name, str):
+            raise ValueError(f"{path}: scenario names must be strings, got {_describe(name)}")
+    return data
+
+
+def _schema_fields(schema) -> "dict[str, object] | None":
+    """Field name -> type of a dataclass or of a Drake config struct; None for others."""
+    if dataclasses.is_dataclass(schema):
+        return typing.get_type_hints(schema)
+    fields = getattr(schema, "__fields__", None)  # pydrake's bound config structs
+    if isinstance(fields, tuple):
+        return {f.name: f.type for f in fields}
+    return None
+
+
+_TYPE_WORDS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _scalar_ok(value, schema) -> bool:
+    """Whether Drake's yaml_load_typed converts `value` into `schema` without loss.
+
+    Mirrors pydrake.common.yaml's primitive conversions: exact type; int -> float;
+    float -> int without a fractional part; number parsing of strings; "true"/"false".
+    """
+    kind = type(value)
+    try:
+        if kind is schema:
+            return True
+        if kind is int and schema is float:
+            float(value)
+            return True
+        if kind is float and schema is int:
+            return value.is_integer()
+        if kind is str and schema in (int, float):
+            schema(value)
+            return True
+        if kind is str and schema is bool:
+            return value in ("true", "false")
+    except (ValueError, OverflowError, TypeError):
+        return False
+    return False
+
+
+def _check_yaml(value, schema, where: str, key: str) -> None:
+    """Checks raw YAML data against the schema before Drake reads it.
+
+    Drake's loader reports some mistakes without the key (a failed int() of "abc"),
+    some with an AssertionError, and turns a string given for a list into a list of
+    characters; this names the dotted key, the value and what was expected.
+    """
+    fields = _schema_fields(schema)
+    label = key or "the scenario"
+    if fields is not None:
+        if not isinstance(value, dict):
+            raise ValueError(f"{where}: {label}: expected a mapping with keys "
+                             f"{sorted(fields)}, got {_describe(value)}")
+        for name, item in value.items():
+            if not isinstance(name, str):
+                raise ValueError(f"{where}: {label}: keys must be strings, got {_describe(name)}")
+            full = f"{key}.{name}" if key else name
+            if name not in fields:
+                close = difflib.get_close_matches(name, list(fields), n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                if ":" in name:
+                    hint += " (YAML needs a space after ':', e.g. '{seed: 3}')"
+                raise ValueError(f"{where}: unknown key {full!r}{hint}; {label} has the keys "
+                                 f"{sorted(fields)}")
+            _check_yaml(item, fields[name], where, full)
+        return
+    if typing.get_origin(schema) is list:
+        (item_schema,) = typing.get_args(schema) or (typing.Any,)
+        if not isinstance(value, list):
+            raise ValueError(f"{where}: {label}: expected a list, got {_describe(value)}")
+        for i, item in enumerate(value):
+            _check_yaml(item, item_schema, where, f"{key}[{i}]")
+        return
+    if schema in _TYPE_WORDS and not _scalar_ok(value, schema):
+        raise ValueError(f"{where}: {label}: expected {_TYPE_WORDS[schema]}, "
+                         f"got {_describe(value)}")
+
+
+def _load_typed(where: str, **kwargs) -> Scenario:
+    try:
+        return yaml_load_typed(schema=Scenario, **kwargs)
+    except Exception as e:  # not expected after _check_yaml; keep the location anyway
+        raise ValueError(f"{where}: {type(e).__name__}: {e}") from None
+
+
+def list_scenarios(scenario_file: str | Path | None = None) -> list[str]:
+    """Names of the scenarios in a scenarios file (keys not starting with '_').
+
+    Raises:
+        FileNotFoundError: the file is missing.
+        ValueError: it is not UTF-8 YAML holding a mapping (the message names the file).
+    """
+    data = _read_scenarios_file(scenario_file_path(scenario_file))
+    return [k for k in data if not k.startswith("_")]
 
 
 def load_scenario(
@@ -311,30 +580,43 @@ def load_scenario(
 
     Raises:
         FileNotFoundError: the file is missing.
-        ValueError: unknown scenario name, unknown key, or an invalid value; the message
-            names the file, the scenario and the key.
+        ValueError: not valid YAML, unknown scenario name, unknown key, a value of the
+            wrong type or out of range; the message names the file and scenario (or the
+            override text), the dotted key, the value and what was expected.
     """
     path = scenario_file_path(scenario_file)
-    if not path.is_file():
-        raise FileNotFoundError(f"scenario file not found: {path}")
-    names = list_scenarios(path)
+    data = _read_scenarios_file(path)
+    names = [k for k in data if not k.startswith("_")]
     if scenario_name not in names:
-        raise ValueError(f"{path}: no scenario named {scenario_name!r}; available: {names}")
-    try:
-        scenario = yaml_load_typed(
-            schema=Scenario, filename=str(path), child_name=scenario_name, defaults=Scenario()
-        )
-    except RuntimeError as e:
-        raise ValueError(f"{path}: scenario {scenario_name!r}: {e}") from None
+        close = difflib.get_close_matches(str(scenario_name), names, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"{path}: no scenario named {scenario_name!r}{hint}; available: {names}")
+    where = f"{path}: scenario {scenario_name!r}"
+    _check_yaml(data[scenario_name], Scenario, where, "")
+    scenario = _load_typed(where, filename=str(path), child_name=scenario_name,
+                           defaults=Scenario())
+    named = scenario
+    shown = scenario_text if len(scenario_text) <= 80 else scenario_text[:77] + "..."
+    text_where = f"--scenario-text {shown!r}"
     if scenario_text:
-        try:
-            scenario = yaml_load_typed(schema=Scenario, data=scenario_text, defaults=scenario)
-        except RuntimeError as e:
-            raise ValueError(f"--scenario-text {scenario_text!r}: {e}") from None
+        override = _parse_yaml(scenario_text, text_where)
+        if isinstance(override, dict):  # Drake drops top-level "_" keys (YAML anchors)
+            override = {k: v for k, v in override.items()
+                        if not (isinstance(k, str) and k.startswith("_"))}
+        if override is not None:  # blank or comment-only text overrides nothing
+            _check_yaml(override, Scenario, text_where, "")
+            scenario = _load_typed(text_where, data=scenario_text, defaults=scenario)
     try:
         scenario.validate()
     except ValueError as e:
-        raise ValueError(f"{path}: scenario {scenario_name!r}: {e}") from None
+        blame = where
+        if scenario is not named:
+            try:
+                named.validate()
+                blame = text_where  # the named scenario alone is fine: the override broke it
+            except ValueError:
+                pass
+        raise ValueError(f"{blame}: {e}") from None
     return scenario
 
 
