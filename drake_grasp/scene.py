@@ -327,6 +327,10 @@ def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=N
     if renderer_name is not None:
         from pydrake.geometry import MakeRenderEngineVtk, RenderEngineVtkParams
 
+        from drake_grasp.native import load_llvm_users_first
+
+        # Before the first render: Mesa's LLVM must not shadow triton's (drake_grasp.native).
+        load_llvm_users_first()
         scene_graph.AddRenderer(renderer_name, MakeRenderEngineVtk(RenderEngineVtkParams()))
     diagram = builder.Build()
     simulator = Simulator(diagram)
@@ -338,13 +342,21 @@ def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=N
 def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0.005,
                  max_time_s: float = 4.0) -> SceneSpec:
     """Simulates `world` until every object is slower than `speed_tol_m_s` (or the time
-    is up) and returns the resting spec; objects that fell off the table are dropped."""
+    is up) and returns the resting spec; objects that fell off the table are dropped.
+
+    The returned spec has `settled=True` only when the objects that stay on the table
+    came to rest: when `max_time_s` runs out with one of them still faster than
+    `speed_tol_m_s`, it is returned with `settled=False` (callers that need a scene at
+    rest, such as the dataset generator, re-sample it).
+    """
     simulator = world.simulator
     plant, plant_context = world.plant, world.plant_context()
     simulator.Initialize()
     bodies = world.bodies()
     t, dt = simulator.get_context().get_time(), 0.05
+    t_start = t
     t_end = t + max_time_s
+    converged = False
     while t < t_end:
         t += dt
         simulator.AdvanceTo(t)
@@ -353,7 +365,16 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
             for b in bodies
         ]
         if t >= 0.3 and (not speeds or max(speeds) < speed_tol_m_s):
+            converged = True
             break
+    if not converged and t > t_start:
+        # The time cap: at rest only if every object still on the table is slow (one
+        # falling off the table never comes to rest, and is dropped below).
+        on_table = [
+            np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
+            for b in bodies if plant.EvalBodyPoseInWorld(plant_context, b).translation()[2] >= -0.05
+        ]
+        converged = not on_table or max(on_table) < speed_tol_m_s
     settled = []
     for placement, body in zip(spec.objects, bodies):
         X = plant.EvalBodyPoseInWorld(plant_context, body)
@@ -366,7 +387,7 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
             [float(q.w()), float(q.x()), float(q.y()), float(q.z())],
         ))
     return SceneSpec(kind=spec.kind, seed=spec.seed, center_xy_m=list(spec.center_xy_m),
-                     objects=settled, settled=True)
+                     objects=settled, settled=converged)
 
 
 def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
@@ -374,7 +395,8 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
     """Drops the objects onto the sheet and simulates until all are at rest.
 
     Objects that end below the table top (fell off) are removed. Returns a new spec
-    with the resting poses and `settled=True`.
+    with the final poses; `settled` says whether every remaining object came to rest
+    within `max_time_s` (see `settle_world`).
     """
     world = build_scene_world(spec, library, plant_config=plant_config)
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)

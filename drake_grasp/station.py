@@ -51,6 +51,7 @@ from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
 from drake_grasp.assets import make_parser
 from drake_grasp.grasps import topdown_rotation
+from drake_grasp.native import load_llvm_users_first
 from drake_grasp.objects import ObjectLibrary
 from drake_grasp.scenario import Scenario
 from drake_grasp.scene import (
@@ -266,6 +267,8 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
 
     # --- wrist camera ----------------------------------------------------------------
     cam = scenario.camera
+    # Before the first render: Mesa's LLVM must not shadow triton's (drake_grasp.native).
+    load_llvm_users_first()
     scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
     camera_frame = plant.GetFrameByName("camera_mount", gripper)
     X_PC = camera_frame.GetFixedPoseInBodyFrame()
