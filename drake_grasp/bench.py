@@ -246,22 +246,71 @@ BENCHMARKS = {
     "trials_per_hour": bench_trials_per_hour,
 }
 
+# Every key each benchmark prints (besides "machine" and "date"), so that `--only` takes
+# any printed key as well as a group name. `run_benchmarks` checks a group's output
+# against this list, so it cannot drift from the code silently.
+PRINTED_KEYS: dict[str, tuple[str, ...]] = {
+    "rtf_isolation": ("rtf_isolation", "rtf_isolation_detail"),
+    "rtf_clutter5": ("rtf_clutter5", "rtf_clutter5_detail"),
+    "depth_frame_ms": ("depth_frame_ms",),
+    "labels_per_s": ("labels_per_s", "labels_per_s_detail"),
+    "cnn": ("cnn_infer_ms_128", "cnn_infer_direct_ms_128", "cnn_infer_speedup",
+            "train_samples_per_s", "train_direct_samples_per_s", "train_speedup",
+            "cnn_ip1_gflops_infer", "cnn_ip1_gflops_train"),
+    "controller_step_ms": ("controller_step_ms",),
+    "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
+    "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail"),
+}
+
+
+def resolve_only(only: list[str] | None) -> dict[str, list[str] | None]:
+    """Maps `--only` names to {group: keys to print (None: all of the group's)}.
+
+    A name is a group ("cnn") or any key a group prints ("cnn_infer_ms_128"); asking for
+    several keys of one group runs it once.
+
+    Raises:
+        ValueError: naming the unknown names and listing every accepted one.
+    """
+    if not only:
+        return {group: None for group in BENCHMARKS}
+    owner = {key: group for group, keys in PRINTED_KEYS.items() for key in keys}
+    unknown = [k for k in only if k not in BENCHMARKS and k not in owner]
+    if unknown:
+        raise ValueError(f"--only: unknown benchmark keys {unknown}; groups: "
+                         f"{list(BENCHMARKS)}; keys: {sorted(owner)}")
+    plan: dict[str, list[str] | None] = {}
+    for name in only:
+        if name in BENCHMARKS:
+            plan[name] = None
+        elif plan.get(owner[name], []) is not None:
+            plan.setdefault(owner[name], []).append(name)
+    return plan
+
 
 def run_benchmarks(*, only: list[str] | None = None, out: str | Path | None = None) -> dict:
-    """Runs the named benchmarks (all by default); optionally writes JSON to `out`."""
-    keys = list(BENCHMARKS) if not only else only
-    unknown = [k for k in keys if k not in BENCHMARKS]
-    if unknown:
-        raise ValueError(f"--only: unknown benchmark keys {unknown}; known: {list(BENCHMARKS)}")
+    """Runs the named benchmarks (all by default); optionally writes JSON to `out`.
+
+    Args:
+        only: Group names (`BENCHMARKS`) or printed keys (`PRINTED_KEYS`); a key runs its
+            group and keeps that key (and its "_detail" entry, if any).
+        out: Also write the JSON here (atomically), with the machine description.
+    """
+    plan = resolve_only(only)
     results: dict = {}
-    for key in keys:
-        results.update(BENCHMARKS[key]())
+    for group, keys in plan.items():
+        got = BENCHMARKS[group]()
+        if set(got) != set(PRINTED_KEYS[group]):
+            raise RuntimeError(f"benchmark {group!r} printed {sorted(got)}, but PRINTED_KEYS "
+                               f"lists {sorted(PRINTED_KEYS[group])}: update PRINTED_KEYS")
+        if keys is not None:
+            wanted = set(keys) | {f"{k}_detail" for k in keys}
+            got = {k: v for k, v in got.items() if k in wanted}
+        results.update(got)
     results["machine"] = _machine()
     results["date"] = time.strftime("%Y-%m-%d")
     if out is not None:
-        out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
-        tmp.replace(out)
+        from drake_grasp.results import atomic_write_text
+
+        atomic_write_text(out, json.dumps(results, indent=1))
     return results

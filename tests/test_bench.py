@@ -1,0 +1,49 @@
+"""`drake-grasp bench --only` takes groups and every key that bench prints."""
+
+import functools
+import json
+
+import pytest
+
+from drake_grasp import bench
+from drake_grasp.cli import main
+
+
+def test_every_printed_key_names_its_group():
+    for group, keys in bench.PRINTED_KEYS.items():
+        assert group in bench.BENCHMARKS
+        for key in keys:
+            # A key that is also its group's name runs the whole group.
+            expected = None if key == group else [key]
+            assert bench.resolve_only([key]) == {group: expected}
+    assert set(bench.PRINTED_KEYS) == set(bench.BENCHMARKS)
+
+
+def test_a_key_runs_its_group_once_and_prints_only_that_key(monkeypatch, capsys):
+    # The real CNN benchmark, one timing round instead of eight.
+    monkeypatch.setitem(bench.BENCHMARKS, "cnn", functools.partial(bench.bench_cnn, rounds=1))
+    assert main(["bench", "--only", "cnn_infer_ms_128,train_samples_per_s"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"cnn_infer_ms_128", "train_samples_per_s", "machine", "date"}
+    assert out["cnn_infer_ms_128"] > 0 and out["train_samples_per_s"] > 0
+
+
+def test_a_group_name_prints_the_whole_group(capsys, tmp_path):
+    path = tmp_path / "b.json"
+    assert main(["bench", "--only", "controller_step_ms", "--out", str(path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["controller_step_ms"] > 0
+    assert json.loads(path.read_text()) == out
+
+
+def test_a_group_that_prints_an_undeclared_key_is_an_error(monkeypatch):
+    monkeypatch.setitem(bench.BENCHMARKS, "depth_frame_ms", lambda: {"depth_frame_ms": 1.0,
+                                                                      "surprise": 2})
+    with pytest.raises(RuntimeError, match="surprise"):
+        bench.run_benchmarks(only=["depth_frame_ms"])
+
+
+def test_an_unknown_key_is_named(capsys):
+    assert main(["bench", "--only", "cnn_infer_ms_129"]) == 2
+    err = capsys.readouterr().err
+    assert "cnn_infer_ms_129" in err and "cnn_infer_ms_128" in err
