@@ -209,8 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_diagram)
 
     p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")
-    p.add_argument("--only", default="", help="comma-separated benchmark keys (rtf_isolation, "
-                                              "rtf_clutter5, depth_frame_ms, labels_per_s, cnn)")
+    p.add_argument("--only", default="",
+                   help="comma-separated benchmark groups (rtf_isolation, rtf_clutter5, "
+                        "depth_frame_ms, labels_per_s, cnn, controller_step_ms, "
+                        "rtf_ctr_clutter5, trials_per_hour) or any key that bench prints "
+                        "(e.g. cnn_infer_ms_128, train_samples_per_s): a key runs its group "
+                        "and prints only that key (default: everything)")
     p.add_argument("--out", default=None, help="also write the JSON (with the machine) here")
     p.set_defaults(func=_cmd_bench)
 
@@ -307,9 +311,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _log_to_stderr() -> None:
+    """The package's informational messages (e.g. "replaced the earlier episode") go to
+    stderr, prefixed like the CLI's errors; other libraries' logging is left alone."""
+    import logging
+
+    log = logging.getLogger("drake_grasp")
+    for h in [h for h in log.handlers if getattr(h, "_drake_grasp_cli", False)]:
+        log.removeHandler(h)  # an earlier main() in this process; sys.stderr may differ now
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("drake-grasp: %(message)s"))
+    handler._drake_grasp_cli = True
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _log_to_stderr()
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, KeyError) as e:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import time
@@ -15,6 +16,12 @@ from drake_grasp import __version__
 from drake_grasp.objects import ObjectLibrary, load_library, visual_mesh
 from drake_grasp.scenario import Scenario, dump_scenario
 from drake_grasp.scene import SceneSpec, make_scene
+
+logger = logging.getLogger(__name__)
+
+# What `run_episode` writes; a folder holding only these (or nothing) may be replaced.
+EPISODE_FILES = ("episode.json", "scenario.yaml", "scene.json", "depth.png",
+                 "controller_steps.png", "replay.html")
 
 
 @dataclass
@@ -410,10 +417,18 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
     `depth.png`, `controller_steps.png` (closed-loop policies) and (with `replay`)
     `replay.html` into `out_dir`.
 
-    Files are written to a staging folder beside `out_dir` and moved in only when the
-    episode finished, so a failure leaves nothing half-written in `out_dir`.
+    Files are written to a staging folder beside `out_dir`; only when the episode has
+    finished does the staging folder take the place of `out_dir`. A failure leaves
+    `out_dir` as it was, and a folder that held an earlier episode holds exactly the new
+    one afterwards (no file of the earlier episode stays behind); the replacement is
+    logged on the "drake_grasp.episode" logger, naming the files that went away.
+
+    Raises:
+        ValueError: `out_dir` exists and holds anything other than an episode's files
+            (it is never emptied then); checked before the episode runs.
     """
     out_dir = Path(out_dir)
+    earlier = _episode_folder_contents(out_dir)
     staging = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)
@@ -439,9 +454,46 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
         if run.replay_html is not None:
             (staging / "replay.html").write_text(run.replay_html)
         (staging / "episode.json").write_text(run.result.to_json())
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for f in staging.iterdir():
-            os.replace(f, out_dir / f.name)
+        _swap_in(staging, out_dir, earlier)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return run.result
+
+
+def _episode_folder_contents(out_dir: Path) -> list[str] | None:
+    """Names in `out_dir` when it is an earlier episode's folder; None when it does not
+    exist. Refuses a folder holding anything else, so a mistyped --out never empties a
+    folder of the user's."""
+    if not out_dir.exists():
+        return None
+    if not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir}: exists and is not a folder")
+    names = sorted(p.name for p in out_dir.iterdir())
+    foreign = [n for n in names if n not in EPISODE_FILES]
+    if foreign:
+        raise ValueError(f"--out {out_dir}: holds files that are not an episode's "
+                         f"({', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}); "
+                         f"expected a new folder, an empty one, or an earlier episode's "
+                         f"(only {', '.join(EPISODE_FILES)})")
+    return names
+
+
+def _swap_in(staging: Path, out_dir: Path, earlier: list[str] | None) -> None:
+    """Puts the complete `staging` folder where `out_dir` is: two renames, so a reader
+    sees the old episode or the new one, and the old one is deleted only afterwards."""
+    if earlier is None or not out_dir.exists():
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(staging, out_dir)
+        return
+    # The folder may have changed since it was checked (another run): check again.
+    earlier = _episode_folder_contents(out_dir)
+    old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
+    if old.exists():
+        shutil.rmtree(old)
+    os.replace(out_dir, old)
+    os.replace(staging, out_dir)
+    shutil.rmtree(old, ignore_errors=True)
+    new = {p.name for p in out_dir.iterdir()}
+    gone = [n for n in earlier or [] if n not in new]
+    logger.info("%s: replaced the earlier episode in this folder%s", out_dir,
+                f" (removed {', '.join(gone)}, which this episode does not write)" if gone else "")

@@ -76,6 +76,51 @@ def test_failed_episode_leaves_nothing_in_out(tmp_path, library, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_demo_into_an_earlier_episode_leaves_no_stale_file(tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    # An earlier closed-loop episode: the scripted policy below writes neither of these.
+    (out / "controller_steps.png").write_bytes(b"earlier")
+    (out / "replay.html").write_text("<html>earlier</html>")
+    (out / "episode.json").write_text('{"policy": "ctr"}')
+    assert main(["demo", "--policy", "scripted", "--scenario", "isolation", "--seed", "0",
+                 "--out", str(out), "--no-replay"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "depth.png", "episode.json", "scenario.yaml", "scene.json"]
+    assert json.loads((out / "episode.json").read_text())["policy"] == "scripted"
+    err = capsys.readouterr().err
+    assert "replaced the earlier episode" in err
+    assert "controller_steps.png" in err and "replay.html" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["demo"]  # no staging or old folder left
+
+
+def test_demo_refuses_a_folder_that_is_not_an_episode(tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    out = tmp_path / "home"
+    out.mkdir()
+    (out / "thesis.tex").write_text("precious")
+    assert main(["demo", "--policy", "scripted", "--out", str(out), "--no-replay"]) == 2
+    assert "thesis.tex" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["thesis.tex"]
+
+
+def test_failed_episode_keeps_the_earlier_one(tmp_path, library, monkeypatch):
+    def boom(*args, **kwargs):
+        raise RuntimeError("simulated solver failure")
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "episode.json").write_text('{"policy": "ctr"}')
+    monkeypatch.setattr(episode_module, "simulate_episode", boom)
+    with pytest.raises(RuntimeError, match="solver failure"):
+        run_episode(_isolated("can_000", "lying"), out_dir=out, library=library)
+    assert (out / "episode.json").read_text() == '{"policy": "ctr"}'
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
 def test_broken_mesh_is_named(tmp_path, library):
     from drake_grasp.objects import ObjectLibrary
 
