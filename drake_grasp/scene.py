@@ -374,7 +374,7 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
             np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
             for b in bodies if plant.EvalBodyPoseInWorld(plant_context, b).translation()[2] >= -0.05
         ]
-        converged = not on_table or max(on_table) < speed_tol_m_s
+        converged = bool(not on_table or max(on_table) < speed_tol_m_s)
     settled = []
     for placement, body in zip(spec.objects, bodies):
         X = plant.EvalBodyPoseInWorld(plant_context, body)
