@@ -109,8 +109,9 @@ def _cmd_generate(args) -> int:
                                 seed=args.seed, scenario=scenario, config=config,
                                 workers=args.workers, scheduler=args.scheduler,
                                 objects_dir=args.objects)
-    print(json.dumps({k: manifest[k] for k in ("num_scenes", "num_images", "num_labels",
-                                               "num_scenes_skipped", "num_shards")}))
+    print(json.dumps({k: manifest[k] for k in (
+        "num_scenes", "num_images", "num_labels", "num_shards", "num_scene_attempts",
+        "num_scenes_unsettled_resampled", "num_scenes_no_grasp_resampled")}))
     return 0
 
 
@@ -221,7 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("generate", help="generate the simulated training set (HDF5 shards + "
                                          "manifest.json); re-running resumes")
     _add_scenario_flags(p, default="random")
-    p.add_argument("--scenes", type=int, required=True, help="number of scenes")
+    p.add_argument("--scenes", type=int, required=True,
+                   help="number of labelled scenes, exactly: a scene that does not settle "
+                        "or has no true grasp is replaced by the next seed reserved for it "
+                        "(counted in manifest.json); re-running with a larger N extends the "
+                        "dataset. One generator per folder: a second one is refused")
     p.add_argument("--split", required=True, choices=["train", "test"],
                    help="object instances to use (the split is by instance)")
     p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
@@ -234,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--offsets-per-image", type=int, default=10,
                    help="labelled offsets per image (paper: 10)")
     p.add_argument("--scenes-per-shard", type=int, default=4,
-                   help="scenes per shard file, i.e. per worker task (default 4)")
+                   help="scenes per shard file, i.e. per worker task (default 4); the "
+                        "last shard holds the rest")
     p.set_defaults(func=_cmd_generate)
 
     p = sub.add_parser("inspect-data", help="picture of a dataset: depth images with true "

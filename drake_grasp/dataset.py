@@ -11,10 +11,29 @@ On disk (this module owns the format):
 
     DIR/manifest.json           counts, resolved config, code version, shard list
     DIR/shard-00000.h5          scenes [0, S), one file per task of S scenes
-    DIR/shard-00001.h5          ...
+    DIR/shard-00001.h5          ...; the last shard holds the rest (may be smaller)
+    DIR/generate.lock           while a generator runs: its pid, host and start time
 
-Each shard is written to `shard-XXXXX.h5.tmp` and renamed when complete, so a killed run
-leaves no half-written shard; re-running the same command skips finished shards.
+Exactly N scenes. `--scenes N` gives N labelled scenes, numbered 0..N-1. Scene i has a
+reserved sequence of seeds `scene_seed(seed, i, attempt)`, attempt = 0, 1, 2, ...; an
+attempt whose settling hit the time cap with objects still moving ("unsettled"), or
+whose settled scene has no ground-truth grasp ("no grasp"), is replaced by the next
+attempt of the same scene, so the dataset never silently holds fewer scenes and every
+scene depends only on (seed, i), not on other scenes or on the shard size. The replaced
+attempts are counted in the shards and the manifest; after `max_attempts_per_scene`
+failed attempts generation stops with an error naming the scene.
+
+One generator per folder. `generate_dataset` holds `generate.lock` (an exclusive `flock`
+plus the owner's pid, host and start time in the file) for the whole run; a second
+generator on the same folder is refused with an error naming the owner. A lock left by
+a killed run (its pid no longer running on this host) is taken over with a message.
+Workers write each shard to a temporary name private to the run and the worker process
+(`shard-XXXXX.h5.<run>.<host>-<pid>.tmp`), fsync it and rename it when complete (then
+fsync the folder), so a killed run leaves no half-written shard and no run ever deletes
+a temporary file that another run is writing: a run removes only its own temporary
+files, and those of a stale lock's run it takes over. Re-running the same command skips
+finished shards.
+
 Shard layout (HDF5, chunked + gzip):
 
     depth        (I, H, W) float32   post-processed depth [m]
@@ -23,32 +42,41 @@ Shard layout (HDF5, chunked + gzip):
     labels       (I, M)    float32   distance to the nearest true grasp [m]
     image_scene  (I,)      int64     global scene index of each image
     scene_index  (S,)      int64     global scene indices in this shard
+    scene_attempt (S,)     int64     which attempt of the scene's seed sequence was kept
     scene_spec   (S,)      str       SceneSpec JSON (re-render any sample from it)
     grasp_scene  (G,)      int64     global scene index of each grasp
     grasp_pose   (G, 4, 4) float64   world grasp-frame poses
     grasp_width  (G,)      float32
     grasp_xy_theta (G, 3)  float64   [x, y, theta_deg mod 180]
-    attrs: split, config_hash, code_version, num_scenes, num_images, num_labels, skipped
+    attrs: split, config_hash, code_version, format_version, num_scenes, num_images,
+           num_labels, skipped, scene_first, scene_stop, num_attempts,
+           num_replaced_no_grasp, num_replaced_unsettled
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import datetime
 import hashlib
 import json
 import os
+import socket
+import sys
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from torch.utils.data import Dataset
 
-from drake_grasp import __version__
+from drake_grasp.provenance import code_version
 
-FORMAT_VERSION = 1
+# 2: exactly N scenes (replaced attempts, last shard smaller), per-run temporary names.
+FORMAT_VERSION = 2
 MANIFEST = "manifest.json"
+LOCK = "generate.lock"
 
 
 @dataclass
@@ -64,7 +92,8 @@ class DatasetConfig:
     hand_xy_half_extent_m: float = 0.08
     # Scenes per shard file (one task of a worker).
     scenes_per_shard: int = 4
-    # Settling for data generation: tolerance and time cap.
+    # Settling for data generation: tolerance and time cap. A scene still moving at the
+    # cap is not used; the next seed of its sequence replaces it.
     settle_speed_tol_m_s: float = 0.01
     settle_max_time_s: float = 1.5
     # Settling only has to bring objects to rest, not resolve a grasp: a coarser step
@@ -72,9 +101,13 @@ class DatasetConfig:
     settle_time_step_s: float = 0.005
     # Friction coefficient of the force-closure test.
     friction_coefficient: float = 0.5
+    # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
+    # before generation stops with an error naming the scene.
+    max_attempts_per_scene: int = 20
 
     def validate(self) -> None:
-        for name in ("images_per_scene", "offsets_per_image", "scenes_per_shard"):
+        for name in ("images_per_scene", "offsets_per_image", "scenes_per_shard",
+                     "max_attempts_per_scene"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
         if not 0 < self.camera_height_min_m <= self.camera_height_max_m:
@@ -92,9 +125,203 @@ def config_hash(cfg: dict) -> str:
     return hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def scene_seed(seed: int, scene_index: int) -> int:
-    """The seed of scene `scene_index` of a dataset generated with `seed`."""
-    return int(np.random.default_rng([int(seed), int(scene_index), 31]).integers(2**31 - 1))
+def scene_seed(seed: int, scene_index: int, attempt: int = 0) -> int:
+    """The seed of attempt `attempt` of scene `scene_index` of a dataset made with `seed`.
+
+    Attempt 0 is the scene's first choice; attempts 1, 2, ... are its reserved
+    replacements (used when an earlier attempt did not settle or had no true grasp).
+    """
+    key = [int(seed), int(scene_index), 31] + ([int(attempt)] if attempt else [])
+    return int(np.random.default_rng(key).integers(2**31 - 1))
+
+
+def shard_scene_range(shard_index: int, *, num_scenes: int, scenes_per_shard: int) -> range:
+    """Scene indices of shard `shard_index`: [k S, min((k + 1) S, N))."""
+    first = shard_index * scenes_per_shard
+    return range(first, min(first + scenes_per_shard, num_scenes))
+
+
+# ----------------------------------------------------------------------------
+# Durable files.
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(path: Path) -> None:
+    """Makes a rename in `path` durable, where the OS allows fsync on a folder."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return  # e.g. Windows: folders cannot be opened
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some filesystems refuse fsync on a folder
+    finally:
+        os.close(fd)
+
+
+def replace_durably(tmp: Path, path: Path) -> None:
+    """fsync `tmp`, rename it to `path`, fsync the folder: after a crash `path` is either
+    the old file or the complete new one."""
+    _fsync_file(tmp)
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _process_tag() -> str:
+    return f"{socket.gethostname()}-{os.getpid()}".replace("/", "_").replace(".", "_")
+
+
+# ----------------------------------------------------------------------------
+# One generator per folder.
+
+
+class FolderInUseError(ValueError):
+    """Another dataset generator holds the folder's lock (names the owner)."""
+
+
+def _proc_start_ticks(pid: int) -> int | None:
+    """Start time of a process in clock ticks since boot (Linux), to tell a reused pid."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    try:
+        return int(stat.rsplit(")", 1)[1].split()[19])
+    except (IndexError, ValueError):
+        return None
+
+
+def _pid_running(pid: int, start_ticks: int | None) -> bool:
+    """Whether process `pid` (started at `start_ticks`, if known) runs on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # runs, as another user
+    except OSError:
+        return False
+    if start_ticks is not None:
+        now = _proc_start_ticks(pid)
+        if now is not None and now != start_ticks:
+            return False  # the pid was reused by another process
+    return True
+
+
+def _describe_owner(owner: dict) -> str:
+    return (f"pid {owner.get('pid')} on host {owner.get('host')}, started "
+            f"{owner.get('started_at')}")
+
+
+class GenerateLock:
+    """The lock file of a dataset folder: one generator at a time.
+
+    The file holds the owner's pid, host, start time and a run token (JSON) and is
+    `flock`ed for the owner's lifetime, so the kernel releases it when the owner dies.
+    Acquiring: a held flock -> `FolderInUseError` naming the owner; a file left by a
+    process that no longer runs on this host -> taken over (`stale_owner` says whose);
+    a file naming a process on another host -> refused (this host cannot tell whether it
+    still runs; the message says to delete the file if it does not).
+    """
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK
+        self.token = uuid.uuid4().hex[:12]
+        self.stale_owner: dict | None = None
+        self._fd: int | None = None
+
+    def _owner_record(self) -> dict:
+        return {"pid": os.getpid(), "host": socket.gethostname(),
+                "started_at": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                    timespec="seconds"),
+                "start_ticks": _proc_start_ticks(os.getpid()), "token": self.token,
+                "argv": list(sys.argv)}
+
+    def _refuse(self, owner: dict, extra: str = "") -> FolderInUseError:
+        return FolderInUseError(
+            f"{self.folder}: another dataset generator is using this folder "
+            f"({_describe_owner(owner)}; lock file {self.path}); wait for it to finish or "
+            f"use another --out{extra}")
+
+    def acquire(self) -> GenerateLock:
+        import fcntl
+
+        for _ in range(20):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                owner = self._read(fd)
+                os.close(fd)
+                raise self._refuse(owner) from None
+            # An owner finishing right now unlinks the file it locked: retry on the new one.
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            previous = self._read(fd)
+            if previous:
+                if previous.get("host") != socket.gethostname():
+                    os.close(fd)
+                    raise self._refuse(previous, extra=(
+                        f". This host ({socket.gethostname()}) cannot tell whether that "
+                        f"process still runs; if it does not, delete {self.path} and re-run"))
+                if _pid_running(int(previous.get("pid", -1)), previous.get("start_ticks")):
+                    os.close(fd)
+                    raise self._refuse(previous)
+                self.stale_owner = previous
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, (json.dumps(self._owner_record()) + "\n").encode(), 0)
+            os.fsync(fd)
+            self._fd = fd
+            return self
+        raise FolderInUseError(f"{self.folder}: could not take {self.path} (it kept changing)")
+
+    @staticmethod
+    def _read(fd: int) -> dict:
+        data = b""
+        while chunk := os.pread(fd, 65536, len(data)):
+            data += chunk
+        if not data.strip():
+            return {}
+        try:
+            owner = json.loads(data)
+        except ValueError:
+            return {"pid": "?", "host": "?", "started_at": "? (unreadable lock file)"}
+        return owner if isinstance(owner, dict) else {}
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            os.unlink(self.path)  # while still locked: nobody can take a file being removed
+        except FileNotFoundError:
+            pass
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> GenerateLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _temp_files(out: Path, token: str) -> list[Path]:
+    """Temporary files of the run with this token (shards and manifest)."""
+    return sorted(out.glob(f"*.{token}.*tmp"))
 
 
 # ----------------------------------------------------------------------------
@@ -116,6 +343,23 @@ class SceneSamples:
     grasp_xy_theta: np.ndarray
     # Wall time of each stage [s] (for profiling; not stored in shards).
     timings: dict = field(default_factory=dict)
+    # Which attempt of the scene's seed sequence this is (`scene_seed`).
+    attempt: int = 0
+
+
+@dataclass
+class SceneRejected:
+    """An attempt of a scene that is not used: `reason` is "unsettled" (settling hit its
+    time cap with objects still moving) or "no_grasp" (no ground-truth grasp)."""
+
+    scene_index: int
+    attempt: int
+    seed: int
+    reason: str
+    timings: dict = field(default_factory=dict)
+
+
+REJECT_REASONS = ("unsettled", "no_grasp")
 
 
 class SceneRenderer:
@@ -147,10 +391,12 @@ class SceneRenderer:
 
 
 def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config: DatasetConfig,
-                   library) -> SceneSamples | None:
+                   library, attempt: int = 0) -> SceneSamples | SceneRejected:
     """Settles one random scene, finds its grasps, renders K images and labels M offsets.
 
-    Returns None when the scene has no ground-truth grasp (nothing to learn from).
+    Uses the seed `scene_seed(seed, scene_index, attempt)`. Returns a `SceneRejected`
+    when the objects were still moving at the settling time cap, or when the settled
+    scene has no ground-truth grasp (nothing to learn from).
     """
     from drake_grasp.actions import apply_actions, sample_actions_in_view
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
@@ -166,7 +412,7 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
         timings[name] = timings.get(name, 0.0) + now - clock
         clock = now
 
-    s_seed = scene_seed(seed, scene_index)
+    s_seed = scene_seed(seed, scene_index, attempt)
     scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[])
     spec = sample_scene(scene_cfg, s_seed, library)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
@@ -176,11 +422,13 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     settled = settle_world(world, spec, speed_tol_m_s=config.settle_speed_tol_m_s,
                            max_time_s=config.settle_max_time_s)
     lap("settle")
+    if not settled.settled:
+        return SceneRejected(scene_index, attempt, s_seed, "unsettled", timings)
     rng = np.random.default_rng([s_seed, 1])
     grasps = find_grasps(settled, library, rng, mu=config.friction_coefficient)
     lap("grasps")
     if len(grasps.xy_theta) == 0:
-        return None
+        return SceneRejected(scene_index, attempt, s_seed, "no_grasp", timings)
     renderer = SceneRenderer(world, scenario.camera)
     K, M = config.images_per_scene, config.offsets_per_image
     cx, cy = settled.center_xy_m
@@ -207,7 +455,30 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
         scene_index=scene_index, spec_json=json.dumps(settled.to_dict()), depth=depth,
         hand_pose=hand, offsets=offsets.astype(np.float32), labels=labels.astype(np.float32),
         grasp_pose=np.asarray(grasps.poses, float), grasp_width=np.asarray(grasps.widths, np.float32),
-        grasp_xy_theta=np.asarray(grasps.xy_theta, float), timings=timings)
+        grasp_xy_theta=np.asarray(grasps.xy_theta, float), timings=timings, attempt=attempt)
+
+
+def fill_scene(scene_index: int, *, seed: int, split: str, scenario, config: DatasetConfig,
+               library) -> tuple[SceneSamples, list[SceneRejected]]:
+    """Scene `scene_index`: the first attempt of its seed sequence that settles and has a
+    true grasp, with the attempts it replaced.
+
+    Raises:
+        ValueError: naming the scene and the reasons, after `max_attempts_per_scene`.
+    """
+    rejected: list[SceneRejected] = []
+    for attempt in range(config.max_attempts_per_scene):
+        result = generate_scene(scene_index, seed=seed, split=split, scenario=scenario,
+                                config=config, library=library, attempt=attempt)
+        if isinstance(result, SceneSamples):
+            return result, rejected
+        rejected.append(result)
+    reasons = {r: sum(x.reason == r for x in rejected) for r in REJECT_REASONS}
+    raise ValueError(
+        f"scene {scene_index}: none of its {config.max_attempts_per_scene} seeds "
+        f"(max_attempts_per_scene) gave a usable scene ({reasons['unsettled']} still moving "
+        f"after settle_max_time_s={config.settle_max_time_s}, {reasons['no_grasp']} without "
+        "a true grasp); check the scenario's objects or raise those settings")
 
 
 # ----------------------------------------------------------------------------
@@ -218,40 +489,59 @@ def shard_name(shard_index: int) -> str:
     return f"shard-{shard_index:05d}.h5"
 
 
-def write_shard(path: Path, samples: list[SceneSamples], *, attrs: dict) -> None:
-    """Writes a shard atomically: `path.tmp`, then renamed to `path`."""
+def write_shard(path: Path, samples: list[SceneSamples], *, attrs: dict,
+                tmp_tag: str | None = None) -> None:
+    """Writes a shard atomically and durably: a temporary name private to this process
+    (`path.<tmp_tag>.<host>-<pid>.tmp`), fsync, rename to `path`, fsync the folder.
+
+    `samples` entries that are None are counted in the `skipped` attr (older callers).
+    """
     import h5py
 
-    tmp = path.with_name(path.name + ".tmp")
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.{tmp_tag or 'write'}.{_process_tag()}.tmp")
     kept = [s for s in samples if s is not None]
-    with h5py.File(tmp, "w") as f:
-        def put(name, arrays, dtype, shape_tail):
-            data = np.concatenate(arrays) if arrays else np.zeros((0, *shape_tail), dtype)
-            chunks = (min(64, max(1, len(data))), *shape_tail) if len(data) else None
-            f.create_dataset(name, data=data.astype(dtype), chunks=chunks,
-                             compression="gzip" if len(data) else None, compression_opts=4 if len(data) else None)
+    try:
+        with h5py.File(tmp, "w") as f:
+            def put(name, arrays, dtype, shape_tail):
+                data = np.concatenate(arrays) if arrays else np.zeros((0, *shape_tail), dtype)
+                chunks = (min(64, max(1, len(data))), *shape_tail) if len(data) else None
+                f.create_dataset(name, data=data.astype(dtype), chunks=chunks,
+                                 compression="gzip" if len(data) else None,
+                                 compression_opts=4 if len(data) else None)
 
-        hw = kept[0].depth.shape[1:] if kept else (0, 0)
-        m = kept[0].offsets.shape[1] if kept else 0
-        put("depth", [s.depth for s in kept], np.float32, hw)
-        put("hand_pose", [s.hand_pose for s in kept], np.float64, (4,))
-        put("offsets", [s.offsets for s in kept], np.float32, (m, 3))
-        put("labels", [s.labels for s in kept], np.float32, (m,))
-        put("image_scene", [np.full(len(s.depth), s.scene_index) for s in kept], np.int64, ())
-        put("grasp_scene", [np.full(len(s.grasp_width), s.scene_index) for s in kept], np.int64, ())
-        put("grasp_pose", [s.grasp_pose for s in kept], np.float64, (4, 4))
-        put("grasp_width", [s.grasp_width for s in kept], np.float32, ())
-        put("grasp_xy_theta", [s.grasp_xy_theta for s in kept], np.float64, (3,))
-        f.create_dataset("scene_index", data=np.array([s.scene_index for s in kept], np.int64))
-        f.create_dataset("scene_spec", data=[s.spec_json for s in kept],
-                         dtype=h5py.string_dtype())
-        num_images = int(sum(len(s.depth) for s in kept))
-        f.attrs.update(attrs)
-        f.attrs["num_scenes"] = len(kept)
-        f.attrs["num_images"] = num_images
-        f.attrs["num_labels"] = int(sum(s.labels.size for s in kept))
-        f.attrs["skipped"] = len(samples) - len(kept)
-    os.replace(tmp, path)
+            hw = kept[0].depth.shape[1:] if kept else (0, 0)
+            m = kept[0].offsets.shape[1] if kept else 0
+            put("depth", [s.depth for s in kept], np.float32, hw)
+            put("hand_pose", [s.hand_pose for s in kept], np.float64, (4,))
+            put("offsets", [s.offsets for s in kept], np.float32, (m, 3))
+            put("labels", [s.labels for s in kept], np.float32, (m,))
+            put("image_scene", [np.full(len(s.depth), s.scene_index) for s in kept], np.int64, ())
+            put("grasp_scene", [np.full(len(s.grasp_width), s.scene_index) for s in kept],
+                np.int64, ())
+            put("grasp_pose", [s.grasp_pose for s in kept], np.float64, (4, 4))
+            put("grasp_width", [s.grasp_width for s in kept], np.float32, ())
+            put("grasp_xy_theta", [s.grasp_xy_theta for s in kept], np.float64, (3,))
+            f.create_dataset("scene_index", data=np.array([s.scene_index for s in kept], np.int64))
+            f.create_dataset("scene_attempt", data=np.array([s.attempt for s in kept], np.int64))
+            f.create_dataset("scene_spec", data=[s.spec_json for s in kept],
+                             dtype=h5py.string_dtype())
+            num_images = int(sum(len(s.depth) for s in kept))
+            f.attrs.update(attrs)
+            f.attrs["num_scenes"] = len(kept)
+            f.attrs["num_images"] = num_images
+            f.attrs["num_labels"] = int(sum(s.labels.size for s in kept))
+            f.attrs["skipped"] = len(samples) - len(kept)
+        replace_durably(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()  # a failed write leaves nothing behind
+
+
+_COUNT_ATTRS = ("num_scenes", "num_images", "num_labels", "skipped")
+# Written since format 2; 0/absent in shards written without them.
+_OPTIONAL_ATTRS = ("scene_first", "scene_stop", "num_attempts", "num_replaced_no_grasp",
+                   "num_replaced_unsettled")
 
 
 def read_shard_counts(path: Path) -> dict:
@@ -260,7 +550,9 @@ def read_shard_counts(path: Path) -> dict:
 
     try:
         with h5py.File(path, "r") as f:
-            counts = {k: int(f.attrs[k]) for k in ("num_scenes", "num_images", "num_labels", "skipped")}
+            counts = {k: int(f.attrs[k]) for k in _COUNT_ATTRS}
+            for k in _OPTIONAL_ATTRS:
+                counts[k] = int(f.attrs[k]) if k in f.attrs else None
             counts["config_hash"] = str(f.attrs["config_hash"])
             if f["depth"].shape[0] != counts["num_images"]:
                 raise ValueError("depth rows do not match num_images")
@@ -270,7 +562,8 @@ def read_shard_counts(path: Path) -> dict:
 
 
 def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml: str,
-                config: dict, objects_dir: str | None, attrs: dict) -> dict:
+                config: dict, objects_dir: str | None, attrs: dict, num_scenes: int,
+                tmp_tag: str) -> dict:
     """One worker task: generate the shard's scenes and write the shard."""
     from pydrake.common.yaml import yaml_load_typed
 
@@ -281,18 +574,26 @@ def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml
     cfg = DatasetConfig(**config)
     library = load_library(objects_dir)
     path = Path(out) / shard_name(shard_index)
-    first = shard_index * cfg.scenes_per_shard
+    scenes = shard_scene_range(shard_index, num_scenes=num_scenes,
+                               scenes_per_shard=cfg.scenes_per_shard)
     t0 = time.perf_counter()
-    samples = [generate_scene(i, seed=seed, split=split, scenario=scenario, config=cfg,
-                              library=library)
-               for i in range(first, first + cfg.scenes_per_shard)]
+    samples, rejected = [], []
+    for i in scenes:
+        kept, replaced = fill_scene(i, seed=seed, split=split, scenario=scenario, config=cfg,
+                                    library=library)
+        samples.append(kept)
+        rejected.extend(replaced)
     t_write = time.perf_counter()
-    write_shard(path, samples, attrs=attrs)
+    shard_attrs = {**attrs, "scene_first": scenes.start, "scene_stop": scenes.stop,
+                   "num_attempts": len(samples) + len(rejected),
+                   "num_replaced_no_grasp": sum(r.reason == "no_grasp" for r in rejected),
+                   "num_replaced_unsettled": sum(r.reason == "unsettled" for r in rejected)}
+    write_shard(path, samples, attrs=shard_attrs, tmp_tag=tmp_tag)
     counts = read_shard_counts(path)
     counts["seconds"] = time.perf_counter() - t0
     timings: dict = {"write": time.perf_counter() - t_write}
-    for s in samples:
-        for k, v in (s.timings if s is not None else {}).items():
+    for s in [*samples, *rejected]:
+        for k, v in s.timings.items():
             timings[k] = timings.get(k, 0.0) + v
     counts["timings"] = timings
     return counts
@@ -302,42 +603,113 @@ def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml
 # The whole dataset.
 
 
-def write_manifest(out: Path, cfg: dict) -> dict:
-    """Rebuilds `manifest.json` from the finished shards (so counts are never doubled)."""
+def write_manifest(out: Path, cfg: dict, *, tmp_tag: str | None = None) -> dict:
+    """Rebuilds `manifest.json` from the finished shards (so counts are never doubled).
+
+    Keys: num_scenes (labelled scenes), num_images, num_labels, num_shards, shards,
+    num_scene_attempts (seeds tried), num_scenes_replaced (attempts not used, the sum
+    of num_scenes_unsettled_resampled and num_scenes_no_grasp_resampled), config_hash,
+    config, code_version, format_version.
+    """
+    out = Path(out)
     shards = sorted(out.glob("shard-*.h5"))
-    totals = {"num_scenes": 0, "num_images": 0, "num_labels": 0, "num_scenes_skipped": 0}
+    totals = {"num_scenes": 0, "num_images": 0, "num_labels": 0, "num_scene_attempts": 0,
+              "num_scenes_replaced": 0, "num_scenes_unsettled_resampled": 0,
+              "num_scenes_no_grasp_resampled": 0}
     listing = []
     for path in shards:
         c = read_shard_counts(path)
+        unsettled = c["num_replaced_unsettled"] or 0
+        # Shards written without the split count their unused scenes in `skipped`.
+        no_grasp = c["num_replaced_no_grasp"] if c["num_replaced_no_grasp"] is not None \
+            else c["skipped"]
         totals["num_scenes"] += c["num_scenes"]
         totals["num_images"] += c["num_images"]
         totals["num_labels"] += c["num_labels"]
-        totals["num_scenes_skipped"] += c["skipped"]
-        listing.append({"file": path.name, "num_scenes": c["num_scenes"],
-                        "num_images": c["num_images"], "num_labels": c["num_labels"]})
+        totals["num_scenes_unsettled_resampled"] += unsettled
+        totals["num_scenes_no_grasp_resampled"] += no_grasp
+        totals["num_scenes_replaced"] += unsettled + no_grasp
+        totals["num_scene_attempts"] += (c["num_attempts"] if c["num_attempts"] is not None
+                                         else c["num_scenes"] + c["skipped"])
+        entry = {"file": path.name, "num_scenes": c["num_scenes"],
+                 "num_images": c["num_images"], "num_labels": c["num_labels"]}
+        if c["scene_first"] is not None:
+            entry.update(scene_first=c["scene_first"], scene_stop=c["scene_stop"])
+        listing.append(entry)
     manifest = {**totals, "num_shards": len(shards), "shards": listing,
-                "config_hash": config_hash(cfg), "config": cfg, "code_version": __version__}
-    tmp = out / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, out / MANIFEST)
+                "config_hash": config_hash(cfg), "config": cfg, "code_version": code_version(),
+                "format_version": cfg.get("format_version", FORMAT_VERSION)}
+    tmp = out / f"{MANIFEST}.{tmp_tag or 'write'}.{_process_tag()}.tmp"
+    try:
+        with open(tmp, "w") as f:
+            f.write(json.dumps(manifest, indent=1))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out / MANIFEST)
+        _fsync_dir(out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     return manifest
+
+
+def _check_existing_shards(out: Path, *, chash: str, num_scenes: int, scenes_per_shard: int,
+                           num_shards: int) -> list[int]:
+    """Shard indices still to write; refuses a folder holding more scenes than asked."""
+    todo = []
+    for i in range(num_shards):
+        path = out / shard_name(i)
+        if not path.exists():
+            todo.append(i)
+            continue
+        c = read_shard_counts(path)
+        if c["config_hash"] != chash:
+            raise ValueError(f"{path}: made with a different configuration")
+        if c["scene_first"] is None:
+            raise ValueError(f"{path}: written without its scene range (an older format); "
+                             "use another --out")
+        want = shard_scene_range(i, num_scenes=num_scenes, scenes_per_shard=scenes_per_shard)
+        have = range(c["scene_first"], c["scene_stop"])
+        if have == want:
+            continue
+        if have.start == want.start and have.stop < want.stop:
+            todo.append(i)  # the last shard of a smaller run: rewritten with more scenes
+            continue
+        raise ValueError(
+            f"{path}: holds scenes {have.start}..{have.stop - 1} but --scenes {num_scenes} "
+            f"puts scenes {want.start}..{want.stop - 1} in it; this folder holds a larger "
+            f"dataset: use --scenes >= {have.stop} or another --out")
+    beyond = sorted(p.name for p in out.glob("shard-*.h5")
+                    if p.name not in {shard_name(i) for i in range(num_shards)})
+    if beyond:
+        raise ValueError(
+            f"{out}: holds {', '.join(beyond)} beyond the {num_shards} shard(s) of --scenes "
+            f"{num_scenes}; this folder holds a larger dataset: use a larger --scenes or "
+            "another --out")
+    return todo
 
 
 def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
                      scenario, config: DatasetConfig | None = None, workers: int = 1,
                      scheduler: str | None = None, objects_dir: str | None = None,
                      progress: bool = True) -> dict:
-    """Generates (or resumes) a dataset of `num_scenes` scenes; returns the manifest.
+    """Generates (or resumes) a dataset of exactly `num_scenes` scenes; returns the manifest.
 
     Args:
         out: output folder; finished shards there are kept and skipped.
-        num_scenes: number of scenes (rounded up to whole shards).
+        num_scenes: number of labelled scenes (the last shard may hold fewer than
+            `scenes_per_shard`). A scene that does not settle or has no true grasp is
+            replaced by the next seed of its own sequence (`scene_seed`).
         split: "train" or "test": which object instances the scenes use.
-        seed: dataset seed; scene i uses `scene_seed(seed, i)`.
+        seed: dataset seed; scene i uses `scene_seed(seed, i, attempt)`.
         scenario: the `Scenario` whose camera, depth noise, plant and scene settings apply.
         workers: local worker processes (ignored with `scheduler`).
         scheduler: address of a Dask distributed scheduler; None -> local processes.
         objects_dir: object library folder; None -> built-in objects.
+
+    Raises:
+        FolderInUseError: another generator holds `out` (the message names it).
+        ValueError: a folder made with another configuration, or holding more scenes.
     """
     from drake_grasp.scenario import dump_scenario
 
@@ -351,6 +723,29 @@ def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
     out.mkdir(parents=True, exist_ok=True)
     cfg = _config_dict(scenario, config, split, seed)
     chash = config_hash(cfg)
+    with GenerateLock(out) as lock:
+        if lock.stale_owner is not None:
+            stale_token = str(lock.stale_owner.get("token", ""))
+            leftovers = _temp_files(out, stale_token) if stale_token else []
+            print(f"drake-grasp generate: taking over the stale lock {lock.path} of "
+                  f"{_describe_owner(lock.stale_owner)}, which no longer runs; removing its "
+                  f"{len(leftovers)} temporary file(s)", file=sys.stderr)
+            for path in leftovers:
+                path.unlink(missing_ok=True)
+        try:
+            return _generate_locked(out, cfg=cfg, chash=chash, num_scenes=num_scenes,
+                                    split=split, seed=seed, scenario_yaml=dump_scenario(scenario),
+                                    config=config, workers=workers, scheduler=scheduler,
+                                    objects_dir=objects_dir, progress=progress,
+                                    token=lock.token)
+        finally:
+            for path in _temp_files(out, lock.token):
+                path.unlink(missing_ok=True)  # this run's own, from a failed worker
+
+
+def _generate_locked(out: Path, *, cfg: dict, chash: str, num_scenes: int, split: str,
+                     seed: int, scenario_yaml: str, config: DatasetConfig, workers: int,
+                     scheduler: str | None, objects_dir, progress: bool, token: str) -> dict:
     old = out / MANIFEST
     if old.exists():
         previous = json.loads(old.read_text())
@@ -358,25 +753,21 @@ def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
             diff = [k for k in cfg if previous.get("config", {}).get(k) != cfg[k]]
             raise ValueError(f"{out}: holds a dataset made with a different configuration "
                              f"(differs in {diff}); use another --out")
-    for stale in out.glob("shard-*.h5.tmp"):
-        stale.unlink()  # left by a killed run; regenerated below
     num_shards = -(-num_scenes // config.scenes_per_shard)
-    todo = []
-    for i in range(num_shards):
-        path = out / shard_name(i)
-        if path.exists():
-            if read_shard_counts(path)["config_hash"] != chash:
-                raise ValueError(f"{path}: made with a different configuration")
-            continue
-        todo.append(i)
-    attrs = {"split": split, "config_hash": chash, "code_version": __version__,
+    todo = _check_existing_shards(out, chash=chash, num_scenes=num_scenes,
+                                  scenes_per_shard=config.scenes_per_shard,
+                                  num_shards=num_shards)
+    attrs = {"split": split, "config_hash": chash, "code_version": code_version(),
              "format_version": FORMAT_VERSION}
-    args = dict(out=str(out), seed=int(seed), split=split, scenario_yaml=dump_scenario(scenario),
+    args = dict(out=str(out), seed=int(seed), split=split, scenario_yaml=scenario_yaml,
                 config=dataclasses.asdict(config),
-                objects_dir=str(objects_dir) if objects_dir else None, attrs=attrs)
+                objects_dir=str(objects_dir) if objects_dir else None, attrs=attrs,
+                num_scenes=int(num_scenes), tmp_tag=token)
     timings = _run_tasks(todo, args, workers=workers, scheduler=scheduler, progress=progress,
                          total=num_shards, done=num_shards - len(todo))
-    manifest = write_manifest(out, cfg)
+    manifest = write_manifest(out, cfg, tmp_tag=token)
+    if manifest["num_scenes"] != num_scenes:  # a bookkeeping error, never expected
+        raise RuntimeError(f"{out}: holds {manifest['num_scenes']} scenes, expected {num_scenes}")
     # Summed worker seconds per stage of this run (returned, not written).
     manifest["run_timings_s"] = timings
     return manifest

@@ -1,27 +1,48 @@
-"""Dataset generation: paper-format shards, determinism, resume after a kill, corruption."""
+"""Dataset generation: paper-format shards, determinism, resume after a kill, corruption,
+exactly N scenes, one generator per folder, durable writes."""
 
+import copy
+import dataclasses
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import h5py
 import numpy as np
 import pytest
 
-from drake_grasp.dataset import DatasetConfig, DepthGraspDataset, generate_dataset
+from drake_grasp import dataset as dataset_module
+from drake_grasp.dataset import (DatasetConfig, DepthGraspDataset, SceneSamples,
+                                 generate_dataset, scene_seed)
 from drake_grasp.scenario import load_scenario
 
-TINY = dict(images_per_scene=3, offsets_per_image=5, scenes_per_shard=1)
+TINY = dict(images_per_scene=3, offsets_per_image=5, scenes_per_shard=2)
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def _generate(out, num_scenes=3, seed=5, **kw):
+def _generate(out, num_scenes=3, seed=5, config=None, **kw):
     scenario = load_scenario(scenario_name="random", scenario_text=f"{{seed: {seed}}}")
     return generate_dataset(out=out, num_scenes=num_scenes, split="train", seed=seed,
-                            scenario=scenario, config=DatasetConfig(**TINY), workers=1,
-                            progress=False, **kw)
+                            scenario=scenario, config=config or DatasetConfig(**TINY),
+                            workers=1, progress=False, **kw)
+
+
+def _stored_scenes(out) -> dict:
+    """{scene index: (kept attempt or None, scene spec)} over every shard of a folder."""
+    scenes = {}
+    for path in sorted(Path(out).glob("shard-*.h5")):
+        with h5py.File(path) as f:
+            attempts = f["scene_attempt"][:] if "scene_attempt" in f else [None] * len(f["scene_index"])
+            for i, a, spec in zip(f["scene_index"][:], attempts, f["scene_spec"][:]):
+                scenes[int(i)] = (None if a is None else int(a),
+                                  json.loads(spec.decode() if isinstance(spec, bytes) else spec))
+    return scenes
 
 
 @pytest.fixture(scope="module")
@@ -33,9 +54,16 @@ def reference(tmp_path_factory, library):
 
 def test_shards_hold_the_paper_format(reference):
     out, manifest = reference
-    assert manifest["num_scenes"] + manifest["num_scenes_skipped"] == 3
+    # 3 scenes at 2 per shard: exactly 3 scenes, the last shard holds the one left over.
+    assert manifest["num_scenes"] == 3
+    assert [s["num_scenes"] for s in manifest["shards"]] == [2, 1]
+    assert sorted(_stored_scenes(out)) == [0, 1, 2]
+    assert manifest["num_scene_attempts"] == 3 + manifest["num_scenes_replaced"]
+    assert manifest["num_scenes_replaced"] == (manifest["num_scenes_unsettled_resampled"]
+                                               + manifest["num_scenes_no_grasp_resampled"])
     assert manifest["num_images"] == 3 * manifest["num_scenes"]
     assert manifest["num_labels"] == 5 * manifest["num_images"]
+    assert manifest["code_version"].startswith(manifest["code_version"].split("+")[0])
     ds = DepthGraspDataset(out)
     assert len(ds) == manifest["num_images"] > 0
     item = ds[0]
@@ -44,8 +72,12 @@ def test_shards_hold_the_paper_format(reference):
     assert (item["labels"] >= 0).all() and np.isfinite(item["labels"]).all()
     rec = ds.image_record(0)
     assert len(rec["grasp_xy_theta"]) > 0 and rec["scene_spec"]["settled"]
+    for i, (attempt, spec) in _stored_scenes(out).items():
+        assert spec["settled"] is True
+        assert spec["seed"] == scene_seed(5, i, attempt)
     with h5py.File(out / "shard-00000.h5") as f:
         assert f["depth"].compression == "gzip" and f["depth"].chunks is not None
+    assert not (out / "generate.lock").exists()
 
 
 def test_generation_is_deterministic(reference, tmp_path):
@@ -58,7 +90,7 @@ def test_generation_is_deterministic(reference, tmp_path):
         np.testing.assert_array_equal(a[i]["depth"], b[i]["depth"])
 
 
-def test_killed_run_resumes_to_the_same_counts(reference, tmp_path):
+def test_killed_run_resumes_to_the_same_counts(reference, tmp_path, capfd):
     _, manifest = reference
     out = tmp_path / "killed"
     code = (
@@ -68,7 +100,7 @@ def test_killed_run_resumes_to_the_same_counts(reference, tmp_path):
         "  scenario=load_scenario(scenario_name='random', scenario_text='{seed: 5}'),\n"
         f"  config=DatasetConfig(**{TINY!r}), workers=1, progress=False)\n"
     )
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-c", code], env=env)
     deadline = time.time() + 120
     while not (out / "shard-00000.h5").exists() and time.time() < deadline and proc.poll() is None:
@@ -76,29 +108,215 @@ def test_killed_run_resumes_to_the_same_counts(reference, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     finished = sorted(p.name for p in out.glob("shard-*.h5"))
-    assert "shard-00000.h5" in finished and len(finished) < 3, finished  # killed mid-run
+    assert finished == ["shard-00000.h5"], finished  # killed mid-run
+    assert json.loads((out / "generate.lock").read_text())["pid"] == proc.pid
+    capfd.readouterr()
     resumed = _generate(out)
-    for key in ("num_scenes", "num_images", "num_labels", "num_scenes_skipped"):
+    assert f"taking over the stale lock {out / 'generate.lock'} of pid {proc.pid}" in capfd.readouterr().err
+    for key in ("num_scenes", "num_images", "num_labels", "num_scene_attempts",
+                "num_scenes_unsettled_resampled", "num_scenes_no_grasp_resampled"):
         assert resumed[key] == manifest[key], key
-    assert not list(out.glob("*.tmp"))
+    assert not list(out.glob("*.tmp")) and not (out / "generate.lock").exists()
 
 
 def test_corrupt_shard_is_reported_by_name(reference, tmp_path):
     out, _ = reference
-    copy = tmp_path / "copy"
-    copy.mkdir()
+    copy_dir = tmp_path / "copy"
+    copy_dir.mkdir()
     for p in out.iterdir():
-        copy.joinpath(p.name).write_bytes(p.read_bytes())
-    shard = copy / "shard-00001.h5"
+        copy_dir.joinpath(p.name).write_bytes(p.read_bytes())
+    shard = copy_dir / "shard-00001.h5"
     shard.write_bytes(shard.read_bytes()[:300])
     with pytest.raises(ValueError, match="shard-00001.h5"):
-        _generate(copy)
+        _generate(copy_dir)
 
 
 def test_other_config_in_the_same_folder_is_refused(reference):
     out, _ = reference
     with pytest.raises(ValueError, match="different configuration"):
         _generate(out, seed=6)
+
+
+def test_settling_that_hits_the_time_cap_is_not_labelled_settled(library):
+    """Two scenes of the dataset's seed sequence under the dataset's settling settings
+    (5 ms steps, 1.5 s cap, 0.01 m/s): scene_seed(0, 3) still has an object rolling at
+    the cap, scene_seed(0, 0) comes to rest after about 1 s."""
+    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+
+    scenario = load_scenario(scenario_name="random")
+    cfg = DatasetConfig()
+    scene_cfg = dataclasses.replace(scenario.scene, kind="random", split="train", object_ids=[])
+    plant_config = copy.deepcopy(scenario.plant)
+    plant_config.time_step = cfg.settle_time_step_s
+    settled = {}
+    for i in (0, 3):
+        spec = sample_scene(scene_cfg, scene_seed(0, i), library)
+        world = build_scene_world(spec, library, plant_config=plant_config)
+        settled[i] = settle_world(world, spec, speed_tol_m_s=cfg.settle_speed_tol_m_s,
+                                  max_time_s=cfg.settle_max_time_s).settled
+    assert settled == {0: True, 3: False}
+
+
+def test_unsettled_and_graspless_scenes_are_replaced_by_the_next_seed_of_their_scene(
+        reference, tmp_path, monkeypatch):
+    """The seed the reference kept for scene 0 is forced to end unsettled, and the one
+    it kept for scene 2 to have no grasp: each is replaced by a later seed of its own
+    sequence, counted in the manifest, and scene 1 is the reference's scene 1."""
+    import drake_grasp.grasps
+    import drake_grasp.scene
+
+    ref_out, ref = reference
+    ref_scenes = _stored_scenes(ref_out)
+    unsettled_seed, graspless_seed = ref_scenes[0][1]["seed"], ref_scenes[2][1]["seed"]
+    real_settle, real_find = drake_grasp.scene.settle_world, drake_grasp.grasps.find_grasps
+
+    def settle(world, spec, **kw):
+        result = real_settle(world, spec, **kw)
+        if spec.seed == unsettled_seed:
+            result.settled = False  # as if an object were still rolling at the cap
+        return result
+
+    def find(spec, library, rng, **kw):
+        if spec.seed == graspless_seed:
+            return SimpleNamespace(xy_theta=np.zeros((0, 3)), poses=np.zeros((0, 4, 4)),
+                                   widths=np.zeros(0))
+        return real_find(spec, library, rng, **kw)
+
+    monkeypatch.setattr(drake_grasp.scene, "settle_world", settle)
+    monkeypatch.setattr(drake_grasp.grasps, "find_grasps", find)
+    manifest = _generate(tmp_path / "replaced")
+    assert manifest["num_scenes"] == 3
+    assert manifest["num_scenes_unsettled_resampled"] >= 1
+    assert manifest["num_scenes_no_grasp_resampled"] >= 1
+    assert manifest["num_scene_attempts"] == 3 + manifest["num_scenes_replaced"]
+    assert manifest["num_scenes_replaced"] >= ref["num_scenes_replaced"] + 2
+    assert (manifest["num_scenes_unsettled_resampled"]
+            >= ref["num_scenes_unsettled_resampled"] + 1)
+    assert (manifest["num_scenes_no_grasp_resampled"]
+            >= ref["num_scenes_no_grasp_resampled"] + 1)
+    scenes = _stored_scenes(tmp_path / "replaced")
+    assert sorted(scenes) == [0, 1, 2]
+    for i, (attempt, spec) in scenes.items():
+        assert spec["settled"] is True and spec["seed"] == scene_seed(5, i, attempt)
+    assert scenes[0][0] > ref_scenes[0][0] and scenes[0][1]["seed"] != unsettled_seed
+    assert scenes[2][0] > ref_scenes[2][0] and scenes[2][1]["seed"] != graspless_seed
+    assert scenes[1] == ref_scenes[1]
+
+
+# ----------------------------------------------------------------------------
+# Bookkeeping, with a stand-in for the (physics) scene generator.
+
+
+def _fake_scene(scene_index, *, seed, config, attempt=0, **_):
+    """A tiny labelled scene whose numbers depend on its seed only."""
+    s_seed = scene_seed(seed, scene_index, attempt) if attempt else scene_seed(seed, scene_index)
+    rng = np.random.default_rng(s_seed)
+    k, m = config.images_per_scene, config.offsets_per_image
+    spec = {"kind": "random", "seed": s_seed, "center_xy_m": [0.5, 0.0], "objects": [],
+            "settled": True}
+    samples = SceneSamples(scene_index, json.dumps(spec), rng.random((k, 8, 8), np.float32),
+                           np.zeros((k, 4)), rng.random((k, m, 3), np.float32),
+                           rng.random((k, m), np.float32), np.zeros((1, 4, 4)),
+                           np.ones(1, np.float32), np.zeros((1, 3)))
+    samples.attempt = attempt
+    return samples
+
+
+@pytest.fixture
+def fake_scenes(monkeypatch):
+    monkeypatch.setattr(dataset_module, "generate_scene", _fake_scene)
+
+
+def test_scenes_gives_exactly_n_when_n_is_not_a_multiple_of_the_shard_size(tmp_path, fake_scenes):
+    out = tmp_path / "five"
+    manifest = _generate(out, num_scenes=5)  # scenes_per_shard=2
+    assert manifest["num_scenes"] == 5 and manifest["num_images"] == 15
+    assert [s["num_scenes"] for s in manifest["shards"]] == [2, 2, 1]
+    assert sorted(_stored_scenes(out)) == [0, 1, 2, 3, 4]
+    # A larger N extends the folder: the short last shard is rewritten with more scenes.
+    grown = _generate(out, num_scenes=6)
+    assert grown["num_scenes"] == 6 and [s["num_scenes"] for s in grown["shards"]] == [2, 2, 2]
+    # A smaller N would not give exactly N scenes from this folder: refused.
+    with pytest.raises(ValueError, match=r"holds scenes 4\.\.5 but --scenes 5"):
+        _generate(out, num_scenes=5)
+    with pytest.raises(ValueError, match=r"shard-00002.h5 beyond the 2 shard\(s\) of --scenes 4"):
+        _generate(out, num_scenes=4)
+
+
+_HOLD_LOCK = """
+import sys
+from pathlib import Path
+from drake_grasp.dataset import GenerateLock
+lock = GenerateLock(sys.argv[1]).acquire()
+Path(sys.argv[1], f"shard-00000.h5.{lock.token}.{sys.argv[2]}.tmp").write_bytes(b"in progress")
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_second_generator_on_a_folder_in_use_is_refused_and_deletes_nothing(
+        tmp_path, fake_scenes, capfd):
+    out = tmp_path / "busy"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(out), "worker-7"], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        theirs = sorted(out.glob("*.tmp"))
+        assert len(theirs) == 1
+        host = socket.gethostname()
+        with pytest.raises(ValueError, match=rf"another dataset generator is using this folder "
+                                             rf"\(pid {proc.pid} on host {host}, started "):
+            _generate(out)
+        assert sorted(out.glob("*.tmp")) == theirs  # its in-progress file is untouched
+        assert not list(out.glob("shard-*.h5")) and not (out / "manifest.json").exists()
+    finally:
+        proc.kill()
+        proc.wait()
+    # Its owner is gone: the next generator takes the lock over and removes its files.
+    capfd.readouterr()
+    manifest = _generate(out)
+    err = capfd.readouterr().err
+    assert f"taking over the stale lock {out / 'generate.lock'} of pid {proc.pid}" in err
+    assert "removing its 1 temporary file(s)" in err
+    assert manifest["num_scenes"] == 3 and not list(out.glob("*.tmp"))
+
+
+def test_a_lock_of_another_host_is_refused(tmp_path, fake_scenes):
+    out = tmp_path / "nfs"
+    out.mkdir()
+    owner = {"pid": 4242, "host": "render-node-9", "started_at": "2025-01-02T03:04:05+00:00",
+             "token": "abc"}
+    (out / "generate.lock").write_text(json.dumps(owner))
+    (out / "shard-00000.h5.abc.render-node-9-4242.tmp").write_bytes(b"in progress")
+    with pytest.raises(ValueError, match=r"pid 4242 on host render-node-9, started "
+                                         r"2025-01-02T03:04:05\+00:00.*if it does not, delete"):
+        _generate(out)
+    assert (out / "shard-00000.h5.abc.render-node-9-4242.tmp").exists()
+
+
+def test_shards_and_manifest_are_fsynced_before_rename(tmp_path, fake_scenes, monkeypatch):
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst, **kw):
+        events.append(("replace", str(src), str(dst)))
+        return real_replace(src, dst, **kw)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    out = tmp_path / "durable"
+    _generate(out, num_scenes=3)
+    for final in ("shard-00000.h5", "shard-00001.h5", "manifest.json"):
+        (k, (_, src, dst)), = [(k, e) for k, e in enumerate(events)
+                               if e[0] == "replace" and e[2] == str(out / final)]
+        assert ("fsync", src) in events[:k], final  # the complete file reached the disk
+        assert ("fsync", str(out)) in events[k + 1:], final  # then the rename did
 
 
 def test_same_dataset_on_a_dask_local_cluster(reference, tmp_path):
