@@ -15,9 +15,12 @@
 Table 1 rows side by side, the Figure 5 panels), to publish reference results.
 
 Conventions: success rates are fractions in summary.json and percentages in report.md.
-Every trial of a grasping condition counts as an attempt, simulation errors included (they
-are failures of the system under test, and are listed by class, not hidden). INIT trials
-attempt no grasp: their conditions carry distance statistics only.
+Simulation errors (trials whose simulation raised: failure_class "simulation-error") are
+failures of the simulator, not of the policy under test: they are counted in their own
+column (`simulation_errors` in summary.json) and left out of success rates and of the
+fraction within 3 cm, i.e. rate = successes / (trials - simulation errors). Every other
+trial of a grasping condition counts as an attempt. INIT trials attempt no grasp: their
+conditions carry distance statistics only.
 """
 
 from __future__ import annotations
@@ -98,6 +101,11 @@ PAPER_FIGURE5 = {
 # Targets from the project's issue, per experiment.
 _TOL = 1e-9
 
+SIMULATION_ERRORS_NOTE = (
+    "Simulation errors (trials whose simulation raised an exception) are not attempts: they "
+    "are counted in their own column and excluded from success rates and from the fraction "
+    "within 3 cm, i.e. rate = successes / (trials - simulation errors).")
+
 
 @dataclass
 class Results:
@@ -107,6 +115,8 @@ class Results:
     experiment: str
     run_info: dict
     records: list[TrialRecord]
+    # {"trials": ids asked for, "records_in_folder": n} when only some records are loaded.
+    selection: dict | None = None
 
 
 # --------------------------------------------------------------------------- loading
@@ -123,13 +133,31 @@ def canonical_condition(name: str) -> str:
     return _CONDITION_ALIASES.get(key, key)
 
 
-def load_results(results_dir: str | os.PathLike) -> Results:
+def select_records(records: Sequence[TrialRecord], trials: Iterable[str]) -> list[TrialRecord]:
+    """The records of the given trial ids; a clutter run's id ("clutter/ctr/0003") selects
+    its attempts ("clutter/ctr/0003/attempt00", ...)."""
+    wanted = set(trials)
+    out = []
+    for r in records:
+        parts = r.trial_id.split("/")
+        if any("/".join(parts[:k]) in wanted for k in range(1, len(parts) + 1)):
+            out.append(r)
+    return out
+
+
+def load_results(results_dir: str | os.PathLike, *,
+                 trials: Iterable[str] | None = None) -> Results:
     """Loads the records and run info of a results dir.
 
     The experiment name comes from run.json's "experiment", else from the records.
 
+    Args:
+        results_dir: The results dir.
+        trials: Only these trial ids (see `select_records`); None for every record.
+
     Raises:
-        ValueError: The dir has no trial records (named in the message), or a record is corrupt.
+        ValueError: The dir has no trial records (or none of those asked for; named in the
+            message), or a record is corrupt.
     """
     results_dir = Path(results_dir)
     if not results_dir.is_dir():
@@ -138,6 +166,12 @@ def load_results(results_dir: str | os.PathLike) -> Results:
     if not records:
         raise ValueError(f"{results_dir}: no trial records in {results_dir / 'trials'} "
                          "(nothing to report; has the run started?)")
+    if trials is not None:
+        in_folder = len(records)
+        records = select_records(records, trials)
+        if not records:
+            raise ValueError(f"{results_dir}: none of its {in_folder} trial records is one of "
+                             "the trials asked for")
     try:
         run_info = read_run_info(results_dir)
     except FileNotFoundError:
@@ -145,7 +179,9 @@ def load_results(results_dir: str | os.PathLike) -> Results:
     experiment = run_info.get("experiment")
     if not isinstance(experiment, str) or not experiment:
         experiment = "+".join(sorted({r.experiment for r in records}))
-    return Results(results_dir, experiment, run_info, records)
+    selection = None if trials is None else {"trials": len(set(trials)),
+                                             "records_in_folder": in_folder}
+    return Results(results_dir, experiment, run_info, records, selection)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -179,33 +215,38 @@ def distance_histogram(distances: Iterable[float], *, bin_m: float = BIN_M,
 def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
     """Statistics of one condition (see the module docstring for the conventions).
 
-    `fraction_within_3cm` is over all trials of the condition: a trial whose distance was
-    not measured (e.g. a simulation error) counts as not within 3 cm. It is None when no
-    trial has a distance.
+    `trials` counts every record; `simulation_errors` those whose simulation raised;
+    `n` (the attempts) = trials - simulation_errors, and `success_rate` = successes / n
+    (None when n is 0). `fraction_within_3cm` is over the same n trials: a trial without a
+    measured distance that is not a simulation error counts as not within 3 cm. It is None
+    when no trial has a distance.
     """
     distance_only = _is_distance_only(condition, records)
     dists = [r.final_distance_m for r in records if r.final_distance_m is not None]
     classes = {c: 0 for c in FAILURE_CLASSES}
     for r in records:
         classes[r.failure_class] += 1
+    errors = classes["simulation-error"]
+    attempts = len(records) - errors
     out: dict[str, Any] = {
         "policies_run": sorted({r.policy for r in records}),
         "trials": len(records),
+        "simulation_errors": errors,
         "distance_only": distance_only,
         "success_rate": None, "n": None, "successes": None, "ci95": None,
     }
     if not distance_only:
-        n = len(records)
         k = sum(1 for r in records if r.success)
-        lo, hi = wilson_interval(k, n)
-        out.update(success_rate=k / n, n=n, successes=k, ci95=[lo, hi])
+        lo, hi = wilson_interval(k, attempts)
+        out.update(success_rate=k / attempts if attempts else None, n=attempts, successes=k,
+                   ci95=[lo, hi] if attempts else None)
     edges, counts = distance_histogram(dists)
     out.update({
         "distance_n": len(dists),
         "mean_final_distance_m": statistics.fmean(dists) if dists else None,
         "median_final_distance_m": statistics.median(dists) if dists else None,
-        "fraction_within_3cm": (sum(1 for d in dists if d < BIN_M - _TOL) / len(records)
-                                if dists else None),
+        "fraction_within_3cm": (sum(1 for d in dists if d < BIN_M - _TOL) / attempts
+                                if dists and attempts else None),
         "histogram": {"bin_edges_m": edges, "counts": counts,
                       "note": "last count: distances >= the last edge"},
         "failure_classes": classes,
@@ -368,7 +409,8 @@ def plot_distance_histograms(panels: list[tuple[str, list[tuple[str, list[float]
     >= max_m.
 
     Args:
-        panels: [(title, [(label, final distances [m], number of trials)])].
+        panels: [(title, [(label, final distances [m], number of trials)])]; the report
+            passes the trials that are not simulation errors.
         path: PNG file to write (atomically).
         bin_m: Bin width [m].
         max_m: Start of the overflow bin [m].
@@ -397,7 +439,9 @@ def plot_distance_histograms(panels: list[tuple[str, list[tuple[str, list[float]
 
 
 def _condition_distances(records: Sequence[TrialRecord], condition: str) -> tuple[list[float], int]:
-    sel = [r for r in records if r.condition == condition]
+    """(final distances, trials that are not simulation errors) of one condition."""
+    sel = [r for r in records
+           if r.condition == condition and r.failure_class != "simulation-error"]
     return [r.final_distance_m for r in sel if r.final_distance_m is not None], len(sel)
 
 
@@ -510,12 +554,16 @@ def _success_table(exp: str, policies: dict[str, dict]) -> list[str]:
     if paper_row:
         head += f" paper (Table 1, {paper_row['row']}) |"
         sep += "---|"
+    head += " simulation errors (not attempts) |"
+    sep += "---|"
     lines = [head, sep]
     for c, s in rows:
         line = f"| {c} | {s['successes']} / {s['n']} | {_pct(s['success_rate'])} | {_ci(s)} |"
         if paper_row:
             line += f" {_paper_cell(exp, c)} |"
+        line += f" {s['simulation_errors']} |"
         lines.append(line)
+    lines += ["", SIMULATION_ERRORS_NOTE]
     if paper_row:
         notes = [f"{c.upper()}: {p['note']}" for c in ("ctr", "gpd") if (p := paper_row[c]).get("note")]
         lines += ["", "Paper: real UR5 robot, Table 1 of Viereck et al. 2017"
@@ -524,14 +572,19 @@ def _success_table(exp: str, policies: dict[str, dict]) -> list[str]:
 
 
 def _distance_table(policies: dict[str, dict]) -> list[str]:
-    lines = ["| condition | trials | with distance | mean | median | within 3 cm |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| condition | trials | with distance | mean | median | within 3 cm | simulation errors |",
+             "|---|---|---|---|---|---|---|"]
     for c, s in policies.items():
         if s["distance_n"] == 0:
             continue
         lines.append(f"| {c} | {s['trials']} | {s['distance_n']} | {_cm(s['mean_final_distance_m'])} | "
-                     f"{_cm(s['median_final_distance_m'])} | {_pct(s['fraction_within_3cm'])} |")
-    return lines if len(lines) > 2 else ["No trial has a final distance."]
+                     f"{_cm(s['median_final_distance_m'])} | {_pct(s['fraction_within_3cm'])} | "
+                     f"{s['simulation_errors']} |")
+    if len(lines) == 2:
+        return ["No trial has a final distance."]
+    if any(s["simulation_errors"] for s in policies.values() if s["distance_n"]):
+        lines += ["", "Within 3 cm: fraction of the trials that are not simulation errors."]
+    return lines
 
 
 def _failure_table(policies: dict[str, dict]) -> list[str]:
@@ -634,31 +687,44 @@ def _header(res: Results, out_dir: Path) -> list[str]:
     versions = sorted({r.code_version for r in res.records})
     hashes = sorted({r.config_hash for r in res.records})
     conds = sorted({r.condition for r in res.records}, key=_condition_order)
+    errors = sum(1 for r in res.records if r.failure_class == "simulation-error")
     lines = [f"- results dir: `{res.results_dir}`",
-             f"- trials: {len(res.records)} in {len(conds)} conditions ({', '.join(conds)})",
+             f"- trials: {len(res.records)} in {len(conds)} conditions ({', '.join(conds)})"
+             + (f", {errors} of them simulation errors" if errors else ""),
              f"- code version: {', '.join(versions)}; config hashes: {len(hashes)}"]
+    if res.selection is not None and len(res.records) < res.selection["records_in_folder"]:
+        lines.append(f"- this report covers the trials of one `evaluate` call "
+                     f"({len(res.records)} of the {res.selection['records_in_folder']} records "
+                     "in the folder); `drake-grasp report DIR` reports them all")
     created = res.run_info.get("created_utc") or res.run_info.get("created")
     if created:
         lines.append(f"- run created: {created}")
     return lines
 
 
-def make_report(results_dir: str | os.PathLike, *, out_dir: str | os.PathLike | None = None) -> dict:
+def make_report(results_dir: str | os.PathLike, *, out_dir: str | os.PathLike | None = None,
+                trials: Iterable[str] | None = None) -> dict:
     """Writes `summary.json`, `report.md` and PNG figures for one results dir.
 
     Args:
         results_dir: A dir laid out as `drake_grasp.results` describes.
         out_dir: Where to write (default: the results dir).
+        trials: Report only these trial ids (a clutter run's id covers its attempts);
+            `evaluate` passes the trials it was asked for. None (`drake-grasp report`):
+            every record in the folder.
 
     Returns:
         The summary (as written to summary.json): {"experiment", "results_dir", "policies":
         {condition: stats}, "figures": [paths relative to out_dir], "paper": {...},
-        "targets": [...]}.
+        "targets": [...], "run_info", "selection": None or {"trials": ids asked for,
+        "records_in_folder": n}}.
 
     Raises:
-        ValueError: No trial records (the dir is named), or a corrupt record.
+        ValueError: No trial records (the dir is named), none of `trials`, or a corrupt
+            record.
     """
-    res = load_results(results_dir)
+    trials = None if trials is None else list(trials)
+    res = load_results(results_dir, trials=trials)
     out = Path(out_dir) if out_dir is not None else res.results_dir
     out.mkdir(parents=True, exist_ok=True)
     policies = summarize(res.records)
@@ -673,6 +739,7 @@ def make_report(results_dir: str | os.PathLike, *, out_dir: str | os.PathLike | 
         "paper": _paper_for(exp, policies),
         "targets": targets,
         "run_info": res.run_info,
+        "selection": res.selection,
     }
     _write_json(out / "summary.json", summary)
     atomic_write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
@@ -735,8 +802,9 @@ def table1_markdown(loaded: Sequence[Results]) -> str:
         lines.append(f"| {row['row']} (`{exp}`) | " + " | ".join(cells) + " |")
     notes = [f"{PAPER_TABLE1[e]['row']}, {c.upper()}: {p['note']}" for e in rows for c in ("ctr", "gpd")
              if (p := PAPER_TABLE1[e][c]).get("note")]
-    lines += ["", "Sim: this simulation, every trial of the condition an attempt. Paper: real UR5 robot, "
-              "Table 1 of Viereck et al. 2017 (counts from the text)."]
+    lines += ["", "Sim: this simulation, every trial of the condition an attempt except simulation "
+              "errors (excluded; counted in each experiment's success table). Paper: real UR5 "
+              "robot, Table 1 of Viereck et al. 2017 (counts from the text)."]
     lines += [f"- {n}" for n in notes]
     return "\n".join(lines) + "\n"
 

@@ -76,8 +76,12 @@ def test_make_report_sim_distance(sim_dir):
     assert (p["ctr"]["successes"], p["ctr"]["n"]) == (7, 8)
     assert p["ctr"]["success_rate"] == 7 / 8
     assert p["ctr"]["ci95"] == pytest.approx([0.5291, 0.9776], abs=5e-5)
-    assert (p["ctr_noise"]["successes"], p["ctr_noise"]["n"]) == (6, 8)
-    assert p["ctr_noise"]["ci95"] == pytest.approx([0.4093, 0.9285], abs=5e-5)
+    # the simulation error is not an attempt: 6 of 7 (hand check of Wilson 6/7: centre
+    # (0.857143 + 0.274390) / 1.548780 = 0.730597, half 1.959964 * sqrt(0.017493 +
+    # 0.019599) / 1.548780 = 0.243725)
+    assert (p["ctr_noise"]["successes"], p["ctr_noise"]["n"]) == (6, 7)
+    assert (p["ctr_noise"]["trials"], p["ctr_noise"]["simulation_errors"]) == (8, 1)
+    assert p["ctr_noise"]["ci95"] == pytest.approx([0.4869, 0.9743], abs=5e-5)
     assert p["gpd"]["ci95"] == pytest.approx([0.6756, 1.0], abs=5e-5)
     assert p["gpd_noise"]["ci95"] == pytest.approx([0.0715, 0.5907], abs=5e-5)
     # INIT: distance statistics only
@@ -85,8 +89,8 @@ def test_make_report_sim_distance(sim_dir):
     assert p["init"]["mean_final_distance_m"] == pytest.approx(0.10)
     assert p["init"]["fraction_within_3cm"] == 0.0
     assert p["init"]["failure_classes"]["none"] == 8
-    # a trial without a distance counts as outside the first bin
-    assert p["ctr_noise"]["fraction_within_3cm"] == 6 / 8
+    # ... nor a trial of the within-3-cm fraction
+    assert p["ctr_noise"]["fraction_within_3cm"] == 6 / 7
     assert p["ctr_noise"]["distance_n"] == 7
     assert p["ctr_noise"]["median_final_distance_m"] == pytest.approx(0.02)
     assert p["ctr_noise"]["failure_classes"] == {
@@ -96,16 +100,17 @@ def test_make_report_sim_distance(sim_dir):
     assert p["ctr"]["histogram"]["counts"][1] == 1  # 0.05 m falls in [3, 6) cm
     targets = {t["id"]: t for t in summary["targets"]}
     assert targets["sim-distance/ctr_noise-within-3cm"]["met"] is True
-    assert targets["sim-distance/ctr_noise-within-3cm"]["margin"] == pytest.approx(5.0)
+    assert targets["sim-distance/ctr_noise-within-3cm"]["margin"] == pytest.approx(600 / 7 - 70)
     assert targets["sim-distance/gpd_noise-within-3cm"]["met"] is True
     assert summary["figures"] == ["figure5_distance_histogram.png"]
     png = sim_dir / "figure5_distance_histogram.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     md = (sim_dir / "report.md").read_text()
     assert "![final distance histograms](figure5_distance_histogram.png)" in md
-    assert "| ctr | 7 / 8 | 87.5% | [52.9%, 97.8%] |" in md
+    assert "| ctr | 7 / 8 | 87.5% | [52.9%, 97.8%] | 0 |" in md
+    assert "| ctr_noise | 6 / 7 | 85.7% | [48.7%, 97.4%] | 1 |" in md
     assert "init |" not in md.split("## Final distance")[0]  # INIT is not in the success table
-    assert "**met** CTR with noise: >= 70% of trials within 3 cm: 75.0% (met by 5.0 points)" in md
+    assert "**met** CTR with noise: >= 70% of trials within 3 cm: 85.7% (met by 15.7 points)" in md
     assert "(replays/sim-distance__gpd_noise__0003.html)" in md
     assert "replays/sim-distance__gpd_noise__0004.html" not in md
     assert "Figure 5" in md and "compare shapes, not values" in md
@@ -125,7 +130,7 @@ def test_make_report_table1_experiment_with_paper_numbers(tmp_path):
     assert p["gpd"]["ci95"] == pytest.approx([0.1119, 0.4687], abs=5e-5)
     assert summary["paper"]["table1"]["ctr"]["rate_percent"] == 77.3
     md = (out / "report.md").read_text()
-    assert "| ctr | 19 / 20 | 95.0% | [76.4%, 99.1%] | 77.3% (58/75) |" in md
+    assert "| ctr | 19 / 20 | 95.0% | [76.4%, 99.1%] | 77.3% (58/75) | 0 |" in md
     assert "| gpd | 5 / 20 | 25.0% | [11.2%, 46.9%] | 22.5% (11/49) |" in md
     assert "**met** CTR grasp success >= 90% (clutter-shift): 95.0% (met by 5.0 points)" in md
     assert "**met** CTR success >= 40 points above GPD (clutter-shift): 70.0 points (met by 30.0 points)" in md
@@ -220,3 +225,42 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
         table1.main([str(sim_dir), "--out", str(tmp_path / "t2.md")])
     assert e.value.code == 2
     assert "no Table 1 experiment" in capsys.readouterr().err
+
+
+def test_simulation_errors_have_their_own_column_and_are_not_attempts(tmp_path):
+    d = tmp_path / "iso"
+    error = (False, None, "simulation error: RuntimeError: solver diverged")
+    _fill(d, "isolation", {"ctr": [(True, 0.01, None)] * 3 + [(False, 0.1, MISSED)] + [error] * 2,
+                           "gpd": [error] * 2})
+    summary = make_report(d)
+    ctr, gpd = summary["policies"]["ctr"], summary["policies"]["gpd"]
+    assert (ctr["trials"], ctr["simulation_errors"], ctr["n"], ctr["successes"]) == (6, 2, 4, 3)
+    assert ctr["success_rate"] == 0.75 and ctr["fraction_within_3cm"] == 0.75
+    assert ctr["failure_classes"]["simulation-error"] == 2
+    # a condition with only simulation errors has no rate (not 0%)
+    assert (gpd["n"], gpd["success_rate"], gpd["ci95"], gpd["fraction_within_3cm"]) == (0, None, None, None)
+    (t,) = summary["targets"]
+    assert t["value"] == pytest.approx(75.0)
+    md = (d / "report.md").read_text()
+    assert ("| condition | successes / attempts | rate | Wilson 95% CI | paper (Table 1, Objects in "
+            "isolation) | simulation errors (not attempts) |") in md
+    assert "| ctr | 3 / 4 | 75.0% | [30.1%, 95.4%] | 97.5% (39/40) | 2 |" in md
+    assert "| gpd | 0 / 0 | — | — | 97.5% | 2 |" in md
+    assert ("excluded from success rates and from the fraction within 3 cm, i.e. rate = "
+            "successes / (trials - simulation errors)") in md
+    assert "- trials: 8 in 2 conditions (ctr, gpd), 4 of them simulation errors" in md
+
+
+def test_report_of_selected_trials(tmp_path):
+    d = tmp_path / "cl"
+    write_run_info(d, {"experiment": "clutter"})
+    for run in range(2):
+        for a in range(2):
+            write_record(d, make_record(f"clutter/ctr/{run:04d}/attempt{a:02d}", experiment="clutter",
+                                        run_index=run, attempt_index=a))
+    summary = make_report(d, trials=["clutter/ctr/0001"])
+    assert summary["policies"]["ctr"]["trials"] == 2
+    assert summary["selection"] == {"trials": 1, "records_in_folder": 4}
+    assert make_report(d)["policies"]["ctr"]["trials"] == 4
+    with pytest.raises(ValueError, match="none of its 4 trial records"):
+        make_report(d, trials=["clutter/gpd/0000"])
