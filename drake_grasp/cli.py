@@ -140,9 +140,13 @@ def _cmd_evaluate(args) -> int:
     result = evaluate(experiment=args.experiment, out=args.out, trials=args.trials,
                       workers=args.workers, scheduler=args.scheduler, seed=args.seed,
                       objects_dir=args.objects,
-                      conditions=[c for c in args.conditions.split(",") if c] or None)
-    print(json.dumps({k: result[k] for k in ("records", "ran", "skipped")}))
-    print(f"report: {Path(args.out) / 'report.md'}")
+                      conditions=[c for c in args.conditions.split(",") if c] or None,
+                      force_new=args.force_new)
+    if result["new_folder_because"]:
+        print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
+              f"this run is in {result['out']}", file=sys.stderr)
+    print(json.dumps({k: result[k] for k in ("out", "records", "ran", "skipped")}))
+    print(f"report: {Path(result['out']) / 'report.md'}")
     return 0
 
 
@@ -273,16 +277,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sim-distance, perception, isolation, clutter, clutter-shift, "
                         "sweep-noise, sweep-depth-noise or sweep-offset")
     p.add_argument("--trials", type=int, default=None,
-                   help="trials per condition (clutter: runs); default: the experiment's")
+                   help="trials per condition (clutter: runs); default: the experiment's. "
+                        "The report written covers trials 0..N-1 of the conditions asked, "
+                        "also when the folder holds more")
     p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the trials on this Dask distributed scheduler instead")
     p.add_argument("--seed", type=int, default=0, help="base seed of the trials (default 0)")
-    p.add_argument("--out", required=True, help="results folder")
+    p.add_argument("--out", required=True,
+                   help="results folder; re-running into it resumes the same run (finished "
+                        "trials are skipped)")
     p.add_argument("--objects", default=None, metavar="DIR",
                    help="object library folder (default: built-in objects)")
     p.add_argument("--conditions", default="",
                    help="comma-separated subset of the experiment's conditions (default: all)")
+    p.add_argument("--force-new", action="store_true",
+                   help="when --out holds a different run (another experiment, seed, object "
+                        "library, resolved scenario, CNN weights or code version: without "
+                        "this flag that is an error naming the first difference), run in a "
+                        "new folder next to it instead: the first of OUT-2, OUT-3, ... that "
+                        "does not exist or already holds this same run (printed)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

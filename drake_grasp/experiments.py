@@ -142,11 +142,19 @@ def trial_seed(base_seed: int, index: int) -> int:
     return int(np.random.default_rng([int(base_seed), int(index), 71]).integers(2**31 - 1))
 
 
-def trial_scenario(experiment: Experiment, condition: Condition, index: int, *,
-                   base_seed: int, objects_dir: str | None = None, library=None) -> Scenario:
-    """The exact scenario of trial `index` of `condition`."""
+def condition_scenario(experiment: Experiment, condition: Condition, *,
+                       objects_dir: str | None = None) -> Scenario:
+    """What every trial of `condition` shares: its resolved scenario before the per-trial
+    parts are applied.
+
+    The per-trial parts, which `trial_scenario` adds, are the seed (0 here) and, for
+    `per_object_poses` experiments, the object and its pose chosen from the trial index
+    (here `scene.object_ids` and `scene.pose` are as the named scenario has them). This is
+    what `drake_grasp.montecarlo` hashes into a record's `config_hash` and compares when
+    a run is resumed.
+    """
     s = load_scenario(scenario_name=experiment.scenario, scenario_text=experiment.scenario_text)
-    s = dataclasses.replace(s, seed=trial_seed(base_seed, index), policy=condition.policy)
+    s = dataclasses.replace(s, seed=0, policy=condition.policy)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,
@@ -161,6 +169,16 @@ def trial_scenario(experiment: Experiment, condition: Condition, index: int, *,
             edge_dropout_prob=min(1.0, k * d.edge_dropout_prob),
             random_dropout_prob=min(1.0, k * d.random_dropout_prob))
     s.disturbance = dataclasses.replace(s.disturbance, kind=condition.disturbance)
+    s.validate()
+    return s
+
+
+def trial_scenario(experiment: Experiment, condition: Condition, index: int, *,
+                   base_seed: int, objects_dir: str | None = None, library=None) -> Scenario:
+    """The exact scenario of trial `index` of `condition`: `condition_scenario` plus the
+    trial's seed and, for `per_object_poses` experiments, its object and pose."""
+    s = condition_scenario(experiment, condition, objects_dir=objects_dir)
+    s = dataclasses.replace(s, seed=trial_seed(base_seed, index))
     if experiment.per_object_poses:
         if library is None:
             from drake_grasp.objects import load_library

@@ -2,8 +2,16 @@
 
 Every finished trial is one record file (`drake_grasp.results`), written atomically by
 the worker that ran it; re-running into the same folder skips finished trials, so a
-killed run loses nothing and counts nothing twice. An exception inside a trial becomes a
-failed trial ("simulation-error") with its reason; the run goes on.
+killed run loses nothing and counts nothing twice. An exception inside a trial - building
+its scenario or scene, simulating, settling the pile left for the next clutter attempt -
+becomes a failed trial ("simulation-error") with its reason; the run goes on. Reports leave
+simulation errors out of success rates (`drake_grasp.report`).
+
+A folder holds one experiment setup: `run.json` records the run's identity (`run_identity`:
+experiment, base seed, object library and its content hash, every condition's resolved
+scenario without the per-trial seed, the CNN weights' checksum, the code version), and
+`evaluate` refuses to add trials to a folder whose identity differs, naming the first
+differing key; `force_new=True` (`--force-new`) puts the run into a new folder next to it.
 
 Each worker process keeps what does not change between trials - the CNN, the object
 library and its meshes - and builds only the plant per trial (the objects differ from
@@ -14,7 +22,9 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
+import re
 import time
 import traceback
 from dataclasses import dataclass
@@ -22,8 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp import __version__
-from drake_grasp.experiments import Condition, Experiment, get_experiment, trial_scenario
+from drake_grasp.experiments import (Condition, Experiment, condition_scenario, get_experiment,
+                                     trial_scenario, trial_seed)
+from drake_grasp.provenance import code_version, file_sha256
+
+# Policies that run the distance CNN (and so depend on its weights file).
+CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
+# A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
+MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
 
 
 @dataclass(frozen=True)
@@ -62,8 +78,167 @@ def _condition(experiment: Experiment, name: str) -> Condition:
     raise ValueError(f"experiment {experiment.name}: no condition {name!r}")
 
 
+_SEED_LINE = re.compile(r"^seed:[^\n]*$", re.MULTILINE)
+
+
 def config_hash(scenario_yaml: str) -> str:
-    return hashlib.sha256(scenario_yaml.encode()).hexdigest()[:16]
+    """First 16 hex digits of the SHA-256 of a scenario's YAML with its top-level `seed`
+    set to 0.
+
+    The seed is per trial (and per clutter attempt); leaving it out makes the hash name
+    the settings under test. Records carry the hash of their condition's shared scenario
+    (`experiments.condition_scenario`), so all trials of a condition share one hash, also
+    in experiments that choose the object and pose per trial.
+    """
+    normalised = _SEED_LINE.sub("seed: 0", scenario_yaml, count=1)
+    return hashlib.sha256(normalised.encode()).hexdigest()[:16]
+
+
+def weights_path(scenario) -> str | None:
+    """The CNN weights file a scenario's policy loads, None for policies without the CNN."""
+    if scenario.policy not in CNN_POLICIES:
+        return None
+    if scenario.controller.weights:
+        return scenario.controller.weights
+    from drake_grasp.assets import models_dir
+    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS
+
+    return str(models_dir() / DEFAULT_WEIGHTS)
+
+
+def condition_identity(experiment: Experiment, condition: Condition, *,
+                       objects_dir: str | None = None) -> dict:
+    """What run.json records of one condition, and what a resume compares: the condition's
+    fields, its resolved scenario without the per-trial seed (`condition_scenario`), the
+    sha256 of the CNN weights file it uses (None when its policy uses none) and its
+    config hash."""
+    from pydrake.common.yaml import yaml_load_data
+
+    from drake_grasp.scenario import dump_scenario
+
+    scenario = condition_scenario(experiment, condition, objects_dir=objects_dir)
+    yaml = dump_scenario(scenario)
+    resolved = yaml_load_data(yaml)
+    resolved.pop("seed", None)
+    weights = weights_path(scenario)
+    return {**dataclasses.asdict(condition), "scenario": resolved,
+            "weights_sha256": None if weights is None else file_sha256(weights),
+            "config_hash": config_hash(yaml)}
+
+
+def run_identity(experiment: Experiment, *, seed: int, objects_dir: str | None = None,
+                 library=None) -> dict:
+    """The identity of a run as run.json records it; two runs may share a folder only when
+    theirs are equal (the trial count and the conditions asked for may differ).
+
+    Keys, in the order a resume compares them: experiment, seed (the base seed),
+    objects_dir, object_library_hash (`ObjectLibrary.content_hash`), conditions (every
+    condition of the experiment: see `condition_identity`), code_version
+    (`provenance.code_version`).
+    """
+    if library is None:
+        from drake_grasp.objects import load_library
+
+        library = load_library(objects_dir)
+    return {
+        "experiment": experiment.name,
+        "seed": int(seed),
+        "objects_dir": objects_dir,
+        "object_library_hash": library.content_hash(),
+        "conditions": [condition_identity(experiment, c, objects_dir=objects_dir)
+                       for c in experiment.conditions],
+        "code_version": code_version(),
+    }
+
+
+_MISSING = object()
+
+
+def _differences(old, new, path: str = ""):
+    """(key path, value in old, value in new) for every leaf where two JSON values differ;
+    dict keys in `new`'s order, then those only in `old`."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in list(new) + [k for k in old if k not in new]:
+            sub = f"{path}.{key}" if path else str(key)
+            yield from _differences(old.get(key, _MISSING), new.get(key, _MISSING), sub)
+    elif isinstance(old, list) and isinstance(new, list) and path.endswith("conditions"):
+        for i in range(max(len(old), len(new))):
+            yield from _differences(old[i] if i < len(old) else _MISSING,
+                                    new[i] if i < len(new) else _MISSING, f"{path}[{i}]")
+    elif old is _MISSING or new is _MISSING or old != new or type(old) is not type(new):
+        yield path, old, new
+
+
+def _show(value) -> str:
+    if value is _MISSING:
+        return "missing"
+    text = json.dumps(value, sort_keys=True)
+    return text if len(text) <= 120 else text[:119] + "…"
+
+
+def folder_conflict(out: str | Path, identity: dict) -> str | None:
+    """Why `out` cannot take trials of the run `identity` (see `run_identity`), or None
+    when it can (it does not exist, is empty, or its run.json has the same identity).
+
+    The reason names the first differing key, e.g. "conditions[1].scenario.controller.
+    step_ratio: 0.2 in the folder, 0.3 now (and 2 more differences)".
+    """
+    from drake_grasp.results import RUN_INFO_FILE, TRIALS_DIR, read_run_info
+
+    out = Path(out)
+    if not out.exists():
+        return None
+    if not out.is_dir():
+        return f"{out}: exists and is not a folder"
+    try:
+        old = read_run_info(out)
+    except FileNotFoundError:
+        trials = out / TRIALS_DIR
+        if trials.is_dir() and any(not p.name.startswith(".") for p in trials.iterdir()):
+            return (f"{out}: holds trial records but no {RUN_INFO_FILE}, so what they were "
+                    "run with is unknown")
+        return None
+    except ValueError as e:
+        return str(e)
+    diffs = list(_differences({k: old.get(k, _MISSING) for k in identity}, identity))
+    if not diffs:
+        return None
+    key, was, now = diffs[0]
+    more = f" (and {len(diffs) - 1} more difference{'s' if len(diffs) > 2 else ''})" \
+        if len(diffs) > 1 else ""
+    return f"{out / RUN_INFO_FILE}: {key}: {_show(was)} in the folder, {_show(now)} now{more}"
+
+
+def choose_folder(out: str | Path, identity: dict, *, force_new: bool = False,
+                  max_tries: int = 1000) -> tuple[Path, str | None]:
+    """The folder a run goes to: `out` when it can take the run (`folder_conflict`).
+
+    Otherwise, with `force_new`, the first of `OUT-2`, `OUT-3`, ... next to it that can:
+    one that does not exist yet, or one that already holds this very run (so repeating a
+    `--force-new` command after a kill resumes the folder it started, instead of starting
+    yet another one).
+
+    Returns:
+        (folder, why `out` was not used or None).
+
+    Raises:
+        ValueError: `out` holds another run and not `force_new`; the message names the
+            first differing key and says to use --force-new.
+    """
+    out = Path(out)
+    conflict = folder_conflict(out, identity)
+    if conflict is None:
+        return out, None
+    if not force_new:
+        raise ValueError(f"{conflict}. Resuming into {out} would mix two different runs in "
+                         "one folder; use --force-new to start a new run folder next to it "
+                         f"({out.name}-2, ...), or choose another --out.")
+    for k in range(2, max_tries + 2):
+        candidate = out.with_name(f"{out.name}-{k}")
+        if folder_conflict(candidate, identity) is None:
+            return candidate, conflict
+    raise ValueError(f"--force-new: {out.name}-2 ... {out.name}-{max_tries + 1} next to {out} "
+                     "all hold other runs; choose another --out")
 
 
 # ----------------------------------------------------------------------------
@@ -90,13 +265,38 @@ def _model(weights: str):
     return _cached(("cnn", weights), lambda: load_cnn(weights))
 
 
+def _condition_hash(task: TrialTask, condition: Condition, objects_dir) -> str:
+    """config_hash of the condition's shared scenario ("unresolved" when it cannot be built)."""
+    from drake_grasp.scenario import dump_scenario
+
+    try:
+        experiment = get_experiment(task.experiment)
+        return config_hash(dump_scenario(
+            condition_scenario(experiment, condition, objects_dir=objects_dir)))
+    except Exception:  # noqa: BLE001 - the trial records its own error
+        return "unresolved"
+
+
+def _forced(fail_trials, trial_id: str, stage: str | None = None) -> None:
+    """Raises where `fail_trials` asks for it (see `run_task`)."""
+    if (f"{trial_id}:{stage}" if stage else trial_id) in fail_trials:
+        raise RuntimeError(f"forced failure (test) in {stage or 'simulation'}")
+
+
 def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
                 error: BaseException | None = None, wall: float = 0.0, run_index=None,
-                attempt_index=None, trial_id=None, extra=None):
+                attempt_index=None, trial_id=None, extra=None, objects_dir=None,
+                stage: str = "simulation"):
+    """The record of a finished trial (`result`) or of one that raised (`error`, raised
+    in `stage`: "scene", "simulation" or "settle"). `scenario` is None when the trial's
+    scenario could not be built; the record then has an empty scenario_yaml and the
+    trial's seed."""
     from drake_grasp.results import TrialRecord, classify_failure
     from drake_grasp.scenario import dump_scenario
 
-    yaml = dump_scenario(scenario)
+    yaml = dump_scenario(scenario) if scenario is not None else ""
+    seed = int(scenario.seed) if scenario is not None else trial_seed(task.base_seed, task.index)
+    chash = _condition_hash(task, condition, objects_dir)
     if result is None:
         reason = f"simulation error: {type(error).__name__}: {error}"
         return TrialRecord(
@@ -105,13 +305,13 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
             noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
             offset_m=condition.offset_m, disturbance={"kind": condition.disturbance},
             scenario_name=get_experiment(task.experiment).scenario, scenario_yaml=yaml,
-            seed=int(scenario.seed), config_hash=config_hash(yaml), code_version=__version__,
+            seed=seed, config_hash=chash, code_version=code_version(),
             success=False, failure_class=classify_failure(False, reason, exception=error),
             failure_reason=reason, final_distance_m=None, sim_time_s=0.0, wall_time_s=wall,
             control_steps=0, object_ids=[], grasped_object_id=None, run_index=run_index,
             attempt_index=attempt_index,
             extra={"traceback": "".join(traceback.format_exception(error))[-4000:],
-                   **(extra or {})})
+                   "error_stage": stage, **(extra or {})})
     r = result
     return TrialRecord(
         trial_id=trial_id or task.trial_id, experiment=task.experiment,
@@ -119,7 +319,7 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
         noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
         offset_m=condition.offset_m, disturbance=r.disturbance,
         scenario_name=get_experiment(task.experiment).scenario, scenario_yaml=yaml,
-        seed=int(scenario.seed), config_hash=config_hash(yaml), code_version=__version__,
+        seed=seed, config_hash=chash, code_version=code_version(),
         success=bool(r.success),
         failure_class=classify_failure(r.success, r.failure_reason, disturbance=r.disturbance),
         failure_reason=r.failure_reason, final_distance_m=r.final_distance_m,
@@ -133,7 +333,10 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
              fail_trials: tuple = ()) -> list[dict]:
     """Runs one task in this process and writes its record(s); returns them as dicts.
 
-    `fail_trials`: trial ids forced to raise (for testing the error path).
+    `fail_trials` (for testing the error path): "<trial id>" makes that trial's (or clutter
+    attempt's) simulation raise; "<trial id>:scene" makes building its scenario and scene
+    raise (for a clutter run: the run's trial id, e.g. "clutter/ctr/0000:scene");
+    "<attempt id>:settle" makes settling the pile that clutter attempt leaves raise.
     """
     from drake_grasp.results import write_record
 
@@ -141,9 +344,11 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
     condition = _condition(experiment, task.condition)
     library = _library(objects_dir)
     if experiment.kind == "clutter-runs":
-        records = _run_clutter(task, experiment, condition, out, objects_dir, library, fail_trials)
+        records = _run_clutter(task, experiment, condition, out, objects_dir, library,
+                               tuple(fail_trials))
     else:
-        records = [_run_episode_task(task, experiment, condition, objects_dir, library, fail_trials)]
+        records = [_run_episode_task(task, experiment, condition, objects_dir, library,
+                                     tuple(fail_trials))]
         write_record(out, records[0])
     return [r.to_dict() for r in records]
 
@@ -151,22 +356,27 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
 def _simulate(scenario, library, *, scene=None):
     from drake_grasp.episode import simulate_episode
 
-    model = _model(scenario.controller.weights) if scenario.policy in ("ctr", "cnn-only", "cnn-ctr") else None
+    model = _model(scenario.controller.weights) if scenario.policy in CNN_POLICIES else None
     return simulate_episode(scenario, library=library, scene=scene, record_depth=False,
                             visualize=False, model=model)
 
 
 def _run_episode_task(task, experiment, condition, objects_dir, library, fail_trials):
     t0 = time.perf_counter()
-    scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
-                              objects_dir=objects_dir, library=library)
+    scenario = None
+    stage = "scene"
     try:
-        if task.trial_id in fail_trials:
-            raise RuntimeError("forced failure (test)")
+        _forced(fail_trials, task.trial_id, "scene")
+        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
+                                  objects_dir=objects_dir, library=library)
+        stage = "simulation"
+        _forced(fail_trials, task.trial_id)
         run = _simulate(scenario, library)
+        return _record_for(task, condition, scenario, run.result, objects_dir=objects_dir,
+                           wall=time.perf_counter() - t0)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
-        return _record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0)
-    return _record_for(task, condition, scenario, run.result, wall=time.perf_counter() - t0)
+        return _record_for(task, condition, scenario, error=e, objects_dir=objects_dir,
+                           stage=stage, wall=time.perf_counter() - t0)
 
 
 def _objects_in_view(scene, half_extent_m: float = 0.15) -> bool:
@@ -175,56 +385,126 @@ def _objects_in_view(scene, half_extent_m: float = 0.15) -> bool:
                for o in scene.objects)
 
 
+def clutter_run_status(records, experiment: Experiment) -> str | None:
+    """Why a clutter run has ended, from its attempt records; None while it goes on.
+
+    The one rule, used both to run (`_run_clutter`) and to decide on resume which runs
+    are finished:
+
+    - a run whose scene (scenario, poured and settled pile) could not be built ends with
+      its first record, a simulation error ("scene could not be built");
+    - simulation errors (failure_class "simulation-error") neither count towards nor reset
+      the run of consecutive failed grasps: they are failures of the simulator, not of the
+      policy, and the attempt is retried on the same pile (with the next attempt's seed);
+    - the run ends after `experiment.max_consecutive_failures` failed grasps in a row;
+    - so that a pile on which every attempt raises cannot loop for ever, it ends after
+      `MAX_CONSECUTIVE_SIMULATION_ERRORS` (3) simulation errors in a row;
+    - it ends when no object is left, or none is left in view.
+
+    Args:
+        records: The run's attempt records (any order).
+        experiment: The experiment.
+    """
+    from drake_grasp.scene import SceneSpec
+
+    records = sorted(records, key=lambda r: r.attempt_index)
+    if not records:
+        return None
+    failures = errors = 0
+    for r in records:
+        if r.failure_class == "simulation-error":
+            errors += 1
+        else:
+            errors = 0
+            failures = 0 if r.success else failures + 1
+    nxt = records[-1].extra.get("next_scene")
+    if nxt is None:
+        return "scene could not be built"
+    if failures >= experiment.max_consecutive_failures:
+        return f"{experiment.max_consecutive_failures} consecutive failed grasps"
+    if errors >= MAX_CONSECUTIVE_SIMULATION_ERRORS:
+        return f"{MAX_CONSECUTIVE_SIMULATION_ERRORS} consecutive simulation errors"
+    nxt = SceneSpec.from_dict(nxt)
+    if not nxt.objects:
+        return "no objects left"
+    if not _objects_in_view(nxt):
+        return "no objects left in view"
+    return None
+
+
 def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_trials):
     """One clutter run: attempts on one pile, each grasped object removed, until
-    `max_consecutive_failures` failures in a row or nothing left in view. Resumes after
-    the last recorded attempt (each record carries the scene left for the next one)."""
+    `clutter_run_status` says it has ended (its docstring has the rule). Resumes after the
+    last recorded attempt (each record carries the scene left for the next one). Building
+    the scenario and pile, every attempt and the settling of the pile it leaves run inside
+    the error capture: an exception becomes a "simulation-error" record. The record that
+    ends the run has the reason in `extra["run_end"]`."""
     from drake_grasp.results import load_records, write_record
     from drake_grasp.scene import SceneSpec, make_scene, settle_scene
 
-    scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
-                              objects_dir=objects_dir, library=library)
     prefix = f"{task.trial_id}/attempt"
-    done = sorted((r for r in load_records(out)
-                   if r.trial_id.startswith(prefix)), key=lambda r: r.attempt_index)
-    records = list(done)
-    failures = 0
-    for r in done:
-        failures = 0 if r.success else failures + 1
-    if done:
-        scene = SceneSpec.from_dict(done[-1].extra["next_scene"])
-    else:
-        scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant)
-    attempt = len(done)
-    while failures < experiment.max_consecutive_failures and scene.objects and _objects_in_view(scene):
+    records = sorted((r for r in load_records(out)
+                      if r.trial_id.startswith(prefix)), key=lambda r: r.attempt_index)
+    status = clutter_run_status(records, experiment)
+    if status is not None:
+        return records
+    attempt = len(records)
+
+    def finish(rec):
+        nonlocal status
+        status = clutter_run_status(records + [rec], experiment)
+        if status is not None:
+            rec.extra["run_end"] = status
+        write_record(out, rec)
+        records.append(rec)
+
+    t0 = time.perf_counter()
+    scenario = None
+    try:
+        if not records:
+            _forced(fail_trials, task.trial_id, "scene")
+        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
+                                  objects_dir=objects_dir, library=library)
+        if records:
+            scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
+        else:
+            scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant)
+    except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
+        finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
+                           run_index=task.index, attempt_index=attempt,
+                           trial_id=f"{prefix}{attempt:02d}", objects_dir=objects_dir,
+                           stage="scene", extra={"scene": None, "next_scene": None}))
+        return records
+
+    while status is None:
         t0 = time.perf_counter()
         attempt_scenario = dataclasses.replace(scenario, seed=scenario.seed + 1000 * attempt)
         trial_id = f"{prefix}{attempt:02d}"
+        stage = "simulation"
         try:
-            if trial_id in fail_trials:
-                raise RuntimeError("forced failure (test)")
+            _forced(fail_trials, trial_id)
             run = _simulate(attempt_scenario, library, scene=scene)
             remaining = run.final_scene
             grasped = run.result.details.get("grasped_object_id") if run.result.success else None
             objects = [o for o in remaining.objects
                        if o.object_id != grasped and o.xyz[2] > -0.05]
+            stage = "settle"
+            _forced(fail_trials, trial_id, "settle")
             next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
                                       plant_config=scenario.plant) if objects else \
                 dataclasses.replace(remaining, objects=[], settled=True)
             rec = _record_for(task, condition, attempt_scenario, run.result,
                               wall=time.perf_counter() - t0, run_index=task.index,
-                              attempt_index=attempt, trial_id=trial_id,
+                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
                               extra={"next_scene": next_scene.to_dict(),
                                      "scene": scene.to_dict()})
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
             next_scene = scene  # the pile is as it was; try again
-            rec = _record_for(task, condition, attempt_scenario, error=e,
+            rec = _record_for(task, condition, attempt_scenario, error=e, stage=stage,
                               wall=time.perf_counter() - t0, run_index=task.index,
-                              attempt_index=attempt, trial_id=trial_id,
+                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
                               extra={"next_scene": scene.to_dict(), "scene": scene.to_dict()})
-        write_record(out, rec)
-        records.append(rec)
-        failures = 0 if rec.success else failures + 1
+        finish(rec)
         scene = next_scene
         attempt += 1
     return records
@@ -235,51 +515,64 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
 
 
 def _clutter_run_finished(out: Path, task: TrialTask, experiment: Experiment, records) -> bool:
-    mine = sorted((r for r in records if r.trial_id.startswith(f"{task.trial_id}/attempt")),
-                  key=lambda r: r.attempt_index)
-    if not mine:
-        return False
-    failures = 0
-    for r in mine:
-        failures = 0 if r.success else failures + 1
-    if failures >= experiment.max_consecutive_failures:
-        return True
-    from drake_grasp.scene import SceneSpec
-
-    nxt = SceneSpec.from_dict(mine[-1].extra["next_scene"])
-    return not nxt.objects or not _objects_in_view(nxt)
+    mine = [r for r in records if r.trial_id.startswith(f"{task.trial_id}/attempt")]
+    return clutter_run_status(mine, experiment) is not None
 
 
 def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, workers: int = 2,
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
-             fail_trials: tuple = ()) -> dict:
+             fail_trials: tuple = (), force_new: bool = False) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
+    A folder holds one run: before anything is added, `run_identity` of this call is
+    compared with the folder's run.json (`folder_conflict`). A resume may ask for more or
+    fewer trials, or other conditions, of the same run; anything else that differs is
+    refused.
+
+    Args:
+        experiment: Name in `drake_grasp.experiments.EXPERIMENTS`.
+        out: Results folder (created; resumed when it holds this run).
+        trials: Trials per condition (clutter: runs); default the experiment's.
+        workers: Local worker processes (1: in this process).
+        scheduler: Address of a Dask scheduler to run on instead.
+        seed: Base seed.
+        objects_dir: Object library folder; None for the built-in objects.
+        conditions: Subset of the experiment's conditions; None for all.
+        progress: Show a progress bar.
+        report: Write the report of the trials this call asked for: trials 0..trials-1 of
+            the conditions asked (`make_report(..., trials=...)`); other records in the
+            folder are left out of it (`drake-grasp report DIR` reports them all).
+        fail_trials: Forced failures, for tests (see `run_task`).
+        force_new: When `out` holds another run, run in the first free `OUT-2`, `OUT-3`,
+            ... next to it (or the one already holding this run: see `choose_folder`).
+
     Returns:
-        {"records": number of trial records, "ran": tasks run now, "skipped": tasks
-        already done, "summary": the report's summary (when `report`)}.
+        {"out": the folder used, "new_folder_because": why `out` was not used (None when it
+        was), "records": trial records in the folder, "ran": tasks run now, "skipped":
+        tasks already done, "summary": the report's summary (when `report`)}.
+
+    Raises:
+        ValueError: Unknown experiment/condition, --trials < 1, or `out` holds another run
+            and not `force_new` (the message names the first differing key).
     """
     from drake_grasp.results import done_trial_ids, load_records, read_run_info, write_run_info
 
     exp = get_experiment(experiment)
-    out = Path(out)
+    tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
+    identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
+    out, replaced = choose_folder(Path(out), identity, force_new=force_new)
     out.mkdir(parents=True, exist_ok=True)
-    info = {"experiment": exp.name, "seed": int(seed), "trials": trials or exp.trials,
-            "objects_dir": objects_dir, "code_version": __version__,
-            "conditions": [dataclasses.asdict(c) for c in exp.conditions]}
     try:
         old = read_run_info(out)
     except FileNotFoundError:
-        old = None
-    if old is not None:
-        for key in ("experiment", "seed", "objects_dir"):
-            if old.get(key) != info[key]:
-                raise ValueError(f"{out}: holds a run with {key}={old.get(key)!r}, not "
-                                 f"{info[key]!r}; use another --out")
-    info["created"] = old.get("created") if old else time.strftime("%Y-%m-%dT%H:%M:%S")
+        old = {}
+    n = trials or exp.trials
+    info = {**identity,
+            # Informational: the most trials per condition any call asked for.
+            "trials": max(n, int(old.get("trials") or 0)),
+            "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S")}
     write_run_info(out, info)
-    tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     records = load_records(out) if exp.kind == "clutter-runs" else []
     done_ids = done_trial_ids(out)
     if exp.kind == "clutter-runs":
@@ -289,12 +582,13 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     _execute(todo, out=str(out), workers=workers, scheduler=scheduler, objects_dir=objects_dir,
              progress=progress, fail_trials=tuple(fail_trials), total=len(tasks),
              initial=len(tasks) - len(todo))
-    result = {"records": len(load_records(out)), "ran": len(todo),
+    result = {"out": str(out), "new_folder_because": replaced,
+              "records": len(load_records(out)), "ran": len(todo),
               "skipped": len(tasks) - len(todo)}
     if report:
         from drake_grasp.report import make_report
 
-        result["summary"] = make_report(out)
+        result["summary"] = make_report(out, trials=[t.trial_id for t in tasks])
     return result
 
 
@@ -302,17 +596,23 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
              initial):
     from tqdm import tqdm
 
-    stats: dict = {}  # running successes / attempts per condition, this session
+    # Running successes / attempts / simulation errors per condition, this session
+    # (attempts exclude simulation errors, as in the report).
+    stats: dict = {}
     bar = tqdm(total=total, initial=initial, unit="trial", disable=not progress,
                desc="evaluate", dynamic_ncols=True)
 
     def tick(recs):
         for r in recs:
-            s = stats.setdefault(r["condition"], [0, 0])
+            s = stats.setdefault(r["condition"], [0, 0, 0])
+            if r["failure_class"] == "simulation-error":
+                s[2] += 1
+                continue
             s[0] += int(r["success"])
             s[1] += 1
         bar.update(1)
-        bar.set_postfix_str(" ".join(f"{k}:{v[0]}/{v[1]}" for k, v in sorted(stats.items())))
+        bar.set_postfix_str(" ".join(f"{k}:{v[0]}/{v[1]}" + (f"({v[2]} err)" if v[2] else "")
+                                     for k, v in sorted(stats.items())))
 
     try:
         if not todo:
@@ -356,6 +656,9 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     if not matches:
         raise ValueError(f"{results_dir}: no trial {trial_id!r}")
     rec = matches[0]
+    if not rec.scenario_yaml:
+        raise ValueError(f"{results_dir}: trial {trial_id!r} has no scenario to replay (building "
+                         f"it failed: {rec.failure_reason})")
     scenario = yaml_load_typed(schema=Scenario, data=rec.scenario_yaml)
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
     page = replay_path(results_dir, trial_id)

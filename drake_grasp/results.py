@@ -2,8 +2,13 @@
 
 Layout::
 
-    DIR/run.json                 what was run: experiment name, resolved settings, code
-                                 version, created time. Written once by the runner.
+    DIR/run.json                 what was run (`montecarlo.run_identity`): experiment, base
+                                 seed, object library and its content hash, every
+                                 condition's resolved scenario without the seed and its
+                                 CNN weights' sha256, code version; plus the most trials
+                                 asked for and the created time. Written by the runner
+                                 before any trial; a resume with another identity is
+                                 refused.
     DIR/trials/<stem>.json       one finished trial (a `TrialRecord`); <stem> is the trial id
                                  with "/" replaced by "__" ("isolation/ctr/0007" ->
                                  "isolation__ctr__0007.json").
@@ -247,9 +252,15 @@ class TrialRecord:
             "time_s": 1.2, "dx_m": 0.03}; {} for none.
         scenario_name: Named scenario the trial was built from.
         scenario_yaml: The fully resolved scenario (seed included): replays the trial exactly.
+            "" when building the scenario raised (a simulation error).
         seed: The trial's seed.
-        config_hash: Hash of the resolved settings, to tell apart runs with other settings.
-        code_version: `drake_grasp.__version__` (plus git describe where known).
+        config_hash: Hash of the condition's resolved settings without the per-trial parts
+            (`montecarlo.config_hash`: the seed, and the object and pose chosen per trial),
+            so all trials of a condition share it; "unresolved" when the trial's scenario
+            could not be built.
+        code_version: `drake_grasp.provenance.code_version()`: package version plus the
+            git commit when run from a checkout ("0.1.0+git.<sha>[+dirty]"), else
+            "0.1.0+unknown".
         success: Grasp held through lift and hold (False for INIT trials: no grasp).
         failure_class: One of `FAILURE_CLASSES` (see `classify_failure`).
         failure_reason: Free text from the supervisor / runner; None on success.

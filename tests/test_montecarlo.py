@@ -1,16 +1,25 @@
 """Monte Carlo runs: records and a report, Dask, kill + resume, errors inside trials."""
 
+import dataclasses
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
-from drake_grasp.montecarlo import evaluate
-from drake_grasp.results import load_records
+import drake_grasp.montecarlo as m
+from drake_grasp.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.montecarlo import config_hash, evaluate
+from drake_grasp.provenance import code_version, file_sha256
+from drake_grasp.report import make_report
+from drake_grasp.results import load_records, read_run_info
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _key(records):
@@ -61,8 +70,12 @@ def test_same_on_a_dask_local_cluster(reference, tmp_path):
 def test_killed_run_resumes_to_the_same_records(reference, tmp_path):
     out, _ = reference
     killed = tmp_path / "killed"
-    code = ("from drake_grasp.montecarlo import evaluate\n"
-            f"evaluate(experiment='smoke', out={str(killed)!r}, trials=2, workers=1, seed=3,"
+    # The child runs the same code; pin its code version to this process's, which is
+    # computed once per process, so a commit landing in the checkout meanwhile cannot make
+    # the resume below a different run.
+    code = ("import drake_grasp.montecarlo as m\n"
+            f"m.code_version = lambda: {m.code_version()!r}\n"
+            f"m.evaluate(experiment='smoke', out={str(killed)!r}, trials=2, workers=1, seed=3,"
             " progress=False, report=False)\n")
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     proc = subprocess.Popen([sys.executable, "-c", code], env=env)
@@ -93,3 +106,246 @@ def test_a_trial_that_throws_is_recorded_and_the_rest_finish(tmp_path):
     assert not bad.success and bad.failure_class == "simulation-error"
     assert "forced failure" in bad.failure_reason and "traceback" in bad.extra
     assert records["smoke/scripted/0000"].failure_class != "simulation-error"
+
+
+# --------------------------------------------------------------------------- resume never mixes runs
+
+def _boom(*args, **kwargs):
+    raise RuntimeError("solver diverged (test)")
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_all_trials_of_a_condition_share_one_config_hash(reference):
+    out, _ = reference
+    records = load_records(out)
+    info = read_run_info(out)
+    by_condition = {}
+    for r in records:
+        by_condition.setdefault(r.condition, set()).add(r.config_hash)
+    # two trials per condition, with different seeds (and objects), one hash each
+    assert {c: len(h) for c, h in by_condition.items()} == {"init": 1, "scripted": 1}
+    assert by_condition["init"] != by_condition["scripted"]
+    assert {c["name"]: {c["config_hash"]} for c in info["conditions"]} == by_condition
+    # the hash ignores the seed and nothing else
+    yaml = records[0].scenario_yaml
+    assert config_hash(yaml) == config_hash(yaml.replace(f"seed: {records[0].seed}\n", "seed: 5\n", 1))
+    assert config_hash(yaml) != config_hash(yaml.replace("step_ratio: 0.2", "step_ratio: 0.3"))
+
+
+def test_run_json_records_the_full_identity(reference):
+    out, _ = reference
+    info = read_run_info(out)
+    assert info["code_version"] == code_version() and "+" in info["code_version"]
+    assert len(info["object_library_hash"]) == 64
+    scripted = next(c for c in info["conditions"] if c["name"] == "scripted")
+    assert scripted["policy"] == "scripted" and scripted["weights_sha256"] is None
+    assert "seed" not in scripted["scenario"]
+    assert scripted["scenario"]["controller"]["step_ratio"] == 0.2
+    # Records carry the version of the process that ran them (the workers here).
+    assert all(r.code_version.startswith("0.1.0+") for r in load_records(out))
+
+
+def test_resume_with_another_scenario_is_refused_and_force_new_starts_a_new_folder(
+        reference, tmp_path, monkeypatch):
+    out = _copy(reference[0], tmp_path / "OUT")
+    before = (out / "run.json").read_text()
+    smoke = EXPERIMENTS["smoke"]
+    monkeypatch.setitem(EXPERIMENTS, "smoke", dataclasses.replace(
+        smoke, scenario_text="{controller: {step_ratio: 0.3}}"))
+    monkeypatch.setattr(m, "_simulate", _boom)  # nothing here needs physics
+    with pytest.raises(ValueError) as e:
+        evaluate(experiment="smoke", out=out, trials=2, workers=1, seed=3, progress=False,
+                 report=False)
+    msg = str(e.value)
+    assert (f"{out / 'run.json'}: conditions[0].scenario.controller.step_ratio: 0.2 in the "
+            "folder, 0.3 now") in msg
+    assert "--force-new" in msg
+    assert (out / "run.json").read_text() == before and len(load_records(out)) == 4
+
+    new = evaluate(experiment="smoke", out=out, trials=1, workers=1, seed=3, progress=False,
+                   report=False, conditions=["scripted"], force_new=True,
+                   fail_trials=("smoke/scripted/0000:scene",))
+    assert new["out"] == str(tmp_path / "OUT-2") and new["ran"] == 1
+    assert "conditions[0].scenario.controller.step_ratio" in new["new_folder_because"]
+    assert read_run_info(tmp_path / "OUT-2")["conditions"][1]["scenario"]["controller"][
+        "step_ratio"] == 0.3
+    (rec,) = load_records(tmp_path / "OUT-2")
+    assert rec.failure_class == "simulation-error" and rec.extra["error_stage"] == "scene"
+    # the old folder is untouched; repeating the command resumes OUT-2, it makes no OUT-3
+    assert (out / "run.json").read_text() == before and len(load_records(out)) == 4
+    again = evaluate(experiment="smoke", out=out, trials=1, workers=1, seed=3, progress=False,
+                     report=False, conditions=["scripted"], force_new=True)
+    assert again["out"] == str(tmp_path / "OUT-2") and again["ran"] == 0
+    assert not (tmp_path / "OUT-3").exists()
+
+
+def test_resume_refuses_other_weights_objects_or_code(tmp_path, monkeypatch, library):
+    weights = tmp_path / "w.safetensors"
+    shutil.copy(ROOT / "models" / "cnn" / "weights.safetensors", weights)
+    objects = tmp_path / "objects"
+    for oid in library.ids(split="test")[:2]:
+        shutil.copytree(library.get(oid).directory, objects / oid)
+    monkeypatch.setitem(EXPERIMENTS, "tiny-ctr", Experiment(
+        name="tiny-ctr", scenario="isolation", trials=1, per_object_poses=True,
+        description="test", conditions=(Condition("ctr", "ctr"),),
+        scenario_text=f"{{controller: {{weights: {str(weights)!r}}}}}"))
+    monkeypatch.setattr(m, "_simulate", _boom)
+    out = tmp_path / "run"
+    kw = dict(experiment="tiny-ctr", out=out, workers=1, seed=0, progress=False, report=False,
+              objects_dir=str(objects))
+    first = evaluate(**kw)
+    assert first["ran"] == 1 and evaluate(**kw)["ran"] == 0  # same run: resumes
+
+    weights.write_bytes(weights.read_bytes() + b"\0")
+    with pytest.raises(ValueError, match=r"conditions\[0\]\.weights_sha256: \"[0-9a-f]{64}\" in "
+                                         r"the folder, \"[0-9a-f]{64}\" now.*--force-new"):
+        evaluate(**kw)
+    weights.write_bytes(weights.read_bytes()[:-1])
+    assert evaluate(**kw)["ran"] == 0
+    info = read_run_info(out)
+    assert info["conditions"][0]["weights_sha256"] == file_sha256(weights)
+    assert load_records(out)[0].code_version == info["code_version"] == code_version()
+
+    mesh = next((objects).glob("*/visual.obj"))
+    mesh.write_text(mesh.read_text() + "\n")
+    with pytest.raises(ValueError, match=r"object_library_hash: .* in the folder, .* now"):
+        evaluate(**kw)
+    mesh.write_text(mesh.read_text()[:-1])
+    assert evaluate(**kw)["ran"] == 0
+
+    monkeypatch.setattr(m, "code_version", lambda: "0.1.0+git.000000000000")
+    with pytest.raises(ValueError, match=r"code_version: \"[^\"]+\" in the folder, "
+                                         r"\"0\.1\.0\+git\.000000000000\" now"):
+        evaluate(**kw)
+    assert len(load_records(out)) == 1
+
+
+def test_smaller_trials_on_resume_reports_only_the_trials_asked(reference, tmp_path):
+    out = _copy(reference[0], tmp_path / "copy")
+    result = evaluate(experiment="smoke", out=out, trials=1, workers=1, seed=3, progress=False)
+    assert result["ran"] == 0 and result["records"] == 4
+    policies = result["summary"]["policies"]
+    assert {c: s["trials"] for c, s in policies.items()} == {"init": 1, "scripted": 1}
+    assert result["summary"]["selection"] == {"trials": 2, "records_in_folder": 4}
+    assert "this report covers the trials of one `evaluate` call (2 of the 4 records" in \
+        (out / "report.md").read_text()
+    only = evaluate(experiment="smoke", out=out, trials=2, workers=1, seed=3, progress=False,
+                    conditions=["scripted"])
+    assert list(only["summary"]["policies"]) == ["scripted"]
+    assert only["summary"]["policies"]["scripted"]["trials"] == 2
+    # `drake-grasp report DIR` reports every record
+    everything = make_report(out)
+    assert {c: s["trials"] for c, s in everything["policies"].items()} == {"init": 2, "scripted": 2}
+    assert everything["selection"] is None
+
+
+# --------------------------------------------------------------------------- errors never abort a run
+
+def test_a_trial_whose_scenario_cannot_be_built_is_recorded(tmp_path, monkeypatch):
+    def no_scenario(*args, **kwargs):
+        raise ValueError("the object library has no 'test' objects")
+
+    monkeypatch.setattr(m, "trial_scenario", no_scenario)
+    result = evaluate(experiment="smoke", out=tmp_path / "err", trials=1, workers=1, seed=3,
+                      progress=False)
+    records = load_records(tmp_path / "err")
+    assert [r.trial_id for r in records] == ["smoke/init/0000", "smoke/scripted/0000"]
+    for r in records:
+        assert r.failure_class == "simulation-error" and r.extra["error_stage"] == "scene"
+        assert "no 'test' objects" in r.failure_reason and r.scenario_yaml == ""
+    scripted = result["summary"]["policies"]["scripted"]
+    assert (scripted["simulation_errors"], scripted["n"], scripted["success_rate"]) == (1, 0, None)
+
+
+def _pile(n=3):
+    from drake_grasp.scene import ObjectPlacement, SceneSpec
+
+    return SceneSpec(kind="clutter", seed=1, center_xy_m=[0.5, 0.0], settled=True, objects=[
+        ObjectPlacement(f"apple_00{i}", [0.5 + 0.02 * i, 0.0, 0.03], [1.0, 0.0, 0.0, 0.0])
+        for i in range(n)])
+
+
+def _scripted_simulate(outcomes, calls):
+    """A stand-in for montecarlo._simulate: attempt k does outcomes[k] ("fail", "ok" or
+    "raise"; "fail" after the script)."""
+    def simulate(scenario, library, *, scene=None):
+        k = len(calls)
+        calls.append(scene)
+        what = outcomes[k] if k < len(outcomes) else "fail"
+        if what == "raise":
+            raise RuntimeError("solver diverged (test)")
+        ok = what == "ok"
+        result = SimpleNamespace(
+            success=ok, failure_reason=None if ok else "missed: nothing between the pads",
+            disturbance={}, final_distance_m=0.01, sim_time_s=1.0, control_steps=3,
+            object_ids=scene.object_ids(), details={"grasped_object_id": scene.objects[0].object_id if ok else None})
+        return SimpleNamespace(result=result, final_scene=scene)
+    return simulate
+
+
+def _fake_clutter(monkeypatch, outcomes):
+    import drake_grasp.scene as scene_module
+
+    calls = []
+    monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
+    monkeypatch.setattr(scene_module, "settle_scene",
+                        lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
+    monkeypatch.setattr(m, "_simulate", _scripted_simulate(outcomes, calls))
+    return calls
+
+
+def _clutter(out, **kw):
+    return evaluate(experiment="clutter", out=out, trials=1, workers=1, seed=0, progress=False,
+                    conditions=["ctr"], **kw)
+
+
+def test_clutter_scene_error_is_recorded_and_ends_the_run(tmp_path, monkeypatch):
+    import drake_grasp.scene as scene_module
+
+    def no_pile(*args, **kwargs):
+        raise RuntimeError("pile did not settle (test)")
+
+    monkeypatch.setattr(scene_module, "make_scene", no_pile)
+    monkeypatch.setattr(m, "_simulate", _boom)
+    result = _clutter(tmp_path / "c")
+    (rec,) = load_records(tmp_path / "c")
+    assert rec.trial_id == "clutter/ctr/0000/attempt00" and rec.failure_class == "simulation-error"
+    assert "pile did not settle" in rec.failure_reason
+    assert rec.extra["error_stage"] == "scene" and rec.extra["run_end"] == "scene could not be built"
+    ctr = result["summary"]["policies"]["ctr"]
+    assert (ctr["trials"], ctr["simulation_errors"], ctr["n"]) == (1, 1, 0)
+    assert _clutter(tmp_path / "c", report=False)["ran"] == 0
+
+
+def test_clutter_simulation_errors_are_not_failed_grasps(tmp_path, monkeypatch):
+    # attempt 0 fails, 1 raises in the simulation, 2 grasps but settling the pile it
+    # leaves raises, 3 and 4 fail: three failed grasps in a row, not counting the errors.
+    calls = _fake_clutter(monkeypatch, ["fail", "raise", "ok", "fail", "fail", "fail"])
+    result = _clutter(tmp_path / "c", fail_trials=("clutter/ctr/0000/attempt02:settle",))
+    records = load_records(tmp_path / "c")
+    assert [r.failure_class for r in records] == [
+        "missed", "simulation-error", "simulation-error", "missed", "missed"]
+    assert [r.extra["error_stage"] for r in records[1:3]] == ["simulation", "settle"]
+    assert "forced failure (test) in settle" in records[2].failure_reason
+    # an attempt that raised leaves the pile as it was: the next one starts from it
+    assert [len(s.objects) for s in calls] == [3, 3, 3, 3, 3]
+    assert records[-1].extra["run_end"] == "3 consecutive failed grasps"
+    assert all("run_end" not in r.extra for r in records[:-1])
+    ctr = result["summary"]["policies"]["ctr"]
+    assert (ctr["trials"], ctr["simulation_errors"], ctr["n"], ctr["successes"]) == (5, 2, 3, 0)
+    assert _clutter(tmp_path / "c", report=False)["ran"] == 0  # finished, on resume too
+
+
+def test_clutter_run_whose_attempts_keep_raising_ends(tmp_path, monkeypatch):
+    calls = _fake_clutter(monkeypatch, ["ok"] + ["raise"] * 20)
+    _clutter(tmp_path / "c", report=False)
+    records = load_records(tmp_path / "c")
+    assert [r.failure_class for r in records] == ["none"] + ["simulation-error"] * 3
+    assert records[-1].extra["run_end"] == "3 consecutive simulation errors"
+    assert len(calls) == 4 and [len(s.objects) for s in calls] == [3, 2, 2, 2]
+    assert _clutter(tmp_path / "c", report=False)["ran"] == 0
+    assert len(calls) == 4

@@ -7,6 +7,7 @@ An object on disk is a folder `<library>/<object_id>/` holding `model.urdf`
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import xml.etree.ElementTree as ET
@@ -213,6 +214,7 @@ class ObjectLibrary:
         self._index = dict(index)
         self._builtin = builtin
         self._infos: dict[str, ObjectInfo] = dict(infos or {})
+        self._content_hash: str | None = None
 
     @classmethod
     def builtin(cls, cache_dir: str | Path | None = None) -> "ObjectLibrary":
@@ -329,6 +331,33 @@ class ObjectLibrary:
             raise ValueError(f"{exc}{hint}") from exc
         self._infos[object_id] = info
         return info
+
+    def content_hash(self) -> str:
+        """SHA-256 hex digest that changes when the library's objects change (cached).
+
+        - The built-in procedural library: a hash of the generator version
+          (`GENERATOR_VERSION`) and every (id, category, split), not of the generated
+          files. The files are a deterministic function of the generator code, which the
+          code version covers, so no object has to be generated to compute it.
+        - A user library (`from_dir`): a hash over the sorted ids and, for each object,
+          `provenance.tree_sha256` of its folder (every file's relative path and bytes:
+          model.urdf, meshes, meta.json). Editing, adding or removing an object changes it.
+        """
+        if self._content_hash is None:
+            h = hashlib.sha256()
+            if self._builtin:
+                h.update(f"builtin procedural library, generator v{cat.GENERATOR_VERSION}\n".encode())
+                for oid in sorted(self._index):
+                    category, split = self._index[oid]
+                    h.update(f"{oid}\0{category}\0{split}\n".encode())
+            else:
+                from drake_grasp.provenance import tree_sha256
+
+                h.update(b"user library\n")
+                for oid in sorted(self._index):
+                    h.update(f"{oid}\0{tree_sha256(self.get(oid).directory)}\n".encode())
+            self._content_hash = h.hexdigest()
+        return self._content_hash
 
     def __repr__(self) -> str:
         kind = "builtin" if self._builtin else "user"
