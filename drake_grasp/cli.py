@@ -127,7 +127,7 @@ def _cmd_train(args) -> int:
 
     config = TrainConfig(epochs=args.epochs, batch_instances=args.batch, learning_rate=args.lr,
                          momentum=args.momentum, seed=args.seed, device=args.device,
-                         threads=args.threads)
+                         threads=args.threads, max_memory_gb=args.max_memory_gb)
     metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
                       "device": metrics["device"], "out": str(args.out)}))
@@ -267,8 +267,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=0.001, help="SGD learning rate (paper: 0.001)")
     p.add_argument("--momentum", type=float, default=0.9, help="SGD momentum (paper: 0.9)")
     p.add_argument("--seed", type=int, default=0, help="initial weights and shuffling seed")
-    p.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
-    p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch default)")
+    p.add_argument("--device", default="auto",
+                   help="auto (GPU when present), cpu or cuda; may differ when resuming "
+                        "(a run started on a CPU continues on a GPU and back)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="CPU threads (0: torch default); may differ when resuming")
+    p.add_argument("--max-memory-gb", type=float, default=8.0,
+                   help="most memory the data loader may hold, in GB (default 8): cached "
+                        "HDF5 chunks of both sets plus the batch being assembled; larger "
+                        "datasets stream from the shards (slower epochs, the same batches). "
+                        "Too small for one batch is an error. May differ when resuming")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "

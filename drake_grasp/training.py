@@ -5,11 +5,25 @@ An instance is one (image, offset, label) triple. A batch of 1000 instances is 1
 with their 10 labelled offsets each, which the factored fast path scores with one image
 pass per image (`DistanceCNN.forward_factored`).
 
+Data loading. Both sets are read from their HDF5 shards through one least-recently-used
+cache of decoded HDF5 chunks (`ChunkCache`), bounded by `TrainConfig.max_memory_gb`
+(`--max-memory-gb`) together with the batch being assembled. A set that fits stays in
+memory after its first pass; a larger one streams, re-reading chunks as they are evicted
+(slower epochs, the same batches). The bound covers what the loader holds: the cached
+chunks and the batch (counted twice: as gathered and as the network's normalized copy);
+the network's activations and the Python/torch runtime come on top.
+
+Identity of a run. Resuming into an output folder requires the same configuration and
+datasets; the number of epochs may grow, and `device`, `threads` and `max_memory_gb` may
+differ (a run started on a CPU can continue on a GPU and back). Checkpoints are loaded
+with `weights_only=True` and `map_location="cpu"`, so a checkpoint written on a GPU loads
+on a machine without one.
+
 Output folder:
 
     checkpoint.pt        model + optimizer + epoch + RNG state after the last finished
                          epoch (torch.save; loaded with weights_only=True)
-    metrics.json         per-epoch train/test L1 [m], timing, and the final test_l1_m
+    metrics.json         per-epoch train/test L1 [m], timing, device, and the final test_l1_m
     learning_curves.png  train and test L1 per epoch
     weights.safetensors  final weights with metadata (network.save_weights)
     train_config.json    the resolved training configuration
@@ -17,6 +31,7 @@ Output folder:
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import json
@@ -28,9 +43,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drake_grasp import __version__
-from drake_grasp.dataset import DepthGraspDataset, load_manifest
+from drake_grasp.dataset import load_manifest, replace_durably
 from drake_grasp.network import DistanceCNN, NetworkConfig, save_weights
+from drake_grasp.provenance import code_version
+
+# Settings that say where and how fast a run computes, not what it computes: they may
+# change when a run is resumed (with `epochs`, which may grow).
+NOT_IDENTITY = ("epochs", "device", "threads", "max_memory_gb")
 
 
 @dataclass
@@ -42,7 +61,8 @@ class TrainConfig:
     learning_rate: float = 0.001
     momentum: float = 0.9
     seed: int = 0
-    # Largest dataset held in memory [GB]; both sets are loaded once (fast epochs).
+    # Most memory the data loader may hold [GB]: cached HDF5 chunks of both sets plus
+    # the batch being assembled. Data beyond it is streamed from the shards.
     max_memory_gb: float = 8.0
     device: str = "auto"
     threads: int = 0  # 0 = torch default
@@ -54,45 +74,208 @@ class TrainConfig:
             raise ValueError(f"batch_instances: expected >= 1, got {self.batch_instances}")
         if self.learning_rate <= 0:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
+        if not self.max_memory_gb > 0:
+            raise ValueError(f"max_memory_gb: expected > 0, got {self.max_memory_gb}")
+        if self.threads < 0:
+            raise ValueError(f"threads: expected >= 0 (0: torch default), got {self.threads}")
 
 
-@dataclass
-class ArraySet:
-    """A dataset loaded into memory: depth (N, H, W), offsets (N, M, 3), labels (N, M)."""
+# ----------------------------------------------------------------------------
+# Data loading, bounded in memory.
 
-    depth: np.ndarray
-    offsets: np.ndarray
-    labels: np.ndarray
-    manifest_sha256: str
+
+class ChunkCache:
+    """Decoded HDF5 chunks, least recently used evicted first, at most `budget_bytes`.
+
+    `held_bytes` is what the cache holds now and `peak_bytes` the most it held;
+    `loads` counts chunks read from disk (more than the number of chunks means some
+    were evicted and read again).
+    """
+
+    def __init__(self, budget_bytes: int):
+        self.budget_bytes = int(budget_bytes)
+        self.reserved_bytes = 0  # kept free beside the cache (for the batch)
+        self._items: collections.OrderedDict = collections.OrderedDict()
+        self.held_bytes = 0
+        self.peak_bytes = 0
+        self.loads = 0
+
+    def get(self, key, load, nbytes: int):
+        """The arrays cached under `key`, loaded by `load()` (`nbytes` in all) if absent."""
+        item = self._items.get(key)
+        if item is not None:
+            self._items.move_to_end(key)
+            return item[0]
+        if nbytes > self.budget_bytes:
+            raise ValueError(f"a chunk of {nbytes} bytes exceeds the cache of "
+                             f"{self.budget_bytes} bytes")
+        while self._items and self.held_bytes + nbytes > self.budget_bytes:
+            # No local name may keep the evicted arrays alive while the next one loads.
+            self.held_bytes -= self._items.popitem(last=False)[1][1]
+        arrays = load()
+        size = int(sum(a.nbytes for a in arrays))
+        self._items[key] = (arrays, size)
+        self.held_bytes += size
+        self.peak_bytes = max(self.peak_bytes, self.held_bytes)
+        self.loads += 1
+        return arrays
+
+    def clear(self) -> None:
+        self._items.clear()
+        self.held_bytes = 0
+
+
+class ShardSet:
+    """A dataset read from its shards through a `ChunkCache`: `gather(indices)` gives
+    (depth (B, H, W), offsets (B, M, 3), labels (B, M)) float32 for sorted image indices."""
+
+    MAX_OPEN_FILES = 2
+
+    def __init__(self, data_dir: str | Path, cache: ChunkCache):
+        import h5py
+
+        self.root = Path(data_dir)
+        self.manifest = load_manifest(self.root)
+        self.cache = cache
+        self._files: list[Path] = []
+        self._chunk_rows: list[int] = []
+        counts = []
+        shapes = set()
+        for shard in self.manifest["shards"]:
+            path = self.root / shard["file"]
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: listed in the manifest but missing")
+            try:
+                with h5py.File(path, "r") as f:
+                    depth, offsets = f["depth"], f["offsets"]
+                    n = depth.shape[0]
+                    if n != shard["num_images"] or f["labels"].shape[0] != n \
+                            or offsets.shape[0] != n:
+                        raise ValueError(f"holds {n} images, the manifest says "
+                                         f"{shard['num_images']}")
+                    if n:
+                        shapes.add((depth.shape[1:], offsets.shape[1:]))
+                    self._chunk_rows.append(int(depth.chunks[0]) if depth.chunks else max(n, 1))
+            except (OSError, KeyError, ValueError) as e:
+                raise ValueError(f"corrupt dataset shard {path}: {e}") from None
+            self._files.append(path)
+            counts.append(n)
+        if not sum(counts):
+            raise ValueError(f"{data_dir}: the dataset has no images")
+        if len(shapes) != 1:
+            raise ValueError(f"{data_dir}: shards disagree on image or offset shapes: {shapes}")
+        (self.image_shape, offsets_shape), = shapes
+        self.offsets_per_image = int(offsets_shape[0])
+        self._counts = np.array(counts, dtype=np.int64)
+        self._starts = np.concatenate([[0], np.cumsum(self._counts)])
+        self._open: collections.OrderedDict = collections.OrderedDict()
+        self.manifest_sha256 = hashlib.sha256((self.root / "manifest.json").read_bytes()).hexdigest()
 
     def __len__(self) -> int:
-        return len(self.depth)
+        return int(self._starts[-1])
 
+    @property
+    def num_labels(self) -> int:
+        return len(self) * self.offsets_per_image
 
-def load_arrays(data_dir: str | Path, *, max_memory_gb: float) -> ArraySet:
-    """Reads every shard of a dataset into memory (chunk-wise, not image by image)."""
-    import h5py
+    @property
+    def bytes_per_image(self) -> int:
+        """float32 depth, offsets and labels of one image."""
+        m = self.offsets_per_image
+        return 4 * (int(np.prod(self.image_shape)) + 3 * m + m)
 
-    ds = DepthGraspDataset(data_dir)
-    m = ds.manifest
-    size_gb = m["num_images"] * (64 * 64 * 4 + 10 * 16) / 1e9
-    if size_gb > max_memory_gb:
-        raise ValueError(f"{data_dir}: {size_gb:.1f} GB exceeds max_memory_gb={max_memory_gb}")
-    depth, offsets, labels = [], [], []
-    for shard in m["shards"]:
-        path = Path(data_dir) / shard["file"]
+    def max_chunk_bytes(self) -> int:
+        rows = max(min(r, int(c)) for r, c in zip(self._chunk_rows, self._counts))
+        return rows * self.bytes_per_image
+
+    def _file(self, k: int):
+        import h5py
+
+        f = self._open.get(k)
+        if f is not None:
+            self._open.move_to_end(k)
+            return f
+        while len(self._open) >= self.MAX_OPEN_FILES:
+            _, old = self._open.popitem(last=False)
+            old.close()
         try:
-            with h5py.File(path, "r") as f:
-                depth.append(f["depth"][:])
-                offsets.append(f["offsets"][:])
-                labels.append(f["labels"][:])
-        except (OSError, KeyError) as e:
-            raise ValueError(f"corrupt dataset shard {path}: {e}") from None
-    if not depth or sum(len(d) for d in depth) == 0:
-        raise ValueError(f"{data_dir}: the dataset has no images")
-    sha = hashlib.sha256((Path(data_dir) / "manifest.json").read_bytes()).hexdigest()
-    return ArraySet(np.concatenate(depth), np.concatenate(offsets).astype(np.float32),
-                    np.concatenate(labels).astype(np.float32), sha)
+            # No HDF5 chunk cache: whole chunks are read once into ChunkCache.
+            f = h5py.File(self._files[k], "r", rdcc_nbytes=0)
+        except OSError as e:
+            raise ValueError(f"corrupt dataset shard {self._files[k]}: {e}") from None
+        self._open[k] = f
+        return f
+
+    def _chunk(self, k: int, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        rows = self._chunk_rows[k]
+        lo, hi = c * rows, min((c + 1) * rows, int(self._counts[k]))
+
+        def load():
+            f = self._file(k)
+            try:
+                return (np.asarray(f["depth"][lo:hi], np.float32),
+                        np.asarray(f["offsets"][lo:hi], np.float32),
+                        np.asarray(f["labels"][lo:hi], np.float32))
+            except (OSError, KeyError) as e:
+                raise ValueError(f"corrupt dataset shard {self._files[k]}: {e}") from None
+
+        return self.cache.get((id(self), k, c), load, (hi - lo) * self.bytes_per_image)
+
+    def gather(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Images `indices` (sorted, in range) with their offsets and labels, in order."""
+        indices = np.asarray(indices, dtype=np.int64)
+        n, m = len(indices), self.offsets_per_image
+        depth = np.empty((n, *self.image_shape), np.float32)
+        offsets = np.empty((n, m, 3), np.float32)
+        labels = np.empty((n, m), np.float32)
+        shard = np.searchsorted(self._starts, indices, side="right") - 1
+        row = indices - self._starts[shard]
+        chunk = row // np.asarray(self._chunk_rows, dtype=np.int64)[shard]
+        key = shard * (1 << 32) + chunk
+        # Runs of one chunk (indices are sorted, so each chunk is one run).
+        cuts = np.flatnonzero(np.diff(key)) + 1
+        for lo, hi in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])):
+            k, c = int(shard[lo]), int(chunk[lo])
+            d, o, lab = self._chunk(k, c)
+            r = row[lo:hi] - c * self._chunk_rows[k]
+            depth[lo:hi], offsets[lo:hi], labels[lo:hi] = d[r], o[r], lab[r]
+            del d, o, lab  # so that an evicted chunk is freed before the next one loads
+        return depth, offsets, labels
+
+    def close(self) -> None:
+        for f in self._open.values():
+            f.close()
+        self._open.clear()
+
+
+def open_training_sets(train_dir: str | Path, test_dir: str | Path, *, max_memory_gb: float,
+                       images_per_batch: int | None = None,
+                       batch_instances: int = 1000) -> tuple[ShardSet, ShardSet, ChunkCache]:
+    """Both sets over one chunk cache sized so that it and one batch fit `max_memory_gb`.
+
+    Raises:
+        ValueError: when `max_memory_gb` cannot hold even one batch and one chunk.
+    """
+    budget = int(max_memory_gb * 1e9)
+    cache = ChunkCache(budget)  # resized below, once the batch size is known
+    train_set, test_set = ShardSet(train_dir, cache), ShardSet(test_dir, cache)
+    if images_per_batch is None:
+        images_per_batch = max(1, batch_instances // train_set.offsets_per_image)
+    per_image = max(train_set.bytes_per_image, test_set.bytes_per_image)
+    batch_bytes = 2 * images_per_batch * per_image  # gathered + the network's copy
+    chunk = max(train_set.max_chunk_bytes(), test_set.max_chunk_bytes())
+    if batch_bytes + chunk > budget:
+        need = batch_bytes + chunk
+        raise ValueError(
+            f"--max-memory-gb {max_memory_gb:g}: too small for even one batch: "
+            f"{images_per_batch} images with their offsets and labels take "
+            f"{batch_bytes / 1e6:.2f} MB (counted twice: as read and as the network's "
+            f"input) and the HDF5 chunk they are read from up to {chunk / 1e6:.2f} MB, "
+            f"{need / 1e6:.2f} MB in all; raise --max-memory-gb to at least "
+            f"{np.ceil(need / 1e6) / 1e3:g} or lower --batch")
+    cache.budget_bytes = budget - batch_bytes
+    cache.reserved_bytes = batch_bytes
+    return train_set, test_set, cache
 
 
 def resolve_data_dirs(data: str | Path, test_data: str | Path | None) -> tuple[Path, Path]:
@@ -115,29 +298,39 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def evaluate_l1(model: DistanceCNN, data: ArraySet, *, device, batch_images: int = 200) -> float:
+def evaluate_l1(model: DistanceCNN, data: ShardSet, *, device, batch_images: int = 200) -> float:
     """Mean absolute error [m] over every labelled offset of a set."""
     model.eval()
     total, count = 0.0, 0
     with torch.no_grad():
         for start in range(0, len(data), batch_images):
-            sl = slice(start, start + batch_images)
-            images = model.preprocess(data.depth[sl]).to(device)
-            actions = torch.as_tensor(data.offsets[sl], device=device, dtype=model.dtype)
-            labels = torch.as_tensor(data.labels[sl], device=device, dtype=model.dtype)
+            depth, offsets, labels = data.gather(np.arange(start, min(start + batch_images, len(data))))
+            images = model.preprocess(depth).to(device)
+            actions = torch.as_tensor(offsets, device=device, dtype=model.dtype)
+            targets = torch.as_tensor(labels, device=device, dtype=model.dtype)
+            del depth, offsets, labels
             pred = model.forward_factored(images, actions)
-            total += float((pred - labels).abs().sum())
-            count += labels.numel()
+            total += float((pred - targets).abs().sum())
+            count += targets.numel()
+            del images, actions, targets, pred
     return total / max(count, 1)
 
 
 def _save_checkpoint(path: Path, model, optimizer, epoch: int, generator: torch.Generator,
                      metrics: dict, config_hash: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "epoch": epoch, "generator": generator.get_state(),
                 "metrics_json": json.dumps(metrics), "config_hash": config_hash}, tmp)
-    os.replace(tmp, path)
+    replace_durably(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A training checkpoint, its tensors on the CPU whatever device wrote them.
+
+    `weights_only=True`: a checkpoint file cannot run code when loaded.
+    """
+    return torch.load(path, weights_only=True, map_location="cpu")
 
 
 def plot_learning_curves(metrics: dict, path: Path) -> None:
@@ -162,13 +355,20 @@ def plot_learning_curves(metrics: dict, path: Path) -> None:
     tmp.replace(path)
 
 
+def _identity_hash(resolved: dict, *, exclude: tuple[str, ...]) -> str:
+    hashed = {**resolved, "train": {k: v for k, v in resolved["train"].items()
+                                    if k not in exclude}}
+    return hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = None,
           config: TrainConfig | None = None, network: NetworkConfig | None = None,
           progress: bool = True) -> dict:
     """Trains (or resumes training of) the distance CNN; returns the metrics.
 
     Re-running into the same `out` continues after the last finished epoch, provided the
-    configuration and datasets are the same (else an error names what differs).
+    configuration and datasets are the same (else an error names what differs); the
+    epochs may grow, and device, threads and max_memory_gb may differ.
     """
     from tqdm import tqdm
 
@@ -178,10 +378,10 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     train_dir, test_dir = resolve_data_dirs(data, test_data)
-    train_set = load_arrays(train_dir, max_memory_gb=config.max_memory_gb)
-    test_set = load_arrays(test_dir, max_memory_gb=config.max_memory_gb)
-    m = train_set.offsets.shape[1]
-    images_per_batch = max(1, config.batch_instances // m)
+    train_set, test_set, cache = open_training_sets(
+        train_dir, test_dir, max_memory_gb=config.max_memory_gb,
+        batch_instances=config.batch_instances)
+    images_per_batch = max(1, config.batch_instances // train_set.offsets_per_image)
     device = _device(config.device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -189,30 +389,31 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
                 "train_data": str(train_dir), "test_data": str(test_dir),
                 "train_manifest_sha256": train_set.manifest_sha256,
                 "test_manifest_sha256": test_set.manifest_sha256}
-    # Epoch count may grow on resume; everything else must match.
-    hashed = {**resolved, "train": {k: v for k, v in resolved["train"].items() if k != "epochs"}}
-    config_hash = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:16]
+    config_hash = _identity_hash(resolved, exclude=NOT_IDENTITY)
+    # Checkpoints written before device, threads and max_memory_gb left the identity
+    # hashed them too: such a checkpoint resumes when they are given as they were.
+    legacy_hash = _identity_hash(resolved, exclude=("epochs",))
 
     generator = torch.Generator().manual_seed(config.seed)
     model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed)).to(device)
     optimizer = torch.optim.SGD(model.parameters(), lr=config.learning_rate,
                                 momentum=config.momentum)
-    metrics = {"epochs": [], "device": str(device), "code_version": __version__,
-               "num_train_images": len(train_set), "num_test_images": len(test_set),
-               "num_train_labels": int(train_set.labels.size),
-               "num_test_labels": int(test_set.labels.size)}
+    metrics = {"epochs": [], "num_train_images": len(train_set),
+               "num_test_images": len(test_set), "num_train_labels": train_set.num_labels,
+               "num_test_labels": test_set.num_labels}
     start_epoch = 1
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, weights_only=True, map_location=device)
-        if ckpt["config_hash"] != config_hash:
+        ckpt = load_checkpoint(ckpt_path)
+        if ckpt["config_hash"] not in (config_hash, legacy_hash):
             raise ValueError(f"{ckpt_path}: made with another configuration or dataset; "
                              "use another --out")
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
+        model.load_state_dict(ckpt["model"])  # copies onto the model's device
+        optimizer.load_state_dict(ckpt["optimizer"])  # state follows the parameters
         generator.set_state(ckpt["generator"])
         metrics = json.loads(ckpt["metrics_json"])
         start_epoch = int(ckpt["epoch"]) + 1
+    metrics.update(device=str(device), code_version=code_version())
     (out / "train_config.json").write_text(json.dumps(resolved, indent=1))
 
     for epoch in range(start_epoch, config.epochs + 1):
@@ -225,27 +426,41 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
                    unit="batch", dynamic_ncols=True)
         for start in bar:
             idx = np.sort(order[start:start + images_per_batch])
-            images = model.preprocess(train_set.depth[idx]).to(device)
-            actions = torch.as_tensor(train_set.offsets[idx], device=device, dtype=model.dtype)
-            labels = torch.as_tensor(train_set.labels[idx], device=device, dtype=model.dtype)
-            loss = (model.forward_factored(images, actions) - labels).abs().mean()
+            depth, offsets, labels = train_set.gather(idx)
+            images = model.preprocess(depth).to(device)
+            actions = torch.as_tensor(offsets, device=device, dtype=model.dtype)
+            targets = torch.as_tensor(labels, device=device, dtype=model.dtype)
+            del depth, offsets, labels  # one batch at a time within --max-memory-gb
+            loss = (model.forward_factored(images, actions) - targets).abs().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += float(loss.detach()) * labels.numel()
-            count += labels.numel()
+            total += float(loss.detach()) * targets.numel()
+            count += targets.numel()
+            del images, actions, targets, loss
             bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
         train_seconds = time.perf_counter() - t0
-        test_l1 = evaluate_l1(model, test_set, device=device)
+        test_l1 = evaluate_l1(model, test_set, device=device, batch_images=images_per_batch)
         metrics["epochs"].append({"epoch": epoch, "train_l1_m": total / max(count, 1),
                                   "test_l1_m": test_l1, "seconds": train_seconds,
-                                  "samples_per_s": count / train_seconds})
+                                  "samples_per_s": count / train_seconds,
+                                  "device": str(device), "chunk_loads": cache.loads})
         metrics["test_l1_m"] = test_l1
+        # What the data loader held (bytes); depends on --max-memory-gb, not the result.
+        metrics["loader"] = {"max_memory_bytes": int(config.max_memory_gb * 1e9),
+                             "batch_reserve_bytes": cache.reserved_bytes,
+                             "cache_budget_bytes": cache.budget_bytes,
+                             "cache_peak_bytes": cache.peak_bytes,
+                             "dataset_bytes": (len(train_set) + len(test_set))
+                             * train_set.bytes_per_image,
+                             "chunk_loads": cache.loads}
         _save_checkpoint(ckpt_path, model, optimizer, epoch, generator, metrics, config_hash)
-        tmp = out / "metrics.json.tmp"
+        tmp = out / f"metrics.json.{os.getpid()}.tmp"
         tmp.write_text(json.dumps(metrics, indent=1))
-        os.replace(tmp, out / "metrics.json")
+        replace_durably(tmp, out / "metrics.json")
         plot_learning_curves(metrics, out / "learning_curves.png")
+    train_set.close()
+    test_set.close()
 
     save_weights(model.cpu(), out / "weights.safetensors", metadata={
         "train_manifest_sha256": train_set.manifest_sha256,

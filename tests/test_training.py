@@ -1,5 +1,6 @@
 """Training: the model learns a tiny synthetic task; checkpoints resume; metrics written."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -82,3 +83,115 @@ def test_other_data_in_the_same_out_is_refused(data, tmp_path):
 def test_a_single_dataset_needs_a_test_set(data, tmp_path):
     with pytest.raises(ValueError, match="--test-data"):
         train(data=data / "train", out=tmp_path / "o", config=_config(1), progress=False)
+
+
+# ----------------------------------------------------------------------------
+# Resuming on another device, and memory.
+
+
+def test_resume_with_another_device_setting_and_thread_count_continues_the_run(data, tmp_path):
+    """device, threads and max_memory_gb say where a run computes, not what: a run
+    started with device="cpu", 1 thread, resumes with device="auto", 2 threads and
+    another memory bound, and ends where an uninterrupted run does."""
+    straight = train(data=data, out=tmp_path / "straight", config=_config(3), progress=False)
+    first = dataclasses.replace(_config(1), device="cpu", threads=1, max_memory_gb=8.0)
+    train(data=data, out=tmp_path / "run", config=first, progress=False)
+    later = dataclasses.replace(_config(3), device="auto", threads=2, max_memory_gb=0.5)
+    resumed = train(data=data, out=tmp_path / "run", config=later, progress=False)
+    assert [e["epoch"] for e in resumed["epochs"]] == [1, 2, 3]
+    assert resumed["test_l1_m"] == pytest.approx(straight["test_l1_m"], rel=1e-4)
+    torch.set_num_threads(2)
+
+
+def test_a_checkpoint_whose_tensors_are_tagged_cuda_resumes_on_cpu(data, tmp_path, monkeypatch):
+    """A checkpoint written on a GPU: its tensors are re-saved tagged "cuda:0" (as
+    torch.save records CUDA tensors), then training resumes from it on the CPU."""
+    import torch.serialization
+
+    out = tmp_path / "run"
+    train(data=data, out=out, config=_config(1), progress=False)
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    with monkeypatch.context() as m:
+        m.setattr(torch.serialization, "location_tag", lambda storage: "cuda:0")
+        torch.save(ckpt, out / "checkpoint.pt")
+    if not torch.cuda.is_available():  # the file really claims CUDA tensors
+        with pytest.raises(RuntimeError, match="CUDA"):
+            torch.load(out / "checkpoint.pt", weights_only=True)
+    resumed = train(data=data, out=out, config=_config(2), progress=False)
+    assert [e["epoch"] for e in resumed["epochs"]] == [1, 2]
+    assert resumed["epochs"][1]["device"] == "cpu"
+
+
+@pytest.fixture(scope="module")
+def big(tmp_path_factory):
+    """256 train images in 4 HDF5 chunks of 64 and 64 test images: about 5.3 MB as float32."""
+    root = tmp_path_factory.mktemp("big")
+    _synthetic(root / "train", seed=0, scenes=4, images=64)
+    _synthetic(root / "test", seed=1, scenes=1, images=64)
+    return root
+
+
+BUDGET_GB = 0.0025  # 2.5 MB: room for two chunks and a batch, not for the data
+
+
+def test_training_streams_a_dataset_larger_than_max_memory_gb(big, tmp_path):
+    config = dataclasses.replace(_config(1), max_memory_gb=BUDGET_GB)
+    metrics = train(data=big, out=tmp_path / "run", config=config, progress=False)
+    loader = metrics["loader"]
+    assert loader["dataset_bytes"] > BUDGET_GB * 1e9  # the data does not fit...
+    assert loader["chunk_loads"] > 2 * 5  # ...so chunks were evicted and read again
+    assert loader["cache_peak_bytes"] + loader["batch_reserve_bytes"] <= BUDGET_GB * 1e9
+    assert metrics["num_train_images"] == 256 and len(metrics["epochs"]) == 1
+
+
+def test_loader_memory_measured_with_tracemalloc_stays_under_max_memory_gb(big):
+    """Bytes allocated by numpy and h5py (tracemalloc) while the loader serves one
+    shuffled training epoch and a test pass, batch by batch as training does."""
+    import tracemalloc
+
+    from drake_grasp.training import open_training_sets
+
+    train_set, test_set, cache = open_training_sets(big / "train", big / "test",
+                                                    max_memory_gb=BUDGET_GB, batch_instances=80)
+    per_batch = 8
+    order = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(0)).numpy()
+    checked = []
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        for start in range(0, len(order), per_batch):
+            batch = train_set.gather(np.sort(order[start:start + per_batch]))
+            if start % (8 * per_batch) == 0:
+                checked.append((start, batch[2][:, 0].copy()))  # a few labels, to compare
+            del batch
+        for start in range(0, len(test_set), per_batch):
+            batch = test_set.gather(np.arange(start, min(start + per_batch, len(test_set))))
+            del batch
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    data_bytes = (len(train_set) + len(test_set)) * train_set.bytes_per_image
+    assert data_bytes > 2 * BUDGET_GB * 1e9  # holding the sets would take twice the bound
+    assert cache.loads > 5  # chunks were evicted and read again
+    print(f"loader peak {peak} bytes (tracemalloc), bound {BUDGET_GB * 1e9:.0f}, "
+          f"data {data_bytes}, chunk loads {cache.loads}")
+    assert 1e6 < peak <= BUDGET_GB * 1e9, peak  # at least one chunk, at most the bound
+    # The same batches as a loader that holds everything: the bound changes speed only.
+    roomy, _, roomy_cache = open_training_sets(big / "train", big / "test", max_memory_gb=1.0,
+                                               batch_instances=80)
+    for start, labels in checked:
+        np.testing.assert_array_equal(
+            roomy.gather(np.sort(order[start:start + per_batch]))[2][:, 0], labels)
+    assert roomy_cache.loads <= 4
+
+
+def test_max_memory_gb_too_small_for_one_batch_is_refused(big, tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    rc = main(["train", "--data", str(big), "--out", str(tmp_path / "o"), "--epochs", "1",
+               "--batch", "80", "--max-memory-gb", "0.001"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "--max-memory-gb 0.001: too small for even one batch: 8 images" in err
+    assert not (tmp_path / "o" / "checkpoint.pt").exists()
