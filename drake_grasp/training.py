@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from drake_grasp.dataset import load_manifest, replace_durably
+from drake_grasp.native import load_llvm_users_first
 from drake_grasp.network import DistanceCNN, NetworkConfig, save_weights
 from drake_grasp.provenance import code_version
 
@@ -396,6 +397,9 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
 
     generator = torch.Generator().manual_seed(config.seed)
     model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed)).to(device)
+    # Creating an optimizer loads triton's LLVM; keep it apart from a renderer's
+    # (drake_grasp.native).
+    load_llvm_users_first()
     optimizer = torch.optim.SGD(model.parameters(), lr=config.learning_rate,
                                 momentum=config.momentum)
     metrics = {"epochs": [], "num_train_images": len(train_set),
