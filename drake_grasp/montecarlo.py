@@ -40,6 +40,8 @@ from drake_grasp.provenance import code_version, file_sha256
 CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
+# No clutter run goes beyond this many attempts (the paper: 74 CTR attempts in 10 runs).
+MAX_ATTEMPTS_PER_RUN = 60
 
 
 @dataclass(frozen=True)
@@ -399,7 +401,10 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
     - the run ends after `experiment.max_consecutive_failures` failed grasps in a row;
     - so that a pile on which every attempt raises cannot loop for ever, it ends after
       `MAX_CONSECUTIVE_SIMULATION_ERRORS` (3) simulation errors in a row;
-    - it ends when no object is left, or none is left in view.
+    - it ends when no object is left, or none is left in view;
+    - a successful grasp that left the pile as large as it was (the judge named an object
+      that the pile does not hold) ends it, since the next attempt would face the same
+      pile; and no run goes beyond `MAX_ATTEMPTS_PER_RUN` attempts.
 
     Args:
         records: The run's attempt records (any order).
@@ -424,6 +429,13 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
         return f"{experiment.max_consecutive_failures} consecutive failed grasps"
     if errors >= MAX_CONSECUTIVE_SIMULATION_ERRORS:
         return f"{MAX_CONSECUTIVE_SIMULATION_ERRORS} consecutive simulation errors"
+    if len(records) >= MAX_ATTEMPTS_PER_RUN:
+        return f"{MAX_ATTEMPTS_PER_RUN} attempts (the cap per run)"
+    last = records[-1]
+    if last.success and "scene" in last.extra and (
+            len(nxt.get("objects", [])) >= len(last.extra["scene"].get("objects", []))):
+        return (f"a successful grasp removed no object from the pile (grasped object "
+                f"{last.grasped_object_id!r})")
     nxt = SceneSpec.from_dict(nxt)
     if not nxt.objects:
         return "no objects left"

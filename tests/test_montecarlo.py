@@ -269,7 +269,7 @@ def _pile(n=3):
         for i in range(n)])
 
 
-def _scripted_simulate(outcomes, calls):
+def _scripted_simulate(outcomes, calls, grasped=None):
     """A stand-in for montecarlo._simulate: attempt k does outcomes[k] ("fail", "ok" or
     "raise"; "fail" after the script)."""
     def simulate(scenario, library, *, scene=None):
@@ -282,19 +282,19 @@ def _scripted_simulate(outcomes, calls):
         result = SimpleNamespace(
             success=ok, failure_reason=None if ok else "missed: nothing between the pads",
             disturbance={}, final_distance_m=0.01, sim_time_s=1.0, control_steps=3,
-            object_ids=scene.object_ids(), details={"grasped_object_id": scene.objects[0].object_id if ok else None})
+            object_ids=scene.object_ids(), details={"grasped_object_id": (grasped or scene.objects[0].object_id) if ok else None})
         return SimpleNamespace(result=result, final_scene=scene)
     return simulate
 
 
-def _fake_clutter(monkeypatch, outcomes):
+def _fake_clutter(monkeypatch, outcomes, grasped=None):
     import drake_grasp.scene as scene_module
 
     calls = []
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
-    monkeypatch.setattr(m, "_simulate", _scripted_simulate(outcomes, calls))
+    monkeypatch.setattr(m, "_simulate", _scripted_simulate(outcomes, calls, grasped))
     return calls
 
 
@@ -349,3 +349,12 @@ def test_clutter_run_whose_attempts_keep_raising_ends(tmp_path, monkeypatch):
     assert len(calls) == 4 and [len(s.objects) for s in calls] == [3, 2, 2, 2]
     assert _clutter(tmp_path / "c", report=False)["ran"] == 0
     assert len(calls) == 4
+
+
+def test_clutter_run_whose_successes_remove_nothing_ends(tmp_path, monkeypatch):
+    calls = _fake_clutter(monkeypatch, ["ok"] * 200, grasped="not_in_the_pile")
+    _clutter(tmp_path / "c", report=False)
+    records = load_records(tmp_path / "c")
+    assert len(records) == 1 and len(calls) == 1
+    assert records[-1].extra["run_end"].startswith("a successful grasp removed no object")
+    assert _clutter(tmp_path / "c", report=False)["ran"] == 0
