@@ -21,8 +21,17 @@ from drake_grasp.objects.model_files import ContactMaterial, write_object_dir
 
 SUPPORTED_SUFFIXES = (".obj", ".stl", ".ply", ".gltf", ".glb")
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,100}$")
+# Plausible size of a graspable household object: its bounding-box diagonal (a 1 cm
+# bead to a 1 m broom handle) and its thinnest side (a sheet thinner than 1 mm has no
+# volume to simulate as a compliant solid).
 MIN_DIAGONAL_M = 0.01
 MAX_DIAGONAL_M = 1.0
+MIN_THICKNESS_M = 0.001
+# Faces kept for the object's mesh: ample for a 64x64 depth image at grasping distance;
+# larger meshes are simplified first (CoACD on 200k faces took minutes and GBs).
+MAX_FACES = 20_000
+# Larger files are refused rather than simplified (loading alone takes long).
+MAX_INPUT_FACES = 2_000_000
 USER_RGBA = (0.7, 0.7, 0.72, 1.0)
 
 
@@ -67,8 +76,12 @@ def import_mesh(
     Raises:
         FileNotFoundError: `mesh_path` does not exist.
         FileExistsError: The object exists and `overwrite` is False.
-        ValueError: Bad argument, unreadable/empty mesh, or implausible size
-            (the message names the file and suggests a `--scale`).
+        ValueError: Bad argument, unreadable/empty mesh, only degenerate faces, a
+            flat mesh (no volume), more than `MAX_INPUT_FACES` faces, or an
+            implausible size (the message names the file and suggests a `--scale`).
+
+    Meshes with more than `MAX_FACES` faces are simplified first (a warning in
+    meta.json says from how many faces to how many).
     """
     path = Path(mesh_path).expanduser()
     _check_args(
@@ -86,6 +99,9 @@ def import_mesh(
     _check_size(path, geometries, scale)
     warnings: list[str] = []
     mesh, watertight = _repair_all(path, geometries, warnings)
+    if len(mesh.faces) > MAX_FACES:
+        mesh, watertight = _simplify(mesh, watertight, warnings)
+    _check_solid(path, mesh)
     mesh.apply_translation(g.bottom_center_offset([mesh]))
 
     if watertight:
@@ -105,6 +121,9 @@ def import_mesh(
         com_m=np.asarray(props.center_mass, dtype=float),
         inertia_kg_m2=density_kg_m3 * np.asarray(props.inertia, dtype=float),
     )
+    if not (math.isfinite(mass.mass_kg) and mass.mass_kg > 0):
+        raise ValueError(f"mesh file {path}: encloses no volume (mass {mass.mass_kg!r} kg); "
+                         "expected a closed solid")
     if not 0.01 <= mass.mass_kg <= 2.0:
         warnings.append(
             f"mass {mass.mass_kg:.4g} kg is unusual for a graspable object; check scale and density"
@@ -181,7 +200,8 @@ def _load(path: Path) -> list[trimesh.Trimesh]:
             f"mesh file {path}: unsupported type {suffix!r}; expected one of {list(SUPPORTED_SUFFIXES)}"
         )
     try:
-        scene = trimesh.load_scene(str(path))
+        # process=False: trimesh would otherwise drop NaN vertices silently.
+        scene = trimesh.load_scene(str(path), process=False)
     except Exception as exc:  # trimesh raises many types on garbage input
         # (An ImportError here is trimesh's text-encoding sniffing for garbage bytes.)
         detail = "" if isinstance(exc, ImportError) else f": {type(exc).__name__}: {exc}"
@@ -196,9 +216,18 @@ def _load(path: Path) -> list[trimesh.Trimesh]:
         if not np.all(np.isfinite(vertices)):
             raise ValueError(f"mesh file {path}: has non-finite vertex coordinates")
         faces = np.asarray(geometry.faces)
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise ValueError(f"mesh file {path}: a face refers to vertex {int(faces.max()) + 1}, "
+                             f"but there are only {len(vertices)} vertices")
         meshes.append(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
     if not meshes:
         raise ValueError(f"mesh file {path}: contains no triangles (empty, or not a valid {kind} file)")
+    num_faces = sum(len(m.faces) for m in meshes)
+    if num_faces > MAX_INPUT_FACES:
+        raise ValueError(
+            f"mesh file {path}: has {num_faces} faces, more than the {MAX_INPUT_FACES} accepted; "
+            f"simplify it first (meshes above {MAX_FACES} faces are simplified on import)"
+        )
     return meshes
 
 
@@ -209,20 +238,47 @@ def _check_size(path: Path, meshes: list[trimesh.Trimesh], scale: float) -> None
     # A power of ten that brings the object to ~20 cm, the size of a typical household item.
     suggestion = scale * 10.0 ** round(math.log10(0.2 / diagonal)) if diagonal > 0 else None
     hint = f"--scale {suggestion:g}" if suggestion else "a --scale"
-    units = " (a mesh in millimetres needs --scale 0.001)" if diagonal > MAX_DIAGONAL_M else ""
+    ratio = round(suggestion / scale, 9) if suggestion else None
+    if ratio == 1e-3:
+        hint += " (the file looks like millimetres)"
+    elif ratio == 1e-2:
+        hint += " (the file looks like centimetres)"
+    elif diagonal > MAX_DIAGONAL_M:
+        hint += "; a mesh in millimetres needs --scale 0.001"
     raise ValueError(
         f"mesh file {path}: bounding-box diagonal is {diagonal:.4g} m after scale {scale:g}, outside the "
         f"plausible range [{MIN_DIAGONAL_M}, {MAX_DIAGONAL_M}] m for a graspable object; "
-        f"try {hint}{units}"
+        f"try {hint}"
     )
+
+
+def _check_solid(path: Path, mesh: trimesh.Trimesh) -> None:
+    """Refuses a flat mesh (a single triangle, a sheet, collinear points): no volume."""
+    thickness = 0.0
+    try:
+        hull = trimesh.convex.convex_hull(np.asarray(mesh.vertices, dtype=float))
+        if hull.volume > 0:
+            thickness = float(min(hull.bounding_box_oriented.primitive.extents))
+    except Exception:  # qhull: fewer than 4 points, or all in a plane
+        thickness = 0.0
+    if thickness < MIN_THICKNESS_M:
+        extents = " x ".join(f"{e:.3g}" for e in mesh.extents)
+        raise ValueError(
+            f"mesh file {path}: is flat (thinnest side {thickness * 1000:.3g} mm, bounding box "
+            f"{extents} m; a graspable object must be at least {MIN_THICKNESS_M * 1000:g} mm thick): "
+            f"a single triangle or an open sheet has no volume to simulate"
+        )
 
 
 def _repair(mesh: trimesh.Trimesh, warnings: list[str]) -> trimesh.Trimesh:
     """Merges vertices, drops degenerate/duplicate faces, fills holes, fixes normals."""
     mesh.merge_vertices()
+    before = len(mesh.faces)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
     mesh.remove_unreferenced_vertices()
+    if 0 < len(mesh.faces) < before:
+        warnings.append(f"dropped {before - len(mesh.faces)} degenerate (zero-area) or duplicate faces")
     if len(mesh.faces) and not mesh.is_watertight:
         trimesh.repair.fill_holes(mesh)
         if mesh.is_watertight:
@@ -245,7 +301,8 @@ def _repair_all(
     repaired = [m for m in repaired if len(m.faces)]
     if not repaired:
         raise ValueError(f"mesh file {path}: has only degenerate (zero-area or duplicate) faces")
-    closed = [bool(m.is_watertight and m.volume > 0) for m in repaired]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat closed shell: volume 0
+        closed = [bool(m.is_watertight and m.volume > 0) for m in repaired]
     if all(closed):
         if len(repaired) == 1:
             return repaired[0], True
@@ -259,6 +316,63 @@ def _repair_all(
         warnings.append(f"{closed.count(False)} of {len(closed)} mesh parts are open surfaces")
     mesh = trimesh.util.concatenate(repaired) if len(repaired) > 1 else repaired[0]
     return mesh, False
+
+
+def _simplify(
+    mesh: trimesh.Trimesh, watertight: bool, warnings: list[str]
+) -> tuple[trimesh.Trimesh, bool]:
+    """At most `MAX_FACES` faces: manifold3d's simplification for a closed solid (it stays
+    closed), vertex clustering on a grid for an open surface. Coarser tolerances are
+    tried until the budget is met."""
+    before = len(mesh.faces)
+    diagonal = float(np.linalg.norm(mesh.extents))
+    out = mesh
+    for fraction in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
+        tolerance = fraction * diagonal
+        out = _simplify_solid(mesh, tolerance) if watertight else None
+        if out is None:  # open surface, or manifold3d refused the mesh
+            out = _cluster_vertices(mesh, tolerance)
+        if 0 < len(out.faces) <= MAX_FACES:
+            break
+    closed = bool(watertight and out.is_watertight and out.volume > 0)
+    warnings.append(
+        f"simplified from {before} to {len(out.faces)} faces (tolerance {tolerance * 1000:.2g} mm)"
+    )
+    return out, closed
+
+
+def _simplify_solid(mesh: trimesh.Trimesh, tolerance: float) -> "trimesh.Trimesh | None":
+    import manifold3d
+
+    solid = manifold3d.Manifold(manifold3d.Mesh64(
+        vert_properties=np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+        tri_verts=np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
+    if solid.status() != manifold3d.Error.NoError or solid.is_empty():
+        return None
+    out = solid.simplify(tolerance).to_mesh64()
+    result = trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3],
+                             np.asarray(out.tri_verts, dtype=np.int64), process=False)
+    if len(result.faces) == 0 or not result.is_watertight:
+        return None
+    trimesh.repair.fix_normals(result)
+    return result
+
+
+def _cluster_vertices(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
+    """Merges the vertices in each grid cell of size `cell` into their mean."""
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    keys = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    counts = np.bincount(inverse)
+    merged = np.zeros((len(counts), 3))
+    np.add.at(merged, inverse, vertices)
+    merged /= counts[:, None]
+    out = trimesh.Trimesh(merged, inverse[np.asarray(mesh.faces)], process=False)
+    out.update_faces(out.nondegenerate_faces())
+    out.update_faces(out.unique_faces())
+    out.remove_unreferenced_vertices()
+    return out
 
 
 def _decompose(
