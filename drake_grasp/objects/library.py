@@ -17,7 +17,13 @@ from pathlib import Path
 
 from drake_grasp.objects import categories as cat
 from drake_grasp.objects.geometry import union_mesh
-from drake_grasp.objects.model_files import META_FILE, MODEL_FILE, VISUAL_FILE, write_object_dir
+from drake_grasp.objects.model_files import (
+    META_FILE,
+    MODEL_FILE,
+    VISUAL_FILE,
+    check_mesh_references,
+    write_object_dir,
+)
 
 CACHE_ENV = "DRAKE_GRASP_CACHE"
 
@@ -120,6 +126,7 @@ def _check_model(model_path: Path, oid: str) -> None:
         raise ValueError(f"{model_path}: expected a URDF <robot ...>, found <{root.tag}>")
     if root.get("name") != oid:
         raise ValueError(f"{model_path}: model name {root.get('name')!r}, expected the object id {oid!r}")
+    check_mesh_references(model_path, root)
 
 
 @lru_cache(maxsize=1024)

@@ -51,6 +51,30 @@ class ContactMaterial:
     relaxation_time_s: float = 0.1
 
 
+def check_mesh_references(model_path: Path, root) -> None:
+    """Raises ValueError unless every mesh file a model refers to exists and is non-empty.
+
+    Drake would otherwise stop the scene build with a parser error deep inside a trial.
+
+    Args:
+        model_path: The model.urdf (relative mesh names are resolved against its folder).
+        root: Its parsed XML root element.
+    """
+    for mesh in root.iter("mesh"):
+        filename = mesh.get("filename")
+        if not filename:
+            raise ValueError(f"{model_path}: a <mesh> element has no filename")
+        if "://" in filename:  # package:// and file:// URIs are resolved by Drake's parser
+            continue
+        path = Path(model_path).parent / filename
+        if not path.is_file():
+            raise ValueError(f"{model_path}: refers to mesh {filename!r}, but {path} does not exist "
+                             "(an incomplete object folder: re-import the object)")
+        if path.stat().st_size == 0:
+            raise ValueError(f"{model_path}: refers to mesh {filename!r}, but {path} is empty "
+                             "(an incomplete object folder: re-import the object)")
+
+
 def _fmt(value: float) -> str:
     return f"{float(value):.9g}"
 
