@@ -86,6 +86,8 @@ def _cmd_objects_import(args) -> int:
                        density_kg_m3=args.density, overwrite=args.overwrite)
     print(json.dumps({"id": info.id, "mass_kg": info.mass_kg,
                       "extents_m": list(info.extents_m), "model": str(info.model_path)}))
+    for warning in info.read_meta().get("warnings", []):
+        print(f"drake-grasp objects import: warning: {warning}", file=sys.stderr)
     return 0
 
 
@@ -360,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     _log_to_stderr()
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, KeyError) as e:
+    except (ValueError, OSError, KeyError) as e:  # OSError: a file exists, a full disk, ...
         print(f"drake-grasp {args.command}: error: {e}", file=sys.stderr)
         return 2
 
