@@ -533,6 +533,9 @@ def write_shard(path: Path, samples: list[SceneSamples], *, attrs: dict,
             f.attrs["num_labels"] = int(sum(s.labels.size for s in kept))
             f.attrs["skipped"] = len(samples) - len(kept)
         replace_durably(tmp, path)
+    except OSError as e:
+        message = f"cannot write dataset shard {path}: {e.strerror or e}"  # e.g. a full disk
+        raise (OSError(e.errno, message) if e.errno else OSError(message)) from e
     finally:
         if tmp.exists():
             tmp.unlink()  # a failed write leaves nothing behind

@@ -73,11 +73,14 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             # A rename after a power cut could otherwise point at an empty file.
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(e, OSError) and e.filename is None:  # a full disk names no file
+            message = f"cannot write {path}: {e.strerror or e}"
+            raise (OSError(e.errno, message) if e.errno else OSError(message)) from e
         raise
     return path
 
