@@ -90,7 +90,7 @@ def import_mesh(
     target = Path(library_dir).expanduser() / name
     if target.exists() and not overwrite:
         raise FileExistsError(
-            f"object {name!r} already exists at {target}; pass overwrite=True to replace it"
+            f"object {name!r} already exists at {target}; pass --overwrite (overwrite=True) to replace it"
         )
 
     geometries = _load(path)
@@ -256,9 +256,10 @@ def _check_solid(path: Path, mesh: trimesh.Trimesh) -> None:
     """Refuses a flat mesh (a single triangle, a sheet, collinear points): no volume."""
     thickness = 0.0
     try:
-        hull = trimesh.convex.convex_hull(np.asarray(mesh.vertices, dtype=float))
-        if hull.volume > 0:
-            thickness = float(min(hull.bounding_box_oriented.primitive.extents))
+        with np.errstate(divide="ignore", invalid="ignore"):  # a flat hull: volume 0
+            hull = trimesh.convex.convex_hull(np.asarray(mesh.vertices, dtype=float))
+            if hull.volume > 0:
+                thickness = float(min(hull.bounding_box_oriented.primitive.extents))
     except Exception:  # qhull: fewer than 4 points, or all in a plane
         thickness = 0.0
     if thickness < MIN_THICKNESS_M:
@@ -284,7 +285,8 @@ def _repair(mesh: trimesh.Trimesh, warnings: list[str]) -> trimesh.Trimesh:
         if mesh.is_watertight:
             warnings.append("filled holes to make the mesh watertight")
     if len(mesh.faces):
-        trimesh.repair.fix_normals(mesh)  # consistent winding, outward normals
+        with np.errstate(divide="ignore", invalid="ignore"):  # a flat shell has volume 0
+            trimesh.repair.fix_normals(mesh)  # consistent winding, outward normals
     return mesh
 
 

@@ -179,6 +179,11 @@ def write_object_dir(
                 return False
             raise
         return True
+    except OSError as e:
+        if e.filename is not None:
+            raise
+        message = f"cannot write object folder {target}: {e.strerror or e}"  # e.g. a full disk
+        raise (OSError(e.errno, message) if e.errno else OSError(message)) from e
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
