@@ -23,8 +23,9 @@ def git_commit() -> str | None:
     """The commit of the checkout this package runs from, or None.
 
     None when the package is installed (site-packages) rather than run from a git
-    checkout, or when git is unavailable. A checkout with uncommitted changes gets
-    "+dirty" appended, because the commit alone would not say which code ran.
+    checkout, or when git is unavailable. A checkout with uncommitted changes to the
+    package, its models or diagrams gets "+dirty.<hash of the diff>" appended, because
+    the commit alone would not say which code ran.
     """
     root = _PACKAGE_DIR.parent
     if not (root / ".git").exists():
@@ -35,24 +36,26 @@ def git_commit() -> str | None:
                                 capture_output=True, text=True, timeout=10, env=env)
         if commit.returncode != 0:
             return None
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
-                                "--untracked-files=no", "--", "drake_grasp", "models",
-                                "diagrams"],
-                               capture_output=True, text=True, timeout=10, env=env)
+        diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--binary", "--",
+                               "drake_grasp", "models", "diagrams"],
+                              capture_output=True, timeout=30, env=env)
     except (OSError, subprocess.SubprocessError):
         return None
     sha = commit.stdout.strip()[:12]
     if not sha:
         return None
-    return sha + ("+dirty" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+    if diff.returncode != 0 or not diff.stdout.strip():
+        return sha
+    # Two different uncommitted edits must not share a version: name the edit by its hash.
+    return f"{sha}+dirty.{hashlib.sha256(diff.stdout).hexdigest()[:8]}"
 
 
 def code_version() -> str:
     """Package version plus the git commit when run from a checkout.
 
-    Examples: "0.1.0+git.1a2b3c4d5e6f", "0.1.0+git.1a2b3c4d5e6f+dirty" (uncommitted changes
-    to the package, models or diagrams), "0.1.0+unknown" (an installed package: the commit
-    it was built from is not known).
+    Examples: "0.1.0+git.1a2b3c4d5e6f", "0.1.0+git.1a2b3c4d5e6f+dirty.9f8e7d6c" (uncommitted
+    changes to the package, models or diagrams, named by the hash of their diff),
+    "0.1.0+unknown" (an installed package: the commit it was built from is not known).
     """
     commit = git_commit()
     return f"{__version__}+git.{commit}" if commit else f"{__version__}+unknown"

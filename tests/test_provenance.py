@@ -1,0 +1,61 @@
+"""Code version: package version + git commit in a checkout, '+unknown' when installed."""
+
+import re
+import subprocess
+
+import pytest
+
+from drake_grasp import __version__, provenance
+
+
+@pytest.fixture
+def fake_checkout(tmp_path, monkeypatch):
+    repo = tmp_path / "repo"
+    pkg = repo / "drake_grasp"
+    pkg.mkdir(parents=True)
+    (pkg / "x.py").write_text("A = 1\n")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(git + ["init", "-q"], check=True)
+    subprocess.run(git + ["add", "."], check=True)
+    subprocess.run(git + ["commit", "-qm", "c"], check=True)
+    monkeypatch.setattr(provenance, "_PACKAGE_DIR", pkg)
+    provenance.git_commit.cache_clear()
+    yield pkg
+    provenance.git_commit.cache_clear()
+
+
+def test_a_checkout_gives_the_commit(fake_checkout):
+    head = subprocess.run(["git", "-C", str(fake_checkout.parent), "rev-parse", "HEAD"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    assert provenance.code_version() == f"{__version__}+git.{head[:12]}"
+
+
+def test_two_different_uncommitted_edits_get_two_versions(fake_checkout):
+    clean = provenance.code_version()
+    (fake_checkout / "x.py").write_text("A = 2\n")
+    provenance.git_commit.cache_clear()
+    first = provenance.code_version()
+    (fake_checkout / "x.py").write_text("A = 3\n")
+    provenance.git_commit.cache_clear()
+    second = provenance.code_version()
+    assert re.fullmatch(re.escape(clean) + r"\+dirty\.[0-9a-f]{8}", first)
+    assert first != second and second.startswith(clean + "+dirty.")
+
+
+def test_an_installed_package_says_unknown(tmp_path, monkeypatch):
+    monkeypatch.setattr(provenance, "_PACKAGE_DIR", tmp_path / "site-packages" / "drake_grasp")
+    provenance.git_commit.cache_clear()
+    try:
+        assert provenance.code_version() == f"{__version__}+unknown"
+    finally:
+        provenance.git_commit.cache_clear()
+
+
+def test_checksums_name_a_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.bin"):
+        provenance.file_sha256(tmp_path / "nope.bin")
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "a.txt").write_text("a")
+    h1 = provenance.tree_sha256(tmp_path / "d")
+    (tmp_path / "d" / "a.txt").write_text("b")
+    assert provenance.tree_sha256(tmp_path / "d") != h1
