@@ -222,7 +222,8 @@ def _describe_owner(owner: dict) -> str:
 
 
 class GenerateLock:
-    """The lock file of a dataset folder: one generator at a time.
+    """The lock file of a dataset folder: one generator at a time (subclasses set `FILE`
+    and `WHAT` to lock other kinds of run folders the same way).
 
     The file holds the owner's pid, host, start time and a run token (JSON) and is
     `flock`ed for the owner's lifetime, so the kernel releases it when the owner dies.
@@ -232,9 +233,12 @@ class GenerateLock:
     still runs; the message says to delete the file if it does not).
     """
 
+    FILE = LOCK
+    WHAT = "dataset generator"
+
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
-        self.path = self.folder / LOCK
+        self.path = self.folder / self.FILE
         self.token = uuid.uuid4().hex[:12]
         self.stale_owner: dict | None = None
         self._fd: int | None = None
@@ -248,7 +252,7 @@ class GenerateLock:
 
     def _refuse(self, owner: dict, extra: str = "") -> FolderInUseError:
         return FolderInUseError(
-            f"{self.folder}: another dataset generator is using this folder "
+            f"{self.folder}: another {self.WHAT} is using this folder "
             f"({_describe_owner(owner)}; lock file {self.path}); wait for it to finish or "
             f"use another --out{extra}")
 

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drake_grasp.dataset import load_manifest, replace_durably
+from drake_grasp.dataset import GenerateLock, load_manifest, replace_durably
 from drake_grasp.native import load_llvm_users_first
 from drake_grasp.network import DistanceCNN, NetworkConfig, save_weights
 from drake_grasp.provenance import code_version
@@ -362,15 +362,35 @@ def _identity_hash(resolved: dict, *, exclude: tuple[str, ...]) -> str:
     return hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:16]
 
 
+class TrainLock(GenerateLock):
+    """`train.lock` in a training output folder: one training run at a time."""
+
+    FILE = "train.lock"
+    WHAT = "training run"
+
+
 def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = None,
           config: TrainConfig | None = None, network: NetworkConfig | None = None,
           progress: bool = True) -> dict:
     """Trains (or resumes training of) the distance CNN; returns the metrics.
 
     Re-running into the same `out` continues after the last finished epoch, provided the
-    configuration and datasets are the same (else an error names what differs); the
-    epochs may grow, and device, threads and max_memory_gb may differ.
+    configuration and the datasets' contents (their manifests' sha256, not their paths:
+    a dataset may be moved) are the same, else an error says so; the epochs may grow,
+    and device, threads and max_memory_gb may differ. One run at a time per `out`
+    (`train.lock`): a second is refused with the first one's pid, host and start time.
     """
+    config = config or TrainConfig()
+    config.validate()
+    resolve_data_dirs(data, test_data)  # bad --data is refused before `out` is created
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with TrainLock(out):
+        return _train_locked(data=data, out=out, test_data=test_data, config=config,
+                             network=network, progress=progress)
+
+
+def _train_locked(*, data, out: Path, test_data, config, network, progress) -> dict:
     from tqdm import tqdm
 
     config = config or TrainConfig()
@@ -390,10 +410,15 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
                 "train_data": str(train_dir), "test_data": str(test_dir),
                 "train_manifest_sha256": train_set.manifest_sha256,
                 "test_manifest_sha256": test_set.manifest_sha256}
+    # The datasets are identified by their manifests' content, not by where they lie.
+    located = resolved
+    resolved = {k: v for k, v in located.items() if k not in ("train_data", "test_data")}
     config_hash = _identity_hash(resolved, exclude=NOT_IDENTITY)
+    # Checkpoints that hashed the dataset paths as well resume where the paths match.
+    located_hash = _identity_hash(located, exclude=NOT_IDENTITY)
     # Checkpoints written before device, threads and max_memory_gb left the identity
     # hashed them too: such a checkpoint resumes when they are given as they were.
-    legacy_hash = _identity_hash(resolved, exclude=("epochs",))
+    legacy_hash = _identity_hash(located, exclude=("epochs",))
 
     generator = torch.Generator().manual_seed(config.seed)
     model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed)).to(device)
@@ -409,7 +434,7 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        if ckpt["config_hash"] not in (config_hash, legacy_hash):
+        if ckpt["config_hash"] not in (config_hash, located_hash, legacy_hash):
             raise ValueError(f"{ckpt_path}: made with another configuration or dataset; "
                              "use another --out")
         model.load_state_dict(ckpt["model"])  # copies onto the model's device
@@ -418,7 +443,7 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
         metrics = json.loads(ckpt["metrics_json"])
         start_epoch = int(ckpt["epoch"]) + 1
     metrics.update(device=str(device), code_version=code_version())
-    (out / "train_config.json").write_text(json.dumps(resolved, indent=1))
+    (out / "train_config.json").write_text(json.dumps(located, indent=1))
 
     for epoch in range(start_epoch, config.epochs + 1):
         model.train()

@@ -195,3 +195,50 @@ def test_max_memory_gb_too_small_for_one_batch_is_refused(big, tmp_path, capsys)
     err = capsys.readouterr().err
     assert "--max-memory-gb 0.001: too small for even one batch: 8 images" in err
     assert not (tmp_path / "o" / "checkpoint.pt").exists()
+
+
+def test_a_moved_dataset_still_resumes(data, tmp_path):
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(data, moved)
+    out = tmp_path / "run"
+    train(data=data, out=out, config=_config(1), progress=False)
+    resumed = train(data=moved, out=out, config=_config(2), progress=False)
+    assert [e["epoch"] for e in resumed["epochs"]] == [1, 2]
+
+
+_HOLD_TRAIN_LOCK = """
+import sys
+from drake_grasp.training import TrainLock
+TrainLock(sys.argv[1]).acquire()
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_second_training_run_on_a_folder_in_use_is_refused(data, tmp_path):
+    import os
+    import socket
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "busy"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD_TRAIN_LOCK, str(out)], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        with pytest.raises(ValueError, match=rf"another training run is using this folder "
+                                             rf"\(pid {proc.pid} on host "
+                                             rf"{socket.gethostname()}, started "):
+            train(data=data, out=out, config=_config(1), progress=False)
+        assert sorted(p.name for p in out.iterdir()) == ["train.lock"]
+    finally:
+        proc.kill()
+        proc.wait()
+    # Its owner is gone: the next run takes the folder.
+    metrics = train(data=data, out=out, config=_config(1), progress=False)
+    assert len(metrics["epochs"]) == 1 and not (out / "train.lock").exists()
