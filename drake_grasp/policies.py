@@ -58,14 +58,72 @@ def choose_action(actions: np.ndarray, distances: np.ndarray) -> tuple[np.ndarra
     return np.asarray(actions[i], dtype=float), float(d[i])
 
 
-def central_min_depth(depth: np.ndarray, fraction: float) -> float:
-    """Nearest reading in the central `fraction` of the image (the 14 cm stop rule)."""
+def grasp_axis_pixel(shape, focal_px: float, camera_xy_G, depth_m: float) -> tuple[float, float]:
+    """Pixel (u, v) where the grasp axis (x_G = y_G = 0) is seen at `depth_m` from the
+    sensor, for a camera looking along z_G with its axes parallel to G and its centre
+    at `camera_xy_G` in G (the wrist camera sits beside the grasp axis)."""
+    h, w = shape[:2]
+    return (-float(camera_xy_G[0]) * focal_px / depth_m + (w / 2 - 0.5),
+            -float(camera_xy_G[1]) * focal_px / depth_m + (h / 2 - 0.5))
+
+
+def min_depth_under_axis(depth: np.ndarray, focal_px: float, camera_xy_G, at_depth_m: float,
+                         half_window_m: float) -> float:
+    """Nearest reading in the square window around the grasp axis as seen at `at_depth_m`
+    (the 14 cm stop rule): half side `half_window_m` at that depth, at least one pixel."""
     h, w = depth.shape[:2]
-    fh, fw = max(1, int(round(h * fraction))), max(1, int(round(w * fraction)))
-    r0, c0 = (h - fh) // 2, (w - fw) // 2
-    window = depth[r0:r0 + fh, c0:c0 + fw]
+    u, v = grasp_axis_pixel(depth.shape, focal_px, camera_xy_G, at_depth_m)
+    half = max(0.5, half_window_m * focal_px / at_depth_m)
+    c0, c1 = max(0, int(np.ceil(u - half))), min(w - 1, int(np.floor(u + half)))
+    r0, r1 = max(0, int(np.ceil(v - half))), min(h - 1, int(np.floor(v + half)))
+    if c0 > c1 or r0 > r1:
+        return float("inf")
+    window = depth[r0:r1 + 1, c0:c1 + 1]
     valid = window[np.isfinite(window) & (window > 0)]
     return float(valid.min()) if valid.size else float("inf")
+
+
+def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_WG: np.ndarray,
+                        half_x_m: float, half_y_m: float, max_depth_m: float = np.inf) -> np.ndarray:
+    """World heights of the depth image's points that lie under the hand at `X_WG`.
+
+    Each valid pixel (finite, positive, nearer than `max_depth_m`) is back-projected
+    from the camera at `X_WC` (4x4, Drake's camera frame: x right, y down, z along the
+    view) and kept when it lies in the box |x_G| <= half_x, |y_G| <= half_y of the grasp
+    frame: the image may have been taken from another pose than the grasp's.
+    """
+    h, w = depth.shape[:2]
+    d = np.asarray(depth, float).reshape(h, w)
+    v, u = np.mgrid[0:h, 0:w]
+    ok = np.isfinite(d) & (d > 0) & (d < max_depth_m)
+    z = d[ok]
+    P_C = np.stack([(u[ok] - (w / 2 - 0.5)) * z / focal_px,
+                    (v[ok] - (h / 2 - 0.5)) * z / focal_px, z, np.ones_like(z)])
+    P_W = np.asarray(X_WC, float) @ P_C
+    P_G = np.linalg.inv(np.asarray(X_WG, float)) @ P_W
+    keep = (np.abs(P_G[0]) <= half_x_m) & (np.abs(P_G[1]) <= half_y_m)
+    return P_W[2, keep]
+
+
+def grasp_height(between: np.ndarray, around: np.ndarray, *, depth_below_top_m: float,
+                 fingertip_below_centre_m: float, support_margin_m: float,
+                 table_z: float = 0.0) -> float:
+    """Grasp-centre height from the heights seen under the open hand.
+
+    `between`: heights between the pads; `around`: heights under the whole hand, fingers
+    included. The support (the table or sheet top) is the lowest surface seen under the
+    hand, never below `table_z`; the fingertips stay `support_margin_m` above it. The pads
+    reach `depth_below_top_m` below the highest surface between them (the object's top),
+    so they lie across the object's section under the fingers, as deep as the hand allows.
+    """
+    a = np.asarray(around, float)
+    a = a[np.isfinite(a)]
+    b = np.asarray(between, float)
+    b = b[np.isfinite(b)]
+    support = max(float(table_z), float(a.min())) if a.size else float(table_z)
+    top = float(b.max()) if b.size else support
+    floor = support + support_margin_m + fingertip_below_centre_m
+    return max(floor, top - depth_below_top_m)
 
 
 def wrap_theta_deg(theta) -> np.ndarray:

@@ -121,7 +121,9 @@ class ScriptedGraspConfig:
     hold_time_s: float = 1.0
     # Pads reach this far below the object's top [m] (capped by the table clearance).
     grasp_depth_below_top_m: float = 0.025
-    # The grasp centre stays at least this far above the table [m].
+    # The scripted grasp (planned on the object model) keeps its centre at least this far
+    # above the table [m]. Grasps read from the depth image keep the fingertips
+    # `controller.support_margin_m` above the support they see instead.
     min_grasp_height_m: float = 0.02
 
 
@@ -143,8 +145,13 @@ class ControllerConfig:
     end_camera_height_m: float = 0.15
     # Stop when the depth image shows an object this close to the sensor [m].
     stop_distance_m: float = 0.14
-    # ... looking at the central part of the image (fraction of its side).
-    stop_window_fraction: float = 0.5
+    # ... looking at a square window around the grasp axis as the image shows it at
+    # `stop_distance_m` (the camera is beside the axis): half side [m] at that distance
+    # (0.02 m: about 9 px of the 64 px image, the pads' closing strip).
+    stop_window_half_m: float = 0.02
+    # The grasp height read from the depth image keeps the fingertips this far above the
+    # lowest surface seen under the open hand (the table or sheet top) [m].
+    support_margin_m: float = 0.004
     # Candidate actions per step, sampled uniformly in [-xy, xy]^2 x [-theta, theta]
     # around the current pose (the paper constrains sampling near the origin).
     num_candidates: int = 128
@@ -341,7 +348,8 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.step_ratio": (0, 1, True, False, ""),
     "controller.end_camera_height_m": (0, _INF, True, True, "m"),
     "controller.stop_distance_m": (0, _INF, False, True, "m"),
-    "controller.stop_window_fraction": (0, 1, True, False, ""),
+    "controller.stop_window_half_m": (0, 0.1, True, False, "m"),
+    "controller.support_margin_m": (0, 0.05, False, False, "m"),
     "controller.num_candidates": (1, 1_000_000, False, False, ""),
     "controller.sample_xy_m": (0, _INF, False, True, "m"),
     "controller.sample_theta_deg": (0, 180, False, False, "deg"),

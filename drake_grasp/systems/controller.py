@@ -22,11 +22,20 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
 from drake_grasp.actions import action_between, apply_actions, sample_actions_in_view
-from drake_grasp.grasps import points_between_pads, topdown_rotation
+from drake_grasp.grasps import (
+    FINGER_OUTER_X_M,
+    FINGERTIP_Z_M,
+    PAD_HALF_WIDTH_M,
+    STROKE_M,
+    points_between_pads,
+    topdown_rotation,
+)
 from drake_grasp.policies import (
-    central_min_depth,
     choose_action,
     gaussian_noisy_displacement,
+    grasp_height,
+    heights_under_grasp,
+    min_depth_under_axis,
     offset_fraction,
 )
 from drake_grasp.scenario import Scenario
@@ -195,31 +204,20 @@ class GraspController(LeafSystem):
                             np.array([[f * dx, f * dy, f * noise.offset_theta_deg]]))[0]
         return (float(out[0]), float(out[1]), float(hand[2]), float(out[2]))
 
-    def _object_top_under(self, depth: np.ndarray, hand) -> float:
-        """Height of the highest surface between the open fingers, from the depth image."""
-        h, w = depth.shape
-        cam_z = self._camera_height(hand)
-        c_off = self._X_GC.translation()  # camera position in G
-        top = 0.0
-        for _ in range(2):  # project at the table, then at the found top (parallax)
-            d = max(cam_z - top, 0.05)
-            # The pad-swept box |x| <= 42.5 mm, |y| <= 11 mm around the grasp axis, seen
-            # from the camera (same orientation as G): pixel = f * (P - c) / d + centre.
-            xs = (np.array([-0.0425, 0.0425]) - c_off[0]) * self._focal / d + (w / 2 - 0.5)
-            ys = (np.array([-0.011, 0.011]) - c_off[1]) * self._focal / d + (h / 2 - 0.5)
-            c0, c1 = int(np.clip(np.floor(xs.min()), 0, w - 1)), int(np.clip(np.ceil(xs.max()), 0, w - 1))
-            r0, r1 = int(np.clip(np.floor(ys.min()), 0, h - 1)), int(np.clip(np.ceil(ys.max()), 0, h - 1))
-            window = depth[r0:r1 + 1, c0:c1 + 1]
-            valid = window[np.isfinite(window) & (window > 0)]
-            if valid.size == 0:
-                return 0.0
-            top = max(0.0, cam_z - float(valid.min()))
-        return top
-
-    def _grasp_from_depth(self, depth: np.ndarray, hand) -> tuple:
-        m = self._s.scripted
-        top = self._object_top_under(depth, hand)
-        z = max(m.min_grasp_height_m, top - m.grasp_depth_below_top_m)
+    def _grasp_from_depth(self, depth: np.ndarray, seen_from, hand) -> tuple:
+        """The grasp at `hand`'s (x, y, yaw), its height read from a depth image taken
+        with the hand at `seen_from`: the fingertips above the support seen under the
+        open hand, the pads `grasp_depth_below_top_m` below the top seen between them."""
+        X_WC = (hand_to_pose(seen_from) @ self._X_GC).GetAsMatrix4()
+        X_WG = hand_to_pose(hand).GetAsMatrix4()
+        far = self._s.camera.depth_max_m
+        between = heights_under_grasp(depth, self._focal, X_WC, X_WG, 0.5 * STROKE_M,
+                                      PAD_HALF_WIDTH_M, far)
+        around = heights_under_grasp(depth, self._focal, X_WC, X_WG, FINGER_OUTER_X_M,
+                                     PAD_HALF_WIDTH_M, far)
+        z = grasp_height(between, around, depth_below_top_m=self._s.scripted.grasp_depth_below_top_m,
+                         fingertip_below_centre_m=FINGERTIP_Z_M,
+                         support_margin_m=self._s.controller.support_margin_m)
         return (hand[0], hand[1], min(z, hand[2]), hand[3])
 
     def _target_mask(self, context, actions: np.ndarray, hand) -> np.ndarray | None:
@@ -268,7 +266,8 @@ class GraspController(LeafSystem):
         c = self._s.controller
         hand = s.hand
         depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
-        near = central_min_depth(depth, c.stop_window_fraction)
+        near = min_depth_under_axis(depth, self._focal, self._X_GC.translation()[:2],
+                                    c.stop_distance_m, c.stop_window_half_m)
         cam_z = self._camera_height(hand)
         reason = ""
         if near < c.stop_distance_m:
@@ -278,7 +277,7 @@ class GraspController(LeafSystem):
         elif s.iteration >= c.iterations:
             reason = "iteration budget spent"
         if reason:
-            grasp = self._grasp_from_depth(depth, hand)
+            grasp = self._grasp_from_depth(depth, hand, hand)
             return replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=hand,
                            grasp=grasp, stop_reason=reason)
         actions = np.asarray(self._actions.Eval(context), float)
@@ -336,7 +335,9 @@ class GraspController(LeafSystem):
             delta = self._noisy(best, 0)
             moved = apply_actions([start[0], start[1], start[3]], delta[None])[0]
             hand = (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
-            grasp = self._grasp_from_depth(depth, hand) if self._policy == "cnn-only" else None
+            # Its height is read from the start image where the grasp will be.
+            grasp = (self._grasp_from_depth(depth, start, hand)
+                     if self._policy == "cnn-only" else None)
             # The one-shot move keeps the start height; the final descent (or CTR) follows.
             return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
         # gpd

@@ -1,0 +1,120 @@
+"""Grasp execution from the depth image alone: the grasp height keeps the fingertips
+above the support seen under the hand, the 14 cm stop rule looks under the grasp axis
+(the wrist camera sits 5 cm beside it), and cnn-only reads its grasp height from the
+start image where its grasp will be."""
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+from drake_grasp.grasps import FINGERTIP_Z_M
+from drake_grasp.policies import grasp_axis_pixel, grasp_height
+from drake_grasp.scenario import load_scenario
+from drake_grasp.station import gripper_frame_offsets, topdown_pose
+from drake_grasp.systems.controller import GraspController, Phase
+
+START_CAMERA_HEIGHT_M = 0.3
+
+
+def _depth_image(value):
+    img = ImageDepth32F(64, 64)
+    img.mutable_data[:, :, 0] = value
+    return img
+
+
+def _controller(scenario, depth, policy="ctr", score_fn=None):
+    """The controller alone, its inputs fixed: a zero candidate action scored 0."""
+    X_BG, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], START_CAMERA_HEIGHT_M + X_GC.translation()[2], 0.0)
+    ctrl = GraspController(scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC,
+                           X_BG=X_BG, gripper_body_index=0, object_bodies=[], object_points=[],
+                           object_ids=[], score_fn=score_fn)
+    sim = Simulator(ctrl)
+    ctx = sim.get_mutable_context()
+    ctrl.GetInputPort("depth_image").FixValue(ctx, _depth_image(depth))
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((1, 3)))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(1))
+    ctrl.GetInputPort("body_poses").FixValue(ctx, [RigidTransform()])
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    return sim, ctrl, ctx
+
+
+def test_grasp_height_keeps_the_fingertips_above_the_sheet_seen_in_the_image():
+    # One CTR step takes the camera from 0.3 m to 0.15 m, over a bare sheet whose top
+    # (2 mm) the image shows at 0.148 m: the grasp must keep the fingertips above it.
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text="{seed: 2, controller: {iterations: 1}}")
+    sim, ctrl, ctx = _controller(scenario, 0.148)
+    sim.AdvanceTo(2.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND and s.stop_reason == "hand at its lowest height"
+    fingertips = s.grasp[2] - FINGERTIP_Z_M
+    assert fingertips >= 0.002 + scenario.controller.support_margin_m - 1e-6
+
+
+def test_grasp_height_rule():
+    kw = dict(depth_below_top_m=0.025, fingertip_below_centre_m=0.019, support_margin_m=0.004)
+    # A 12 cm can on the 2 mm sheet: the pads 2.5 cm below its top.
+    assert grasp_height([0.12], [0.002, 0.12], **kw) == pytest.approx(0.095)
+    # A 1 cm flat object: the fingertips 4 mm above the sheet.
+    assert grasp_height([0.012], [0.002, 0.012], **kw) == pytest.approx(0.025)
+    # Nothing readable: the table top is the support.
+    assert grasp_height([], [], **kw) == pytest.approx(0.023)
+
+
+@pytest.mark.parametrize("where,stops", [("axis", True), ("centre", False)])
+def test_stop_rule_looks_under_the_grasp_axis(where, stops):
+    # An object 13.9 cm from the sensor: under the grasp axis it lies ~22 px off the
+    # image centre (the camera is 5 cm beside the axis); at the image centre it is
+    # 5 cm beside the grasp and must not stop the approach.
+    scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+    _, _, X_GC = gripper_frame_offsets()
+    depth = np.full((64, 64), 0.3)
+    if where == "axis":
+        u, v = grasp_axis_pixel(depth.shape, 61.47, X_GC.translation()[:2], 0.139)
+        assert abs(v - 31.5) > 20
+        r, c = int(round(v)), int(round(u))
+        depth[r - 2:r + 3, c - 2:c + 3] = 0.139
+    else:
+        depth[29:35, 29:35] = 0.139
+    sim, ctrl, ctx = _controller(scenario, depth)
+    sim.AdvanceTo(1.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert (s.phase == Phase.DESCEND) == stops
+    if stops:
+        assert "within 0.14 m" in s.stop_reason and s.iteration == 0
+
+
+def test_cnn_only_reads_its_grasp_height_where_its_grasp_will_be():
+    # Start: camera 0.3 m over a bare table, a 4 cm box 10 cm tall 8 cm along x_G from
+    # the start grasp axis; the stand-in CNN sends the hand there.
+    scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+    _, _, X_GC = gripper_frame_offsets()
+    cam_xy = X_GC.translation()[:2]
+    f = 0.5 * 64 / np.tan(np.deg2rad(scenario.camera.fov_y_deg) / 2.0)
+    depth = np.full((64, 64), START_CAMERA_HEIGHT_M)
+    d_top = START_CAMERA_HEIGHT_M - 0.10
+    v, u = np.mgrid[0:64, 0:64]
+    x = (u - 31.5) * d_top / f + cam_xy[0]  # in the start grasp frame, at the box top
+    y = (v - 31.5) * d_top / f + cam_xy[1]
+    depth[(np.abs(x - 0.08) <= 0.02) & (np.abs(y) <= 0.02)] = d_top
+
+    def score(_depth, actions):
+        return np.linalg.norm(actions[:, :2] - [0.08, 0.0], axis=1)
+
+    sim, ctrl, ctx = _controller(scenario, depth, policy="cnn-only", score_fn=score)
+    sim.AdvanceTo(0.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.APPROACH
+    assert s.grasp[0] == pytest.approx(0.58, abs=0.01)
+    assert s.grasp[2] == pytest.approx(0.10 - scenario.scripted.grasp_depth_below_top_m, abs=1e-3)
+
+
+@pytest.mark.parametrize("text", ["{controller: {stop_window_half_m: 0}}",
+                                  "{controller: {support_margin_m: -0.001}}"])
+def test_execution_settings_are_range_checked(text):
+    with pytest.raises(ValueError):
+        load_scenario(scenario_name="isolation", scenario_text=text)
