@@ -169,6 +169,21 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+def _cmd_grasp_check(args) -> int:
+    from drake_grasp.lab import run_grasp_checks
+    from drake_grasp.objects import load_library
+
+    scenario = _load(args)
+    library = load_library(args.objects)
+    object_ids = [i for item in args.object for i in item.split(",") if i]
+    if not object_ids:
+        raise ValueError("--object: give at least one object id")
+    summary = run_grasp_checks(object_ids=object_ids, num_grasps=args.grasps, seed=args.seed,
+                               out=args.out, scenario=scenario, library=library)
+    print(json.dumps({k: summary[k] for k in ("checked", "held", "hold_rate", "failures")}))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -318,6 +333,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trial", required=True, help="trial id, e.g. isolation/ctr/0003")
     p.add_argument("--out", default=None, help="output folder (default: RESULTS/replays/<id>)")
     p.set_defaults(func=_cmd_replay)
+
+    p = sub.add_parser("grasp-check", help="execute sampled ground-truth grasps in the grasp "
+                       "physics lab (floating 2F-85, one object) and write summary.json")
+    _add_scenario_flags(p)
+    p.add_argument("--object", action="append", required=True, metavar="ID",
+                   help="object id; repeat the flag or give a comma-separated list")
+    p.add_argument("--grasps", type=int, default=10,
+                   help="ground-truth grasps sampled per object (default: 10)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the objects' drop rotations and the grasp sampling (default: 0)")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for summary.json")
+    p.set_defaults(func=_cmd_grasp_check)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

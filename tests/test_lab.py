@@ -68,3 +68,29 @@ def test_check_grasps_takes_grasp_set_poses(can_scene, library):
     results = check_grasps(None, np.stack([X]), scene=can_scene, library=library,
                            object_indices=[0], progress=seen.append)
     assert len(results) == 1 and results[0].held and seen == results
+
+
+def test_grasp_check_cli_writes_summary(tmp_path, capsys):
+    import json
+
+    from drake_grasp.cli import main
+
+    out = tmp_path / "checks"
+    assert main(["grasp-check", "--object", "can_000", "--grasps", "2", "--seed", "0",
+                 "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["checked"] == 2
+    assert summary["objects"]["can_000"]["checked"] == 2
+    assert 0 <= summary["held"] <= 2
+    assert summary["hold_rate"] == summary["held"] / 2
+    assert sum(summary["failures"].values()) == 2 - summary["held"]
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["checked"] == 2
+
+
+def test_grasp_check_cli_unknown_object_is_a_clean_error(tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    assert main(["grasp-check", "--object", "no_such_thing", "--grasps", "1",
+                 "--out", str(tmp_path)]) == 2
+    assert "no_such_thing" in capsys.readouterr().err
