@@ -235,6 +235,31 @@ def bench_trials_per_hour(trials: int = 6, workers: int = 2) -> dict:
                                        "workers": workers}}
 
 
+def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
+    """Grasp-lab checks per second on one core: sampled ground-truth grasps of one
+    settled object (scene settling and grasp sampling excluded), each a full descend,
+    close, lift, hold and shake."""
+    from drake_grasp.grasps import find_grasps
+    from drake_grasp.lab import check_grasps, isolated_scene
+    from drake_grasp.objects import load_library
+
+    library = load_library(None)
+    rng = np.random.default_rng(BENCH_SEED)
+    scene = isolated_scene("can_000", library, lying=True)
+    found = find_grasps(scene, library, rng)
+    chosen = rng.choice(len(found), size=min(grasps, len(found)), replace=False)
+    t0 = time.perf_counter()
+    results = check_grasps(None, found.poses[chosen], scene=scene, library=library,
+                           object_indices=found.object_index[chosen])
+    wall = time.perf_counter() - t0
+    return {"grasp_checks_per_s": round(len(results) / wall, 3),
+            "grasp_checks_per_s_detail": {
+                "checks": len(results), "held": int(sum(r.held for r in results)),
+                "wall_s": round(wall, 2), "s_per_check": round(wall / len(results), 3),
+                "sim_s_per_check": round(float(np.mean([r.details["sim_time_s"]
+                                                        for r in results])), 2)}}
+
+
 BENCHMARKS = {
     "rtf_isolation": bench_rtf_isolation,
     "rtf_clutter5": bench_rtf_clutter5,
@@ -244,6 +269,7 @@ BENCHMARKS = {
     "controller_step_ms": bench_controller_step_ms,
     "rtf_ctr_clutter5": bench_rtf_ctr_clutter5,
     "trials_per_hour": bench_trials_per_hour,
+    "grasp_checks_per_s": bench_grasp_checks_per_s,
 }
 
 # Every key each benchmark prints (besides "machine" and "date"), so that `--only` takes
@@ -260,6 +286,7 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
     "controller_step_ms": ("controller_step_ms",),
     "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
     "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail"),
+    "grasp_checks_per_s": ("grasp_checks_per_s", "grasp_checks_per_s_detail"),
 }
 
 
