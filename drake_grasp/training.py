@@ -382,30 +382,28 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
     """
     config = config or TrainConfig()
     config.validate()
-    resolve_data_dirs(data, test_data)  # bad --data is refused before `out` is created
+    # Bad --data is refused before `out` is created.
+    train_dir, test_dir = resolve_data_dirs(data, test_data)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with TrainLock(out):
-        return _train_locked(data=data, out=out, test_data=test_data, config=config,
+        return _train_locked(train_dir=train_dir, test_dir=test_dir, out=out, config=config,
                              network=network, progress=progress)
 
 
-def _train_locked(*, data, out: Path, test_data, config, network, progress) -> dict:
+def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainConfig,
+                  network: NetworkConfig | None, progress: bool) -> dict:
+    """`train` once `out` is locked and the config validated."""
     from tqdm import tqdm
 
-    config = config or TrainConfig()
-    config.validate()
     network = network or NetworkConfig(theta_unit="deg")
     if config.threads > 0:
         torch.set_num_threads(config.threads)
-    train_dir, test_dir = resolve_data_dirs(data, test_data)
     train_set, test_set, cache = open_training_sets(
         train_dir, test_dir, max_memory_gb=config.max_memory_gb,
         batch_instances=config.batch_instances)
     images_per_batch = max(1, config.batch_instances // train_set.offsets_per_image)
     device = _device(config.device)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     resolved = {"train": dataclasses.asdict(config), "network": network.to_dict(),
                 "train_data": str(train_dir), "test_data": str(test_dir),
                 "train_manifest_sha256": train_set.manifest_sha256,
