@@ -1003,7 +1003,8 @@ def find_grasps_in_meshes(
     table_z: float = TABLE_TOP_Z_M,
     table_clearance_m: float = 0.002,
     timings: dict | None = None,
-) -> GraspSet:
+    return_rejected: bool = False,
+) -> GraspSet | tuple[GraspSet, GraspSet]:
     """Ground-truth grasps among world-frame meshes on the table (no Drake needed).
 
     1. Surface samples of all objects (`sample_scene_points`, `point_spacing_m`).
@@ -1042,9 +1043,13 @@ def find_grasps_in_meshes(
             (surface samples, candidates, neighbour grids), "neighbours" (the
             collision samples near each axis), "collision", and
             "closing_and_force_closure" (with its own search of the fine samples).
+        return_rejected: also return the candidates that reach the object collision
+            free with both pads on one object but fail the width or force-closure
+            test (what `drake-grasp label-check` executes as "rejected").
 
     Returns:
-        The grasps (`GraspSet`); `object_index` indexes `meshes`.
+        The grasps (`GraspSet`); `object_index` indexes `meshes`. With
+        `return_rejected`, (grasps, rejected candidates).
     """
     _check_rng(rng)
     meshes = _check_meshes(meshes)
@@ -1059,7 +1064,7 @@ def find_grasps_in_meshes(
         meshes, rng, num_samples=num_samples, num_rotations=num_rotations, depths=depths,
         approach_max_tilt_deg=approach_max_tilt_deg)
     if len(cands.origins) == 0 or len(fine) == 0 or len(coarse) == 0:
-        return GraspSet.empty()
+        return (GraspSet.empty(), GraspSet.empty()) if return_rejected else GraspSet.empty()
     scene = _Scene.build(fine, coarse)
     t1 = time.perf_counter()
     if timings is not None:
@@ -1070,9 +1075,20 @@ def find_grasps_in_meshes(
                    min_points_between=min_points_between, contact_tolerance_m=contact_tolerance_m,
                    table_z=float(table_z), table_clearance_m=float(table_clearance_m),
                    timings=timings)
-    s, k, d = np.nonzero(ev.valid)
+    accepted = _grasp_set(ev, cands.approach, ev.valid)
+    if not return_rejected:
+        return accepted
+    # Candidates the analytic test turns down although the open hand reaches them
+    # and both pads would close on one object: the width or force-closure test said no.
+    near = (ev.collision_free & (ev.num_points_between >= min_points_between)
+            & (ev.object_index >= 0) & ~ev.valid)
+    return accepted, _grasp_set(ev, cands.approach, near)
+
+
+def _grasp_set(ev: _Evaluation, approach: np.ndarray, mask: np.ndarray) -> GraspSet:
+    s, k, d = np.nonzero(mask)
     x_axis = ev.x_axis[s, k]
-    z_axis = cands.approach[s]
+    z_axis = approach[s]
     poses = np.zeros((len(s), 4, 4))
     poses[:, :3, 0] = x_axis
     poses[:, :3, 1] = np.cross(z_axis, x_axis)
@@ -1080,7 +1096,8 @@ def find_grasps_in_meshes(
     poses[:, :3, 3] = ev.centers[s, k, d]
     poses[:, 3, 3] = 1.0
     xy_theta = np.column_stack([poses[:, 0, 3], poses[:, 1, 3], _yaw_deg_mod_180(x_axis)])
-    return GraspSet(poses, ev.width[s, k, d].astype(float), xy_theta, ev.object_index[s, k, d])
+    widths = np.nan_to_num(ev.width[s, k, d].astype(float), nan=0.0)
+    return GraspSet(poses, widths, xy_theta, ev.object_index[s, k, d])
 
 
 def find_grasps(spec, library, rng: np.random.Generator, **kwargs) -> GraspSet:
