@@ -184,6 +184,23 @@ def _cmd_grasp_check(args) -> int:
     return 0
 
 
+def _cmd_label_check(args) -> int:
+    from drake_grasp.labelcheck import LabelCheckConfig, run_label_check
+    from drake_grasp.objects import load_library
+
+    scenario = _load(args)
+    library = load_library(args.objects)
+    config = LabelCheckConfig(grasps_per_scene=args.grasps_per_scene,
+                              rejected_per_scene=args.rejected_per_scene, split=args.split)
+    summary = run_label_check(num_scenes=args.scenes, seed=args.seed, out=args.out,
+                              scenario=scenario, library=library, config=config,
+                              workers=args.workers, objects_dir=args.objects or "")
+    print(json.dumps({k: summary[k] for k in (
+        "scenes", "checked", "held", "precision", "precision_ci95", "min_category_precision",
+        "rejected_checked", "rejected_held", "failures")}))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -345,6 +362,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the objects' drop rotations and the grasp sampling (default: 0)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for summary.json")
     p.set_defaults(func=_cmd_grasp_check)
+
+    p = sub.add_parser("label-check", help="execute the dataset's ground-truth grasps (and "
+                       "rejected candidates) of sampled scenes in the grasp physics lab, with "
+                       "the neighbours present -> summary.json (precision), report.md")
+    _add_scenario_flags(p)
+    p.add_argument("--scenes", type=int, required=True,
+                   help="scenes sampled and labelled as `generate` does (1-5 objects)")
+    p.add_argument("--seed", type=int, required=True, help="seed of the scenes and the picks")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="folder for run.json, scenes/*.json, summary.json, report.md; "
+                   "re-running the same command resumes")
+    p.add_argument("--grasps-per-scene", type=int, default=3,
+                   help="ground-truth grasps executed per scene (default: 3)")
+    p.add_argument("--rejected-per-scene", type=int, default=1,
+                   help="rejected candidates executed per scene (default: 1)")
+    p.add_argument("--split", choices=("train", "test"), default="train",
+                   help="object split of the scenes (default: train)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
+    p.set_defaults(func=_cmd_label_check)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

@@ -499,6 +499,7 @@ class _Evaluation:
     contacts: np.ndarray
     contact_normals: np.ndarray
     force_closure: np.ndarray
+    torque_ratio: np.ndarray
     valid: np.ndarray
 
 
@@ -652,6 +653,66 @@ class _Scene:
                    _Grid.build(coarse.points, HAND_FOOTPRINT_RADIUS_M / 4.0))
 
 
+@dataclass(frozen=True)
+class ObjectMasses:
+    """Mass and world-frame centre of mass of each scene object (index as the meshes)."""
+
+    mass_kg: np.ndarray  # (M,)
+    com_W: np.ndarray  # (M, 3)
+
+    @classmethod
+    def of_scene(cls, spec, library) -> ObjectMasses:
+        """From the objects' model data (`meta.json`: mass and centre of mass)."""
+        mass, com = [], []
+        for placement in spec.objects:
+            meta = library.get(placement.object_id).read_meta()
+            R = _quat_wxyz_to_matrix(placement.quat_wxyz)
+            mass.append(float(meta["mass_kg"]))
+            com.append(R @ np.asarray(meta["com_m"], dtype=float) + np.asarray(placement.xyz))
+        return cls(np.asarray(mass, dtype=float).reshape(-1), np.asarray(com).reshape(-1, 3))
+
+    @classmethod
+    def of_meshes(cls, meshes, density_kg_m3: float = 500.0) -> ObjectMasses:
+        """Uniform density: each (closed) mesh's volume centroid and volume x density."""
+        mass = [abs(float(m.volume)) * density_kg_m3 if m.is_volume else 0.0 for m in meshes]
+        com = [np.asarray(m.center_mass if m.is_volume else m.centroid, dtype=float)
+               for m in meshes]
+        return cls(np.asarray(mass, dtype=float), np.asarray(com).reshape(-1, 3))
+
+
+GRAVITY_M_S2 = 9.81
+
+
+def _gravity_torque_ratio(contacts, spread, object_index, objects: ObjectMasses | None,
+                          grip_force_n: float) -> np.ndarray:
+    """Gravity's torque about the line through the two contact patches, divided by what
+    the pads' torsional friction can hold per unit friction coefficient.
+
+    A parallel-jaw grasp rotates about the line through its contacts unless the
+    patches' torsional friction holds the object's weight acting at its centre of
+    mass: |((p_com - c1) x m g) . a| <= mu F (r1 + r2), where a is the unit contact
+    axis, F the grip force of a pad and r the patches' spread (the lever arm of
+    their friction). Returns that torque / (F (r1 + r2)), an effective friction
+    coefficient needed to hold (0 without `objects`; inf for a patch without spread).
+    """
+    n = len(object_index)
+    if objects is None or n == 0:
+        return np.zeros(n)
+    ok = object_index >= 0
+    idx = np.where(ok, object_index, 0)
+    c1, c2 = contacts[:, 0], contacts[:, 1]
+    axis = c2 - c1
+    length = np.linalg.norm(axis, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = axis / length
+        weight = np.zeros((n, 3))
+        weight[:, 2] = -objects.mass_kg[idx] * GRAVITY_M_S2
+        torque = np.abs(np.sum(np.cross(objects.com_W[idx] - c1, weight) * a, axis=1))
+        ratio = torque / (float(grip_force_n) * spread.sum(axis=1))
+    ratio = np.where(ok & np.isfinite(ratio), ratio, np.inf)
+    return np.where(ok & (torque == 0), 0.0, ratio)
+
+
 def _evaluate(
     scene: _Scene,
     origins: np.ndarray,
@@ -669,6 +730,9 @@ def _evaluate(
     table_z: float,
     table_clearance_m: float,
     timings: dict | None,
+    objects: ObjectMasses | None = None,
+    grip_force_n: float = 60.0,
+    max_torque_ratio: float | None = None,
 ) -> _Evaluation:
     """Tests hands along S axes x K rotations x D depths against the scene points.
 
@@ -743,11 +807,11 @@ def _evaluate(
     f_axis, f_point, f_u, f_v, f_w = _neighbour_pairs(scene.fine_grid, origins[sel], approach[sel],
                                                       basis_x[sel], e2[sel], STRIP_RADIUS_M, w_max)
     f_axis = sel[f_axis]
-    xs, _, gs, f_pair = _in_hand_frame(f_axis, f_u, f_v, base_angle, K, PAD_HALF_WIDTH_M,
-                                       hands=any_free.reshape(S, K))
+    xs, ys, gs, f_pair = _in_hand_frame(f_axis, f_u, f_v, base_angle, K, PAD_HALF_WIDTH_M,
+                                        hands=any_free.reshape(S, K))
     keep = np.abs(xs) <= 0.5 * STROKE_M
     f_pair = f_pair[keep]
-    xs, ws, gs, ps = xs[keep], f_w[f_pair], gs[keep], f_point[f_pair]
+    xs, ys, ws, gs, ps = xs[keep], ys[keep], f_w[f_pair], gs[keep], f_point[f_pair]
     # Within the pads' length: |w - shift| <= 19 mm, shift = top + depth.
     rel_top = ws - (0.0 if depths is None else top[gs])
     free_t = np.ascontiguousarray(free.T)
@@ -759,6 +823,8 @@ def _evaluate(
     q = np.concatenate(q_parts)
     ids = np.concatenate(id_parts)
     xq = xs[q]
+    yq = ys[q].astype(np.float64)
+    wq = ws[q]
     count = np.bincount(ids, minlength=n)
     xmin = _group_min(xq, ids, n)
     xmax = _group_max(xq, ids, n)
@@ -772,6 +838,9 @@ def _evaluate(
     normals = np.zeros((n, 2, 3))
     obj_lo = np.full(n, np.inf)
     obj_hi = np.full(n, -np.inf)
+    # Patch spread in the pad's plane (y_G, z_G): the RMS distance of the patch samples
+    # from their centroid, the lever arm of the pad's torsional friction.
+    spread = np.zeros((n, 2))
     with np.errstate(invalid="ignore", divide="ignore"):
         for side, patch in enumerate((xq <= xmin[ids] + contact_tolerance_m,
                                       xq >= xmax[ids] - contact_tolerance_m)):
@@ -781,6 +850,11 @@ def _evaluate(
             for j in range(3):
                 contacts[:, side, j] = np.bincount(i_sel, P_sel[:, j], minlength=n) / num
                 normals[:, side, j] = np.bincount(i_sel, N_sel[:, j], minlength=n)
+            var = 0.0
+            for c in (yq[patch], wq[patch]):
+                mean = np.bincount(i_sel, c, minlength=n) / num
+                var = var + np.bincount(i_sel, c * c, minlength=n) / num - mean * mean
+            spread[:, side] = np.sqrt(np.clip(var, 0.0, None))
             obj_lo = np.minimum(obj_lo, _group_min(objs[patch], i_sel, n))
             obj_hi = np.maximum(obj_hi, _group_max(objs[patch], i_sel, n))
         one_object = obj_lo == obj_hi
@@ -789,8 +863,11 @@ def _evaluate(
         nrm = np.linalg.norm(normals, axis=-1, keepdims=True)
         unit_normals = np.where(nrm > 0, normals / nrm, 0.0)
     fc = force_closure(contacts[:, 0], normals[:, 0], contacts[:, 1], normals[:, 1], mu=mu)
+    torque_ratio = _gravity_torque_ratio(contacts, spread, object_index, objects, grip_force_n)
     free = free.ravel()
     valid = free & width_ok & one_object & fc
+    if max_torque_ratio is not None:
+        valid &= torque_ratio <= max_torque_ratio
     centers = origins[s_of][:, None, :] + shift[..., None] * z_axis[:, None, :]
     t3 = time.perf_counter()
     if timings is not None:
@@ -809,6 +886,7 @@ def _evaluate(
         contacts=contacts.reshape(shape + (2, 3)),
         contact_normals=unit_normals.reshape(shape + (2, 3)),
         force_closure=fc.reshape(shape),
+        torque_ratio=torque_ratio.reshape(shape),
         valid=valid.reshape(shape),
     )
 
@@ -828,7 +906,11 @@ class GraspCheck:
         contacts: (N, 2, 3) centroids of the contact patches (left pad, right pad).
         contact_normals: (N, 2, 3) their mean outward surface normals.
         force_closure: The contacts are in force closure.
-        valid: All of the above: a ground-truth grasp.
+        torque_ratio: Gravity's torque about the contact axis over F (r1 + r2), the
+            friction coefficient the pads' torsional friction needs to hold the
+            object (0 when no `objects` were given; see `_gravity_torque_ratio`).
+        valid: All of the above (and torque_ratio <= max_torque_ratio when given):
+            a ground-truth grasp.
     """
 
     collision_free: np.ndarray
@@ -838,6 +920,7 @@ class GraspCheck:
     contacts: np.ndarray
     contact_normals: np.ndarray
     force_closure: np.ndarray
+    torque_ratio: np.ndarray
     valid: np.ndarray
 
 
@@ -852,6 +935,9 @@ def check_grasp_poses(
     contact_tolerance_m: float = 0.002,
     table_z: float = TABLE_TOP_Z_M,
     table_clearance_m: float = 0.002,
+    objects: ObjectMasses | None = None,
+    grip_force_n: float = 60.0,
+    max_torque_ratio: float | None = None,
 ) -> GraspCheck:
     """Runs every grasp test on explicit grasp-frame poses (e.g. a controller's final
     pose, or hand-made poses in tests). Same tests and defaults as `find_grasps`.
@@ -861,7 +947,8 @@ def check_grasp_poses(
         scene: Surface samples of the scene (`sample_scene_points`).
         collision_points: Samples for the collision test (default: `scene`).
         mu, min_width_m, min_points_between, contact_tolerance_m, table_z,
-            table_clearance_m: See `find_grasps_in_meshes`.
+            table_clearance_m, objects, grip_force_n, max_torque_ratio: See
+            `find_grasps_in_meshes`.
     """
     X = np.asarray(poses, dtype=float)
     if X.shape == (4, 4):
@@ -883,7 +970,7 @@ def check_grasp_poses(
         z = np.zeros(N, dtype=bool)
         return GraspCheck(collision, np.zeros(N, dtype=np.int64), np.full(N, np.nan),
                           np.full(N, -1, dtype=np.int64), np.zeros((N, 2, 3)),
-                          np.zeros((N, 2, 3)), z, z)
+                          np.zeros((N, 2, 3)), z, np.full(N, np.inf), z)
     # Each pose is its own axis (K = 1, angle 0 about x_G) with the centre at the origin.
     ev = _evaluate(
         _Scene.build(scene, collision_points), X[:, :3, 3], R[:, :, 2], R[:, :, 0], np.zeros(N), 1,
@@ -892,11 +979,13 @@ def check_grasp_poses(
         min_points_between=_positive_int("min_points_between", min_points_between),
         contact_tolerance_m=_positive("contact_tolerance_m", contact_tolerance_m, allow_zero=True),
         table_z=float(table_z), table_clearance_m=float(table_clearance_m), timings=None,
+        objects=objects, grip_force_n=_positive("grip_force_n", grip_force_n),
+        max_torque_ratio=max_torque_ratio,
     )
     f = lambda a: a[:, 0, 0]  # noqa: E731
     return GraspCheck(f(ev.collision_free), f(ev.num_points_between), f(ev.width),
                       f(ev.object_index), f(ev.contacts), f(ev.contact_normals),
-                      f(ev.force_closure), f(ev.valid))
+                      f(ev.force_closure), f(ev.torque_ratio), f(ev.valid))
 
 
 def _lowest_hand_z(X: np.ndarray) -> np.ndarray:
@@ -1004,6 +1093,9 @@ def find_grasps_in_meshes(
     table_clearance_m: float = 0.002,
     timings: dict | None = None,
     return_rejected: bool = False,
+    objects: ObjectMasses | None = None,
+    grip_force_n: float = 60.0,
+    max_torque_ratio: float | None = None,
 ) -> GraspSet | tuple[GraspSet, GraspSet]:
     """Ground-truth grasps among world-frame meshes on the table (no Drake needed).
 
@@ -1043,6 +1135,12 @@ def find_grasps_in_meshes(
             (surface samples, candidates, neighbour grids), "neighbours" (the
             collision samples near each axis), "collision", and
             "closing_and_force_closure" (with its own search of the fine samples).
+        objects: Mass and centre of mass of each mesh's object (`ObjectMasses`), for
+            the gravity-torque test; None: no such test.
+        grip_force_n: Normal force of each pad [N] (the station's grip force).
+        max_torque_ratio: Largest gravity torque about the contact axis per unit of
+            the pads' torsional friction lever, F (r1 + r2) (`GraspCheck.torque_ratio`);
+            None: no limit.
         return_rejected: also return the candidates that reach the object collision
             free with both pads on one object but fail the width or force-closure
             test (what `drake-grasp label-check` executes as "rejected").
@@ -1074,7 +1172,9 @@ def find_grasps_in_meshes(
                    mu=mu, min_width_m=min_width_m, max_width_m=STROKE_M,
                    min_points_between=min_points_between, contact_tolerance_m=contact_tolerance_m,
                    table_z=float(table_z), table_clearance_m=float(table_clearance_m),
-                   timings=timings)
+                   timings=timings, objects=objects,
+                   grip_force_n=_positive("grip_force_n", grip_force_n),
+                   max_torque_ratio=max_torque_ratio)
     accepted = _grasp_set(ev, cands.approach, ev.valid)
     if not return_rejected:
         return accepted
@@ -1103,8 +1203,11 @@ def _grasp_set(ev: _Evaluation, approach: np.ndarray, mask: np.ndarray) -> Grasp
 def find_grasps(spec, library, rng: np.random.Generator, **kwargs) -> GraspSet:
     """Ground-truth grasps of a `SceneSpec` (see `find_grasps_in_meshes` for kwargs).
 
-    `object_index` indexes `spec.objects`.
+    `object_index` indexes `spec.objects`. The objects' masses and centres of mass
+    come from the library (`ObjectMasses.of_scene`) unless `objects` is given.
     """
+    if "objects" not in kwargs:
+        kwargs["objects"] = ObjectMasses.of_scene(spec, library)
     return find_grasps_in_meshes(scene_meshes(spec, library), rng, **kwargs)
 
 

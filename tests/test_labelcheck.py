@@ -1,0 +1,98 @@
+"""Label check: summary arithmetic, resume, a refused different run, and the gravity-torque
+test of the ground truth."""
+
+import json
+
+import numpy as np
+import pytest
+
+
+def _record(index, checks):
+    from drake_grasp.labelcheck import FORMAT
+
+    return {"format": FORMAT, "scene_index": index, "seed": index, "replaced_attempts": [],
+            "scene": {}, "num_accepted": 5, "num_rejected": 1, "checks": checks, "wall_s": 1.0}
+
+
+def _check(kind, category, held, failure=""):
+    return {"kind": kind, "category": category, "held": held, "failure": failure}
+
+
+def test_summary_counts_precision_per_category_and_leaves_out_simulation_errors():
+    from drake_grasp.labelcheck import summarize
+
+    records = [
+        _record(0, [_check("accepted", "can", True), _check("accepted", "can", False, "missed"),
+                    _check("rejected", "can", True)]),
+        _record(1, [_check("accepted", "mug", True),
+                    _check("accepted", "mug", False, "dropped-by-shake"),
+                    _check("accepted", "mug", False, "simulation-error"),
+                    _check("rejected", "mug", False, "missed")]),
+    ]
+    s = summarize(records)
+    assert (s["checked"], s["held"]) == (4, 2)
+    assert s["precision"] == pytest.approx(0.5)
+    assert s["precision_lift_hold"] == pytest.approx(0.75)  # the shake failure held the lift
+    assert (s["rejected_checked"], s["rejected_held"]) == (2, 1)
+    assert s["simulation_errors"] == 1
+    assert s["per_category"]["can"]["checked"] == 2 and s["per_category"]["mug"]["held"] == 1
+    assert s["failures"]["missed"] == 1 and s["failures"]["dropped-by-shake"] == 1
+    lo, hi = s["precision_ci95"]
+    assert 0.0 < lo < 0.5 < hi < 1.0
+
+
+def test_gravity_torque_ratio_of_an_off_centre_grasp():
+    """A 1 kg box grasped 5 cm beside its centre of mass: torque m g d about the contact
+    axis; the ratio is that over F (r1 + r2) and grows with the offset."""
+    import trimesh
+
+    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, topdown_rotation
+
+    box = trimesh.creation.box((0.04, 0.20, 0.04))
+    box.apply_translation([0.5, 0.0, 0.022])
+    rng = np.random.default_rng(0)
+    pts = sample_scene_points([box], rng, spacing_m=0.002)
+    objects = ObjectMasses(np.array([1.0]), np.array([[0.5, 0.0, 0.022]]))
+    poses = []
+    for offset in (0.0, 0.05):
+        X = np.eye(4)
+        X[:3, :3] = topdown_rotation(0.0)  # closing along world x, across the 4 cm side
+        X[:3, 3] = [0.5, offset, 0.03]
+        poses.append(X)
+    check = check_grasp_poses(np.array(poses), pts, objects=objects, grip_force_n=10.0)
+    assert check.force_closure.all()
+    centred, offset = check.torque_ratio
+    assert centred < 0.05
+    # Each patch is the face under the pad: 22 mm across (the pad's width) by 31 mm along
+    # the approach (the box's top at z = 42 mm down to the pad's end at 11 mm); the RMS
+    # radius of a uniform rectangle of half sides a, b is sqrt((a^2 + b^2) / 3).
+    r = np.sqrt((0.011**2 + 0.0155**2) / 3.0)
+    assert offset == pytest.approx(1.0 * 9.81 * 0.05 / (10.0 * 2 * r), rel=0.1)
+    limited = check_grasp_poses(np.array(poses), pts, objects=objects, grip_force_n=10.0,
+                                max_torque_ratio=1.0)
+    assert limited.valid.tolist() == [True, False]
+
+
+@pytest.mark.slow
+def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
+    from drake_grasp.labelcheck import LabelCheckConfig, run_label_check
+    from drake_grasp.scenario import Scenario
+
+    out = tmp_path / "lc"
+    config = LabelCheckConfig(grasps_per_scene=1, rejected_per_scene=0)
+    summary = run_label_check(num_scenes=1, seed=3, out=out, scenario=Scenario(),
+                              library=library, config=config, show_progress=False)
+    assert summary["scenes"] == 1 and summary["checked"] == 1
+    assert summary["held"] in (0, 1) and summary["precision"] in (0.0, 1.0)
+    record = out / "scenes" / "scene-00000.json"
+    check = json.loads(record.read_text())["checks"][0]
+    assert check["kind"] == "accepted" and check["details"]["grip_force_n"] == 60.0
+    assert (out / "report.md").read_text().startswith("# Label check")
+    stamp = record.stat().st_mtime_ns
+    again = run_label_check(num_scenes=1, seed=3, out=out, scenario=Scenario(),
+                            library=library, config=config, show_progress=False)
+    assert record.stat().st_mtime_ns == stamp  # resumed: nothing re-run
+    assert again["checked"] == 1
+    with pytest.raises(ValueError, match="seed: 3 in the folder, 4 now"):
+        run_label_check(num_scenes=1, seed=4, out=out, scenario=Scenario(), library=library,
+                        config=config, show_progress=False)
