@@ -101,6 +101,9 @@ class DatasetConfig:
     settle_time_step_s: float = 0.005
     # Friction coefficient of the force-closure test.
     friction_coefficient: float = 0.5
+    # Largest gravity-and-shake torque about the contact axis per unit of the pads'
+    # torsional friction lever (`grasps.MAX_TORQUE_RATIO`, calibrated in the grasp lab).
+    max_torque_ratio: float = 0.15
     # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
@@ -429,7 +432,8 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     if not settled.settled:
         return SceneRejected(scene_index, attempt, s_seed, "unsettled", timings)
     rng = np.random.default_rng([s_seed, 1])
-    grasps = find_grasps(settled, library, rng, mu=config.friction_coefficient)
+    grasps = find_grasps(settled, library, rng, mu=config.friction_coefficient,
+                         max_torque_ratio=config.max_torque_ratio)
     lap("grasps")
     if len(grasps.xy_theta) == 0:
         return SceneRejected(scene_index, attempt, s_seed, "no_grasp", timings)

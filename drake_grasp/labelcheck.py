@@ -93,6 +93,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
         # The dataset's random stream for this scene: the same grasps it would label with.
         accepted, rejected = find_grasps(spec, library, np.random.default_rng([s_seed, 1]),
                                          mu=dataset_config.friction_coefficient,
+                                         max_torque_ratio=dataset_config.max_torque_ratio,
                                          return_rejected=True)
         if len(accepted) == 0:
             attempts.append({"seed": s_seed, "rejected": "no_grasp"})

@@ -42,11 +42,17 @@ def test_summary_counts_precision_per_category_and_leaves_out_simulation_errors(
 
 
 def test_gravity_torque_ratio_of_an_off_centre_grasp():
-    """A 1 kg box grasped 5 cm beside its centre of mass: torque m g d about the contact
-    axis; the ratio is that over F (r1 + r2) and grows with the offset."""
+    """A 1 kg box grasped 5 cm beside its centre of mass: the worst load about the contact
+    axis is gravity plus the lab's downward shake acceleration on a 5 cm lever; over
+    F (r1 + r2) that is the friction the pads need. A centred grasp only needs what the
+    sideways shake asks of the ~5 mm between the contact patches' centroid (the face
+    from the box's top at 42 mm down to the pads' ends at 11 mm, centroid ~27 mm
+    high) and the centre of mass (22 mm high)."""
     import trimesh
 
-    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, topdown_rotation
+    from drake_grasp.grasps import (
+        GRAVITY_M_S2, SHAKE_ACCELERATION_M_S2, ObjectMasses, check_grasp_poses,
+        sample_scene_points, topdown_rotation)
 
     box = trimesh.creation.box((0.04, 0.20, 0.04))
     box.apply_translation([0.5, 0.0, 0.022])
@@ -61,13 +67,14 @@ def test_gravity_torque_ratio_of_an_off_centre_grasp():
         poses.append(X)
     check = check_grasp_poses(np.array(poses), pts, objects=objects, grip_force_n=10.0)
     assert check.force_closure.all()
-    centred, offset = check.torque_ratio
-    assert centred < 0.05
     # Each patch is the face under the pad: 22 mm across (the pad's width) by 31 mm along
     # the approach (the box's top at z = 42 mm down to the pad's end at 11 mm); the RMS
     # radius of a uniform rectangle of half sides a, b is sqrt((a^2 + b^2) / 3).
-    r = np.sqrt((0.011**2 + 0.0155**2) / 3.0)
-    assert offset == pytest.approx(1.0 * 9.81 * 0.05 / (10.0 * 2 * r), rel=0.1)
+    lever = 10.0 * 2 * np.sqrt((0.011**2 + 0.0155**2) / 3.0)
+    centred, offset = check.torque_ratio
+    assert centred == pytest.approx(SHAKE_ACCELERATION_M_S2 * 0.005 / lever, rel=0.3)
+    assert offset == pytest.approx((GRAVITY_M_S2 + SHAKE_ACCELERATION_M_S2) * 0.05 / lever,
+                                   rel=0.1)
     limited = check_grasp_poses(np.array(poses), pts, objects=objects, grip_force_n=10.0,
                                 max_torque_ratio=1.0)
     assert limited.valid.tolist() == [True, False]
