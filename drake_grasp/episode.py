@@ -14,6 +14,7 @@ import numpy as np
 
 from drake_grasp import __version__
 from drake_grasp.objects import ObjectLibrary, load_library, visual_mesh
+from drake_grasp.results import classify_failure
 from drake_grasp.scenario import Scenario, dump_scenario
 from drake_grasp.scene import SceneSpec, make_scene
 
@@ -110,6 +111,7 @@ class EpisodeDiagram:
     station: object
     policy: object  # ScriptedGraspSupervisor or GraspController
     target: int | None  # scene index of the scripted/target object
+    judge: object = None  # GraspJudge
     visualizer: object = None
     disturbance: object = None
     sampler: object = None
@@ -132,11 +134,13 @@ def _gpd_detector(scenario: Scenario):
 
 def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary,
                           *, meshcat=None, model=None) -> EpisodeDiagram:
-    """Station + policy + sheet command (+ Meshcat), as one Diagram.
+    """Station + policy + sheet command + grasp judge (+ Meshcat), as one Diagram.
 
-    `scripted` uses the ScriptedGraspSupervisor; every other policy the GraspController,
+    `scripted` uses the ScriptedGraspSupervisor (which plans from the object's true pose:
+    it alone of the policies reads `body_poses`); every other policy the GraspController,
     with the ActionSampler and the DistanceEvaluator (CNN) where it needs them and the
-    SheetDisturbance moving the sheet.
+    SheetDisturbance moving the sheet. The GraspJudge watches the station's contact
+    results and body poses and reads the policy's `control_status`.
     """
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource
@@ -156,20 +160,19 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
         target, points_O = choose_scripted_target(scene, library)
         policy = builder.AddNamedSystem("supervisor", ScriptedGraspSupervisor(
             object_body_index=station.object_body(target).index(),
-            object_points_O=points_O,
-            gripper_body_index=station.gripper_body().index(),
-            X_BG=station.X_BG, X_WG_start=station.X_WG_start,
-            motion=scenario.scripted, gripper=scenario.gripper, judge=scenario.judge))
+            object_points_O=points_O, X_WG_start=station.X_WG_start,
+            motion=scenario.scripted, gripper=scenario.gripper))
         sheet = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
         builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+        builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
         out.target = target
     else:
         out.target, policy = _add_controller(builder, scenario, scene, library, station, model, out)
-    builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
     builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
     builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
     builder.Connect(policy.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
     out.policy = policy
+    out.judge = _add_judge(builder, scenario, scene, library, station, policy)
     if meshcat is not None:
         from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams
 
@@ -180,6 +183,27 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     out.diagram = builder.Build()
     out.diagram.set_name("grasp_episode")
     return out
+
+
+def _add_judge(builder, scenario, scene, library, station, policy):
+    """The GraspJudge, the one system with privileged ports (contacts, body poses)."""
+    from drake_grasp.systems.judge import PAD_BODIES, GraspJudge, geometry_bodies
+
+    plant = station.plant
+    gripper = {int(i): plant.get_body(i).name() for i in plant.GetBodyIndices(station.gripper)}
+    pads = [int(plant.GetBodyByName(name, station.gripper).index()) for name in PAD_BODIES]
+    judge = builder.AddNamedSystem("judge", GraspJudge(
+        config=scenario.judge,
+        object_bodies=[station.object_body(i).index() for i in range(len(scene.objects))],
+        object_ids=scene.object_ids(),
+        object_points=[_object_surface_points(library, o.object_id, 600) for o in scene.objects],
+        gripper_bodies=gripper, pad_bodies=pads, grasp_body=station.gripper_body().index(),
+        X_BG=station.X_BG, geometry_bodies=geometry_bodies(plant)))
+    sd = station.diagram
+    builder.Connect(sd.GetOutputPort("contact_results"), judge.GetInputPort("contact_results"))
+    builder.Connect(sd.GetOutputPort("body_poses"), judge.GetInputPort("body_poses"))
+    builder.Connect(policy.GetOutputPort("control_status"), judge.GetInputPort("control_status"))
+    return judge
 
 
 def _add_controller(builder, scenario, scene, library, station, model, out):
@@ -206,13 +230,9 @@ def _add_controller(builder, scenario, scene, library, station, model, out):
         target = ids.index(scenario.target)
         # MultibodyPlant labels each body's geometry with its body index.
         target_label = int(station.object_body(target).index())
-    points = [_object_surface_points(library, o.object_id, 600) for o in scene.objects]
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=station.X_WG_start,
-        X_GC=station.X_GC, X_BG=station.X_BG,
-        gripper_body_index=station.gripper_body().index(),
-        object_bodies=[station.object_body(i).index() for i in range(len(scene.objects))],
-        object_points=points, object_ids=scene.object_ids(),
+        X_GC=station.X_GC,
         score_fn=(lambda depth, actions: score_candidates(model, depth, actions)) if needs_cnn else None,
         detect_fn=_gpd_detector(scenario) if scenario.policy == "gpd" else None,
         target_label=target_label))
@@ -361,10 +381,13 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         ed.visualizer.StopRecording()
         ed.visualizer.PublishRecording()
         replay = meshcat.StaticHtml()
+    # The policy's own data (iterations, stop reason; why it gave up, if it did) and the
+    # judge's verdict (success, failure class and reason, what was lifted).
     outcome = policy.outcome(policy_context)
-    if not outcome:
-        outcome = {"success": False,
-                   "failure_reason": f"timeout in mode {policy.mode_name(policy_context)}"}
+    verdict = ed.judge.GetOutputPort("judgement").Eval(ed.judge.GetMyContextFromRoot(root))
+    failure_reason = verdict.reason
+    if not verdict.attempted and verdict.decided and outcome.get("failure_reason"):
+        failure_reason = outcome["failure_reason"]  # e.g. "init: no grasp attempted"
     X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
                                        plant.GetFrameByName("grasp_frame", station.gripper))
     disturbance = {"kind": "none"}
@@ -381,8 +404,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
             disturbance["velocity_m_s"] = list(scenario.disturbance.velocity_m_s)
     target_id = scene.objects[ed.target].object_id if ed.target is not None else None
     result = EpisodeResult(
-        success=bool(outcome["success"]),
-        failure_reason=outcome.get("failure_reason"),
+        success=bool(verdict.success),
+        failure_reason=failure_reason,
         policy=scenario.policy,
         scenario=scenario_name,
         seed=int(scenario.seed),
@@ -391,19 +414,21 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         object_ids=scene.object_ids(),
         target_object_id=target_id,
         final_X_WG=_pose_dict(X_WG),
-        object_lowest_point_m=outcome.get("object_lowest_point_m"),
+        object_lowest_point_m=verdict.object_lowest_point_m,
         final_distance_m=distance["final_distance_m"],
         control_steps=int(outcome.get("iterations", len(steps)) or 0),
         disturbance=disturbance,
         noise=scenario.noise.kind,
-        details={"held_after_close": outcome.get("held_after_close"),
-                 "grasped_object_id": outcome.get("grasped_object_id"),
+        details={"failure_class": classify_failure(verdict.success, failure_reason),
+                 "held_after_close": verdict.held_after_close,
+                 "grasped_object_id": verdict.grasped_object_id,
                  "stop_reason": outcome.get("stop_reason"),
                  "final_mode": policy.mode_name(policy_context),
                  "hand_at_close_xy_yaw": distance["hand_xy_yaw"],
                  "num_true_grasps": distance["num_true_grasps"],
                  "simulation_wall_time_s": loop_wall_s,
-                 "num_depth_frames": len(frames)},
+                 "num_depth_frames": len(frames),
+                 "judge": verdict.details},
     )
     return EpisodeRun(result=result, depth_frames=frames, steps=steps,
                       final_plant_state=np.array(plant.GetPositionsAndVelocities(plant_context)),

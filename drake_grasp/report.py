@@ -35,9 +35,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from drake_grasp.results import (FAILURE_CLASSES, REPLAYS_DIR, TrialRecord, atomic_write_bytes,
-                                 atomic_write_text, load_records, read_run_info, replay_path,
-                                 wilson_interval)
+from drake_grasp.results import (FAILURE_CLASSES, LEGACY_FAILURE_CLASSES, REPLAYS_DIR,
+                                 TrialRecord, atomic_write_bytes, atomic_write_text, load_records,
+                                 read_run_info, replay_path, wilson_interval)
 
 BIN_M = 0.03  # the paper's Figure 5 bin size
 HIST_MAX_M = 0.30  # last regular bin edge; farther trials go to an overflow bin
@@ -224,8 +224,8 @@ def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
     distance_only = _is_distance_only(condition, records)
     dists = [r.final_distance_m for r in records if r.final_distance_m is not None]
     classes = {c: 0 for c in FAILURE_CLASSES}
-    for r in records:
-        classes[r.failure_class] += 1
+    for r in records:  # records of the geometric judge add their legacy classes
+        classes[r.failure_class] = classes.get(r.failure_class, 0) + 1
     errors = classes["simulation-error"]
     attempts = len(records) - errors
     out: dict[str, Any] = {
@@ -588,10 +588,15 @@ def _distance_table(policies: dict[str, dict]) -> list[str]:
 
 
 def _failure_table(policies: dict[str, dict]) -> list[str]:
-    lines = ["| condition | " + " | ".join(FAILURE_CLASSES) + " |",
-             "|---" * (len(FAILURE_CLASSES) + 1) + "|"]
+    legacy = [k for k in LEGACY_FAILURE_CLASSES
+              if any(s["failure_classes"].get(k) for s in policies.values())]
+    names = list(FAILURE_CLASSES) + legacy
+    lines = ["| condition | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     for c, s in policies.items():
-        lines.append(f"| {c} | " + " | ".join(str(s["failure_classes"][k]) for k in FAILURE_CLASSES) + " |")
+        lines.append(f"| {c} | " + " | ".join(str(s["failure_classes"].get(k, 0)) for k in names) + " |")
+    if legacy:
+        lines += ["", f"{', '.join(legacy)}: classes of records judged by the earlier geometric "
+                      "judge (an object sample between the pads)."]
     return lines
 
 

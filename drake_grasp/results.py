@@ -40,8 +40,16 @@ REPLAYS_DIR = "replays"
 # Bumped when a field changes meaning or is removed; files carry it as "format_version".
 RECORD_FORMAT_VERSION = 1
 
-FAILURE_CLASSES = ("none", "missed", "slipped", "collision", "shifted-away", "timeout",
-                   "simulation-error")
+# Why a grasp episode failed: the classes `drake_grasp.systems.judge.GraspJudge` decides from
+# the contact history (see its docstring), plus "timeout" (the policy had not finished when
+# the episode's time was up) and "simulation-error" (the simulation raised). The one list
+# the judge, the trial records and the report share.
+GRASP_FAILURES = ("missed", "pushed-away", "collision", "slipped-during-lift",
+                  "slipped-during-hold", "timeout", "simulation-error")
+FAILURE_CLASSES = ("none",) + GRASP_FAILURES
+# Classes of records written before the contact judge (geometric judge): still readable,
+# shown in reports only when a results folder holds them.
+LEGACY_FAILURE_CLASSES = ("slipped", "shifted-away")
 
 # Characters allowed in a trial id: file-name safe on every common filesystem once "/" is
 # mapped to "__", and unambiguous in Markdown links.
@@ -355,7 +363,7 @@ class TrialRecord:
 
 def _check_consistency(record: TrialRecord, where: str) -> None:
     trial_file_stem(record.trial_id)  # raises on an id that cannot be a file name
-    if record.failure_class not in FAILURE_CLASSES:
+    if record.failure_class not in FAILURE_CLASSES + LEGACY_FAILURE_CLASSES:
         raise ValueError(f"{where}: key 'failure_class' has value {record.failure_class!r}; "
                          f"expected one of {FAILURE_CLASSES}")
     if record.success and record.failure_class != "none":
@@ -368,6 +376,8 @@ def classify_failure(success: bool, failure_reason: str | None, *,
                      exception: BaseException | None = None) -> str:
     """The failure class of a trial, one of `FAILURE_CLASSES`.
 
+    The grasp judge (`drake_grasp.systems.judge`) starts every reason with its class
+    ("slipped-during-lift: ..."); policies that give up say why in their own words.
     Rules, first match wins (reasons are matched case-insensitively):
 
     1. success -> "none".
@@ -377,24 +387,25 @@ def classify_failure(success: bool, failure_reason: str | None, *,
        measure the starting distance; they attempted no grasp, so no grasp failed. Calling
        them "missed" would pollute failure counts; the report leaves INIT out of success
        tables altogether (their `success` is False).
-    4. reason starts with "timeout" -> "timeout".
-    5. reason starts with "missed" and a shift disturbance happened
-       (`disturbance["kind"] == "shift"` and `disturbance["time_s"]` is not None)
-       -> "shifted-away".
-    6. reason starts with "missed" -> "missed".
-    7. reason starts with "slipped" -> "slipped".
-    8. reason mentions "collision" -> "collision".
-    9. anything else (no reason, "no top-down grasp: ...") -> "missed".
+    4. reason starts with one of `GRASP_FAILURES` (followed by ":", a space or nothing)
+       -> that class ("timeout in phase approach" -> "timeout").
+    5. reason starts with "slipped" (the geometric judge's words) -> "slipped-during-hold".
+    6. reason mentions "collision" -> "collision".
+    7. anything else (no reason, "no top-down grasp: ...", "missed: no grasp detected")
+       -> "missed".
 
     Args:
         success: Whether the grasp held.
-        failure_reason: The supervisor's / runner's reason, None if none was given.
-        disturbance: The trial's disturbance dict ({} or None for none).
+        failure_reason: The judge's or the policy's reason, None if none was given.
+        disturbance: The trial's disturbance dict; kept for callers, no longer used (a
+            sheet shift no longer makes its own class: the judge's "pushed-away" says
+            when the object moved before the pads closed on it).
         exception: The exception that ended the trial, if any.
 
     Returns:
         The failure class.
     """
+    del disturbance
     if success:
         return "none"
     reason = (failure_reason or "").strip().lower()
@@ -403,15 +414,11 @@ def classify_failure(success: bool, failure_reason: str | None, *,
         return "simulation-error"
     if reason.startswith("init"):
         return "none"
-    if reason.startswith("timeout"):
-        return "timeout"
-    if reason.startswith("missed"):
-        d = disturbance or {}
-        if d.get("kind") == "shift" and d.get("time_s") is not None:
-            return "shifted-away"
-        return "missed"
+    for name in sorted(GRASP_FAILURES, key=len, reverse=True):
+        if reason == name or reason.startswith((name + ":", name + " ")):
+            return name
     if reason.startswith("slipped"):
-        return "slipped"
+        return "slipped-during-hold"
     if "collision" in reason:
         return "collision"
     return "missed"

@@ -206,12 +206,21 @@ class DisturbanceConfig:
 
 @dataclass
 class JudgeConfig:
-    """What counts as a successful grasp."""
+    """What counts as a successful grasp, and how failures are told apart
+    (`drake_grasp.systems.judge.GraspJudge`)."""
 
     # The object's lowest point must be this high above the table after the hold [m].
     min_lift_m: float = 0.05
-    # A fully closed gripper holds nothing: the opening must stay above this [m].
+    # Read by the earlier geometric judge (a fully closed gripper holds nothing); the
+    # contact judge needs no width (an object touching both pads keeps them apart).
+    # Kept so that scenario files written before it still load.
     min_holding_width_m: float = 0.002
+    # The judge samples the contacts this often [s] (a Python system evaluated at every
+    # plant step would cost real-time factor).
+    period_s: float = 0.01
+    # "pushed-away": the object the grasp went for moved more than this horizontally
+    # before the closing pads touched it [m].
+    max_push_m: float = 0.02
 
 
 @dataclass
@@ -343,6 +352,9 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "scripted.min_grasp_height_m": (0, _INF, False, True, "m"),
     "judge.min_lift_m": (0, _INF, False, True, "m"),
     "judge.min_holding_width_m": (0, 0.085, False, False, "m"),
+    # At most the controller's usual period: a slower judge could miss a motion phase.
+    "judge.period_s": (0, 0.1, True, False, "s"),
+    "judge.max_push_m": (0, _INF, True, True, "m"),
     "controller.period_s": (0, _INF, True, True, "s"),
     "controller.iterations": (1, 10_000, False, False, ""),
     "controller.step_ratio": (0, 1, True, False, ""),

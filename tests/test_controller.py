@@ -51,12 +51,11 @@ def _image(value, shape=(64, 64), center=None):
 
 
 def _controller_diagram(scenario, depth_image, policy="ctr"):
-    X_BG, _, X_GC = gripper_frame_offsets()
+    _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
     builder = DiagramBuilder()
     ctrl = builder.AddSystem(GraspController(
-        scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC, X_BG=X_BG,
-        gripper_body_index=0, object_bodies=[], object_points=[], object_ids=[]))
+        scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC))
     c = scenario.controller
     sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
                                               theta_deg=c.sample_theta_deg, period_s=c.period_s,
@@ -64,11 +63,9 @@ def _controller_diagram(scenario, depth_image, policy="ctr"):
     ev = builder.AddSystem(StandInEvaluator())
     depth = builder.AddSystem(ConstantValueSource(AbstractValue.Make(depth_image)))
     label = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageLabel16I(64, 64))))
-    poses = builder.AddSystem(ConstantValueSource(AbstractValue.Make([RigidTransform()])))
     grip = builder.AddSystem(ConstantVectorSource(np.zeros(4)))
     builder.Connect(depth.get_output_port(), ctrl.GetInputPort("depth_image"))
     builder.Connect(label.get_output_port(), ctrl.GetInputPort("label_image"))
-    builder.Connect(poses.get_output_port(), ctrl.GetInputPort("body_poses"))
     builder.Connect(grip.get_output_port(), ctrl.GetInputPort("gripper_state"))
     builder.Connect(sampler.GetOutputPort("candidate_actions"), ctrl.GetInputPort("candidate_actions"))
     builder.Connect(sampler.GetOutputPort("candidate_actions"), ev.GetInputPort("candidate_actions"))
@@ -169,7 +166,7 @@ def test_shift_after_the_third_iteration_moves_objects_with_the_sheet(library, s
     grip = builder.AddSystem(ConstantVectorSource([0.085, 40.0]))
     builder.Connect(grip.get_output_port(), sd.GetInputPort("gripper_command"))
     dist = builder.AddSystem(SheetDisturbance(scenario.disturbance, seed=scenario.seed, period_s=0.1))
-    status = builder.AddSystem(ConstantVectorSource([float(step), 1.0]))
+    status = builder.AddSystem(ConstantVectorSource([float(step), 1.0, 0.0]))
     builder.Connect(status.get_output_port(), dist.GetInputPort("control_status"))
     builder.Connect(dist.GetOutputPort("sheet_desired_state"), sd.GetInputPort("sheet_desired_state"))
     diagram = builder.Build()
@@ -204,18 +201,16 @@ def test_target_mode_keeps_candidates_on_the_target(scenario):
     labels = ImageLabel16I(64, 64)
     labels.mutable_data[:] = 0
     labels.mutable_data[:, 40:, 0] = 7  # the target's pixels
-    X_BG, _, X_GC = gripper_frame_offsets()
+    _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
     builder = DiagramBuilder()
     ctrl = builder.AddSystem(GraspController(
-        scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC, X_BG=X_BG,
-        gripper_body_index=0, object_bodies=[], object_points=[], object_ids=[], target_label=7))
+        scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC, target_label=7))
     c = scenario.controller
     sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
                                               theta_deg=c.sample_theta_deg, period_s=c.period_s))
     ev = builder.AddSystem(StandInEvaluator())
-    for port, value in (("depth_image", depth), ("label_image", labels),
-                        ("body_poses", [RigidTransform()])):
+    for port, value in (("depth_image", depth), ("label_image", labels)):
         src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(value)))
         builder.Connect(src.get_output_port(), ctrl.GetInputPort(port))
     grip = builder.AddSystem(ConstantVectorSource(np.zeros(4)))

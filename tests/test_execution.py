@@ -5,7 +5,6 @@ start image where its grasp will be."""
 
 import numpy as np
 import pytest
-from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
@@ -26,18 +25,16 @@ def _depth_image(value):
 
 def _controller(scenario, depth, policy="ctr", score_fn=None):
     """The controller alone, its inputs fixed: a zero candidate action scored 0."""
-    X_BG, _, X_GC = gripper_frame_offsets()
+    _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], START_CAMERA_HEIGHT_M + X_GC.translation()[2], 0.0)
     ctrl = GraspController(scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC,
-                           X_BG=X_BG, gripper_body_index=0, object_bodies=[], object_points=[],
-                           object_ids=[], score_fn=score_fn)
+                           score_fn=score_fn)
     sim = Simulator(ctrl)
     ctx = sim.get_mutable_context()
     ctrl.GetInputPort("depth_image").FixValue(ctx, _depth_image(depth))
     ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
     ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((1, 3)))
     ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(1))
-    ctrl.GetInputPort("body_poses").FixValue(ctx, [RigidTransform()])
     ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
     return sim, ctrl, ctx
 

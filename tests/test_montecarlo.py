@@ -42,7 +42,9 @@ def test_tiny_experiment_writes_records_and_a_report(reference):
         assert r.scenario_yaml and r.config_hash and r.code_version
         assert r.final_distance_m is None or r.final_distance_m >= 0
     scripted = [r for r in records if r.condition == "scripted"]
-    assert all(r.failure_class in ("none", "missed", "slipped") for r in scripted)
+    assert all(r.failure_class in ("none", "missed", "pushed-away", "collision",
+                                   "slipped-during-lift", "slipped-during-hold")
+               for r in scripted)
     summary = result["summary"]
     assert summary["policies"]["scripted"]["n"] == 2
     assert (out / "report.md").is_file() and (out / "summary.json").is_file()

@@ -94,8 +94,8 @@ def test_make_report_sim_distance(sim_dir):
     assert p["ctr_noise"]["distance_n"] == 7
     assert p["ctr_noise"]["median_final_distance_m"] == pytest.approx(0.02)
     assert p["ctr_noise"]["failure_classes"] == {
-        "none": 6, "missed": 0, "slipped": 1, "collision": 0, "shifted-away": 0, "timeout": 0,
-        "simulation-error": 1}
+        "none": 6, "missed": 0, "pushed-away": 0, "collision": 0, "slipped-during-lift": 0,
+        "slipped-during-hold": 1, "timeout": 0, "simulation-error": 1}
     assert p["gpd_noise"]["histogram"]["counts"][:3] == [2, 0, 6]
     assert p["ctr"]["histogram"]["counts"][1] == 1  # 0.05 m falls in [3, 6) cm
     targets = {t["id"]: t for t in summary["targets"]}
@@ -264,3 +264,26 @@ def test_report_of_selected_trials(tmp_path):
     assert make_report(d)["policies"]["ctr"]["trials"] == 4
     with pytest.raises(ValueError, match="none of its 4 trial records"):
         make_report(d, trials=["clutter/gpd/0000"])
+
+
+def test_records_of_the_geometric_judge_stay_readable(tmp_path):
+    """Records written before the contact judge carry "slipped" / "shifted-away": they
+    load, count, and get their own columns only where a folder holds them."""
+    d = tmp_path / "old"
+    write_run_info(d, {"experiment": "isolation"})
+    write_record(d, make_record("isolation/ctr/0000"))
+    write_record(d, make_record("isolation/ctr/0001", success=False, failure_class="slipped",
+                                failure_reason="slipped: the object left the pads during lift/hold"))
+    write_record(d, make_record("isolation/gpd/0000", condition="gpd", policy="gpd",
+                                success=False, failure_class="shifted-away",
+                                failure_reason="missed: nothing between the pads after closing"))
+    summary = make_report(d)
+    assert summary["policies"]["ctr"]["failure_classes"]["slipped"] == 1
+    assert summary["policies"]["gpd"]["failure_classes"]["shifted-away"] == 1
+    md = (d / "report.md").read_text()
+    assert "| slipped-during-hold | timeout | simulation-error | slipped | shifted-away |" in md
+    new = tmp_path / "new"
+    write_run_info(new, {"experiment": "isolation"})
+    write_record(new, make_record("isolation/ctr/0000"))
+    make_report(new)
+    assert "shifted-away" not in (new / "report.md").read_text()

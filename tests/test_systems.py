@@ -5,7 +5,7 @@ import pytest
 from pydrake.math import RigidTransform
 
 from drake_grasp.grasps import plan_topdown_grasp, points_between_pads, topdown_rotation
-from drake_grasp.scenario import GripperConfig, JudgeConfig, ScriptedGraspConfig
+from drake_grasp.scenario import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.gripper import GripperController, gripper_pd_target
 from drake_grasp.systems.supervisor import Mode, ScriptedGraspSupervisor, interpolate_pose, min_jerk
 
@@ -63,13 +63,12 @@ def test_min_jerk_and_interpolation():
 
 
 def _supervisor():
-    # A 4 cm cube at (0.5, 0, 0.02) is body 1; the gripper base is body 2.
+    # A 4 cm cube at (0.5, 0, 0.02) is body 1.
     pts = np.random.default_rng(1).uniform(-0.02, 0.02, size=(400, 3))
     X_WG_start = RigidTransform([0.5, 0.0, 0.2])
     sup = ScriptedGraspSupervisor(
-        object_body_index=1, object_points_O=pts, gripper_body_index=2,
-        X_BG=RigidTransform(), X_WG_start=X_WG_start, motion=ScriptedGraspConfig(),
-        gripper=GripperConfig(), judge=JudgeConfig())
+        object_body_index=1, object_points_O=pts, X_WG_start=X_WG_start,
+        motion=ScriptedGraspConfig(), gripper=GripperConfig())
     return sup
 
 
@@ -87,6 +86,8 @@ def test_supervisor_plans_from_the_true_pose_and_walks_its_modes():
     assert sup.GetOutputPort("gripper_command").Eval(ctx)[0] == pytest.approx(0.085)
     # Start of the approach: the desired pose is the start pose.
     assert sup.GetOutputPort("X_WG_desired").Eval(ctx).translation() == pytest.approx([0.5, 0, 0.2])
+    # The judge reads the motion phase from control_status: approaching, phase 0.
+    assert list(sup.GetOutputPort("control_status").Eval(ctx)) == [0.0, 1.0, 0.0]
     del state
 
 

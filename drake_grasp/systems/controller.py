@@ -1,5 +1,7 @@
 """The grasp controller: the paper's closed-loop CTR and the one-shot baselines, each
-ending in the same predefined grasp motion (descend, close, lift, hold, judge).
+ending in the same predefined grasp motion (descend, close, lift, hold). The controller
+sees sensors only (depth and label images, gripper state, time); whether its grasp held
+is decided outside it, by the `GraspJudge` (systems/judge.py).
 
 Policies (`policy` argument):
     ctr: Algorithm 1 - every control period score the sampled candidates, move a
@@ -27,7 +29,6 @@ from drake_grasp.grasps import (
     FINGERTIP_Z_M,
     PAD_HALF_WIDTH_M,
     STROKE_M,
-    points_between_pads,
     topdown_rotation,
 )
 from drake_grasp.policies import (
@@ -42,8 +43,8 @@ from drake_grasp.scenario import Scenario
 from drake_grasp.systems.supervisor import (
     grasp_motion_next,
     interpolate_pose,
-    judge_failure_reason,
     min_jerk,
+    motion_phase_code,
 )
 
 CLOSED_LOOP = ("ctr", "cnn-ctr")
@@ -58,8 +59,13 @@ class Phase(enum.Enum):
     CLOSE = "close"
     LIFT = "lift"
     HOLD = "hold"
-    JUDGE = "judge"
     DONE = "done"
+
+
+# The shared grasp motion's phase (`supervisor.MOTION_PHASES`) of each controller phase.
+_MOTION_PHASE = {Phase.START: "approach", Phase.APPROACH: "approach", Phase.SERVO: "approach",
+                 Phase.DESCEND: "descend", Phase.CLOSE: "close", Phase.LIFT: "lift",
+                 Phase.HOLD: "hold", Phase.DONE: "done"}
 
 
 @dataclass(frozen=True)
@@ -87,7 +93,6 @@ class ControllerState:
     segment_from: tuple = (0.0, 0.0, 0.0, 0.0)  # start of the current interpolated move
     grasp: tuple | None = None                  # final grasp pose [x, y, z, yaw_deg]
     stop_reason: str = ""
-    held_after_close: bool = False
     last_step: StepRecord | None = None
     outcome: dict = field(default_factory=dict)
 
@@ -105,20 +110,19 @@ class GraspController(LeafSystem):
         label_image: the wrist camera's label image (ImageLabel16I), for target mode.
         candidate_actions: (K, 3) from the ActionSampler.
         predicted_distances: (K,) from the DistanceEvaluator.
-        body_poses: the plant's body poses (for the judge only).
         gripper_state: [q_left, q_right, v_left, v_right].
     Output ports:
         X_WG_desired: desired grasp-frame pose for differential IK.
         gripper_command: [width_m, grip_force_n].
-        control_status: [control step, approaching]: the CTR iteration (for the other
-            policies the number of control periods since the start), and 1 until the
-            gripper starts closing, then 0.
+        control_status: [control step, approaching, motion phase]: the CTR iteration (for
+            the other policies the number of control periods since the start), 1 until
+            the gripper starts closing (then 0), and the phase of the shared grasp motion
+            (`supervisor.MOTION_PHASES` index), which the GraspJudge reads.
     """
 
     def __init__(self, *, scenario: Scenario, policy: str, X_WG_start: RigidTransform,
-                 X_GC: RigidTransform, X_BG: RigidTransform, gripper_body_index,
-                 object_bodies: list, object_points: list, object_ids: list[str],
-                 score_fn=None, detect_fn=None, target_label: int | None = None):
+                 X_GC: RigidTransform, score_fn=None, detect_fn=None,
+                 target_label: int | None = None):
         super().__init__()
         self._s = scenario
         self._policy = policy
@@ -130,11 +134,6 @@ class GraspController(LeafSystem):
         self._start = (float(p[0]), float(p[1]), float(p[2]), float(yaw))
         self._X_GC = X_GC
         self._cam_dz = -float(X_GC.translation()[2])  # camera above the grasp centre
-        self._X_BG = X_BG
-        self._gripper_body = int(gripper_body_index)
-        self._objects = [int(b) for b in object_bodies]
-        self._object_points = [np.asarray(P, float) for P in object_points]
-        self._object_ids = list(object_ids)
         self._score = score_fn
         self._detect = detect_fn
         self._target_label = target_label
@@ -149,8 +148,6 @@ class GraspController(LeafSystem):
             "candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
         self._distances = self.DeclareAbstractInputPort(
             "predicted_distances", AbstractValue.Make(np.zeros(0)))
-        self._poses = self.DeclareAbstractInputPort(
-            "body_poses", AbstractValue.Make([RigidTransform()]))
         self._gripper_state = self.DeclareVectorInputPort("gripper_state", 4)
         self._state = self.DeclareAbstractState(AbstractValue.Make(ControllerState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, 0.0, self._Update)
@@ -159,7 +156,7 @@ class GraspController(LeafSystem):
             {self.abstract_state_ticket(self._state), self.time_ticket()})
         self.DeclareVectorOutputPort("gripper_command", 2, self._CalcGripper,
                                      {self.abstract_state_ticket(self._state)})
-        self.DeclareVectorOutputPort("control_status", 2, self._CalcStatus,
+        self.DeclareVectorOutputPort("control_status", 3, self._CalcStatus,
                                      {self.abstract_state_ticket(self._state), self.time_ticket()})
 
     # -- queries ----------------------------------------------------------------------
@@ -174,6 +171,9 @@ class GraspController(LeafSystem):
         return self.get_controller_state(context).phase.value
 
     def outcome(self, context) -> dict:
+        """The policy's own data once done: iterations and stop_reason, or a
+        failure_reason when it attempted no grasp (init, no GPD detection). Success and
+        the failure class come from the GraspJudge."""
         return dict(self.get_controller_state(context).outcome)
 
     @property
@@ -309,15 +309,14 @@ class GraspController(LeafSystem):
                 new = replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=s.hand)
         elif s.phase == Phase.SERVO:
             new = self._ctr_step(context, s, t)
-        elif s.phase == Phase.JUDGE:
-            new = replace(s, phase=Phase.DONE, phase_start_s=t, outcome=self._Judge(context, s))
         elif s.phase != Phase.DONE:
             speed = float(np.abs(self._gripper_state.Eval(context)[2:]).max())
             nxt = grasp_motion_next(s.phase.value, elapsed, m, speed)
             if nxt is not None:
                 new = replace(s, phase=Phase(nxt), phase_start_s=t)
-                if nxt == "lift":
-                    new = replace(new, held_after_close=self._held_object(context) is not None)
+                if nxt == "done":
+                    new = replace(new, outcome={"stop_reason": s.stop_reason,
+                                                "iterations": s.iteration})
         if new is not s:
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
 
@@ -326,7 +325,7 @@ class GraspController(LeafSystem):
         base = replace(s, hand=start, segment_from=start, phase_start_s=t)
         if self._policy == "init":
             return replace(base, phase=Phase.DONE, outcome={
-                "success": False, "failure_reason": "init: no grasp attempted"})
+                "failure_reason": "init: no grasp attempted", "iterations": 0})
         if self._policy == "ctr":
             return replace(base, phase=Phase.SERVO)
         depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
@@ -345,7 +344,7 @@ class GraspController(LeafSystem):
         detection = self._detect(depth, X_WC.GetAsMatrix4())
         if detection is None:
             return replace(base, phase=Phase.DONE, outcome={
-                "success": False, "failure_reason": "missed: no grasp detected"})
+                "failure_reason": "missed: no grasp detected", "iterations": 0})
         x, y, theta, z = detection
         # Move there as one displacement (noisy like any commanded displacement).
         goal = np.array([x, y, theta])
@@ -355,39 +354,6 @@ class GraspController(LeafSystem):
         hand = (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
         grasp = (hand[0], hand[1], float(z), hand[3])
         return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
-
-    # -- judge --------------------------------------------------------------------------
-
-    def _held_object(self, context) -> int | None:
-        """Index of an object between the pads of a not fully closed gripper, if any."""
-        x = self._gripper_state.Eval(context)
-        width = float(x[0] + x[1])
-        if width <= self._s.judge.min_holding_width_m:
-            return None
-        poses = self._poses.Eval(context)
-        X_GW = (poses[self._gripper_body] @ self._X_BG).inverse()
-        for i, (b, P) in enumerate(zip(self._objects, self._object_points)):
-            X = poses[b]
-            P_G = X_GW.multiply((P @ X.rotation().matrix().T + X.translation()).T).T
-            if points_between_pads(P_G, width) > 0:
-                return i
-        return None
-
-    def _Judge(self, context, s: ControllerState) -> dict:
-        poses = self._poses.Eval(context)
-        held = self._held_object(context)
-        lowest = None
-        if held is not None:
-            X = poses[self._objects[held]]
-            P = self._object_points[held] @ X.rotation().matrix().T + X.translation()
-            lowest = float(P[:, 2].min())
-        success = held is not None and lowest >= self._s.judge.min_lift_m
-        reason = judge_failure_reason(success, s.held_after_close)
-        return {"success": bool(success), "failure_reason": reason,
-                "object_lowest_point_m": lowest,
-                "grasped_object_id": self._object_ids[held] if held is not None else None,
-                "held_after_close": s.held_after_close, "stop_reason": s.stop_reason,
-                "iterations": s.iteration}
 
     # -- outputs ------------------------------------------------------------------------
 
@@ -428,7 +394,7 @@ class GraspController(LeafSystem):
 
     def _CalcGripper(self, context, output: BasicVector):
         s = self.get_controller_state(context)
-        closed = s.phase in (Phase.CLOSE, Phase.LIFT, Phase.HOLD, Phase.JUDGE) or (
+        closed = s.phase in (Phase.CLOSE, Phase.LIFT, Phase.HOLD) or (
             s.phase == Phase.DONE and s.grasp is not None)
         g = self._s.gripper
         output.SetFromVector([0.0 if closed else g.open_width_m, g.grip_force_n])
@@ -440,4 +406,5 @@ class GraspController(LeafSystem):
         else:
             step = int(round(context.get_time() / self._period))
         approaching = s.phase in (Phase.START, Phase.APPROACH, Phase.SERVO, Phase.DESCEND)
-        output.SetFromVector([float(step), 1.0 if approaching else 0.0])
+        output.SetFromVector([float(step), 1.0 if approaching else 0.0,
+                              motion_phase_code(_MOTION_PHASE[s.phase])])

@@ -28,7 +28,8 @@ class SheetDisturbance(LeafSystem):
     approaches and stops when the gripper starts closing.
 
     Input ports:
-        control_status: [control step, approaching] from the GraspController.
+        control_status: [control step, approaching, motion phase] from the policy
+            (the motion phase is not used here).
     Output ports:
         sheet_desired_state: [x, y, yaw, vx, vy, wz].
     State:
@@ -40,7 +41,7 @@ class SheetDisturbance(LeafSystem):
         self._c = config
         self._shift = sample_shift(config, seed)
         self._dt = float(period_s)
-        self.DeclareVectorInputPort("control_status", 2)
+        self.DeclareVectorInputPort("control_status", 3)
         self._xd = self.DeclareDiscreteState(np.array([np.nan, 0.0, 0.0]))
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._Update)
         self.DeclareVectorOutputPort("sheet_desired_state", 6, self._Calc,
@@ -55,7 +56,7 @@ class SheetDisturbance(LeafSystem):
 
     def _Update(self, context, discrete_state):
         x = context.get_discrete_state(self._xd).CopyToVector()
-        step, approaching = self.get_input_port(0).Eval(context)
+        step, approaching = self.get_input_port(0).Eval(context)[:2]
         if self._c.kind == "shift" and np.isnan(x[0]) and step >= self._c.after_iterations:
             x[0] = context.get_time()
         if self._c.kind == "moving" and approaching > 0.5:

@@ -1,8 +1,10 @@
-"""The scripted grasp: approach from above using the object's true pose, close, lift, judge.
+"""The scripted grasp: approach from above using the object's true pose, close, lift, hold.
 
-The predefined grasp motion (descend, close, lift, hold, judge) is the same one every
-policy ends with; here it follows a plan made from the object's true pose, which makes
-it the physics check for everything else: if this fails, the contact model is wrong.
+The predefined grasp motion (descend, close, lift, hold) is the same one every policy
+ends with; here it follows a plan made from the object's true pose, which makes it the
+physics check for everything else: if this fails, the contact model is wrong. Whether
+the grasp held is not decided here: the `GraspJudge` (systems/judge.py) watches the
+contacts and reads the motion's phase from the policy's `control_status` output.
 """
 
 from __future__ import annotations
@@ -16,8 +18,26 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_grasp.grasps import plan_topdown_grasp, points_between_pads
-from drake_grasp.scenario import GripperConfig, JudgeConfig, ScriptedGraspConfig
+from drake_grasp.grasps import plan_topdown_grasp
+from drake_grasp.scenario import GripperConfig, ScriptedGraspConfig
+
+# The phases of the shared grasp motion, as every policy reports them in the third entry
+# of its `control_status` output (the index into this tuple): "approach" covers
+# everything before the final descent (CTR's iterations, a one-shot move).
+MOTION_PHASES = ("approach", "descend", "close", "lift", "hold", "done")
+
+
+def motion_phase_code(name: str) -> float:
+    """The `control_status` value of a motion phase (its index in `MOTION_PHASES`)."""
+    return float(MOTION_PHASES.index(name))
+
+
+def motion_phase_name(code: float) -> str:
+    """The motion phase a `control_status` value stands for."""
+    i = int(round(float(code)))
+    if not 0 <= i < len(MOTION_PHASES):
+        raise ValueError(f"control_status: motion phase {code!r} is not one of 0..{len(MOTION_PHASES) - 1}")
+    return MOTION_PHASES[i]
 
 
 class Mode(enum.Enum):
@@ -26,7 +46,6 @@ class Mode(enum.Enum):
     CLOSE = "close"
     LIFT = "lift"
     HOLD = "hold"
-    JUDGE = "judge"
     DONE = "done"
 
 
@@ -37,14 +56,13 @@ class SupervisorState:
     mode: Mode = Mode.APPROACH
     mode_start_s: float = 0.0
     X_WG_grasp: RigidTransform | None = None
-    held_after_close: bool = False
     outcome: dict = field(default_factory=dict)
 
 
 def grasp_motion_next(mode: str, elapsed: float, motion: ScriptedGraspConfig,
                       finger_speed: float) -> str | None:
     """The predefined grasp motion every policy ends with: the phase that follows `mode`
-    ("descend" -> "close" -> "lift" -> "hold" -> "judge") once its time is up, or None.
+    ("descend" -> "close" -> "lift" -> "hold" -> "done") once its time is up, or None.
     Closing ends when the fingers have stopped (after 0.3 s) or after `close_time_s`."""
     if mode == "descend" and elapsed >= motion.descend_time_s:
         return "close"
@@ -54,17 +72,8 @@ def grasp_motion_next(mode: str, elapsed: float, motion: ScriptedGraspConfig,
     if mode == "lift" and elapsed >= motion.lift_time_s:
         return "hold"
     if mode == "hold" and elapsed >= motion.hold_time_s:
-        return "judge"
+        return "done"
     return None
-
-
-def judge_failure_reason(success: bool, held_after_close: bool) -> str | None:
-    """Why a grasp failed: nothing was ever held, or what was held got away."""
-    if success:
-        return None
-    if not held_after_close:
-        return "missed: nothing between the pads after closing"
-    return "slipped: the object left the pads during lift/hold"
 
 
 def min_jerk(s: float) -> float:
@@ -84,34 +93,34 @@ def interpolate_pose(X_a: RigidTransform, X_b: RigidTransform, s: float) -> Rigi
 
 
 class ScriptedGraspSupervisor(LeafSystem):
-    """Grasps one object from above, planned from its true pose; judges by physics.
+    """Grasps one object from above, planned from its true pose (an oracle by design).
 
-    Modes (abstract state): approach -> descend -> close -> lift -> hold -> judge -> done.
-    Success: after the hold, the object's lowest point is at least `min_lift_m` above
-    the table and part of it is still between the pads of a not fully closed gripper.
+    Modes (abstract state): approach -> descend -> close -> lift -> hold -> done. The
+    `GraspJudge` decides whether the grasp held.
 
     Input ports:
-        body_poses: the plant's body poses (std::vector<RigidTransform>).
+        body_poses: the plant's body poses (std::vector<RigidTransform>); read once, at
+            initialization, to plan the grasp from the object's true pose.
         gripper_state: [q_left, q_right, v_left, v_right] of the 2F-85 fingers.
     Output ports:
         X_WG_desired: desired grasp-frame pose (RigidTransform) for differential IK.
         gripper_command: [width_m, grip_force_n].
+        control_status: [control step, approaching, motion phase]: the number of periods
+            since the start, 1 until the gripper starts closing (else 0), and the phase of
+            the shared grasp motion (`MOTION_PHASES` index).
     """
 
     def __init__(self, *, object_body_index, object_points_O: np.ndarray,
-                 gripper_body_index, X_BG: RigidTransform, X_WG_start: RigidTransform,
-                 motion: ScriptedGraspConfig, gripper: GripperConfig, judge: JudgeConfig,
-                 table_z: float = 0.0, period_s: float = 0.01):
+                 X_WG_start: RigidTransform, motion: ScriptedGraspConfig,
+                 gripper: GripperConfig, table_z: float = 0.0, period_s: float = 0.01):
         super().__init__()
         self._object = int(object_body_index)
         self._points_O = np.asarray(object_points_O, dtype=float)
-        self._gripper_body = int(gripper_body_index)
-        self._X_BG = X_BG
         self._X_WG_start = X_WG_start
         self._motion = motion
         self._gripper = gripper
-        self._judge = judge
         self._table_z = float(table_z)
+        self._period = float(period_s)
         self._body_poses = self.DeclareAbstractInputPort(
             "body_poses", AbstractValue.Make([RigidTransform()]))
         self._gripper_state = self.DeclareVectorInputPort("gripper_state", 4)
@@ -124,6 +133,9 @@ class ScriptedGraspSupervisor(LeafSystem):
         self.DeclareVectorOutputPort(
             "gripper_command", 2, self._CalcGripperCommand,
             {self.abstract_state_ticket(self._state)})
+        self.DeclareVectorOutputPort(
+            "control_status", 3, self._CalcStatus,
+            {self.abstract_state_ticket(self._state), self.time_ticket()})
 
     # -- queries for episode runners --------------------------------------------------
 
@@ -137,6 +149,8 @@ class ScriptedGraspSupervisor(LeafSystem):
         return self.get_supervisor_state(context).mode.value
 
     def outcome(self, context) -> dict:
+        """The supervisor's own data: empty, or {"failure_reason": ...} when it planned no
+        grasp (success and failure class come from the GraspJudge)."""
         return dict(self.get_supervisor_state(context).outcome)
 
     # -- helpers --------------------------------------------------------------------
@@ -153,13 +167,6 @@ class ScriptedGraspSupervisor(LeafSystem):
         return RigidTransform(X_WG_grasp.rotation(), X_WG_grasp.translation()
                               + [0.0, 0.0, self._motion.lift_height_m])
 
-    def _holding(self, context) -> bool:
-        x = self._gripper_state.Eval(context)
-        width = float(x[0] + x[1])
-        X_WG = self._body_poses.Eval(context)[self._gripper_body] @ self._X_BG
-        P_G = X_WG.inverse().multiply(self._object_points_W(context).T).T
-        return width > self._judge.min_holding_width_m and points_between_pads(P_G, width) > 0
-
     # -- events ---------------------------------------------------------------------
 
     def _Initialize(self, context, state):
@@ -170,7 +177,7 @@ class ScriptedGraspSupervisor(LeafSystem):
                 min_height=self._motion.min_grasp_height_m)
         except ValueError as e:
             new = SupervisorState(mode=Mode.DONE, outcome={
-                "success": False, "failure_reason": f"no top-down grasp: {e}"})
+                "failure_reason": f"no top-down grasp: {e}"})
         else:
             X = RigidTransform(RotationMatrix(plan.rotation()), plan.position)
             new = SupervisorState(mode=Mode.APPROACH, mode_start_s=context.get_time(),
@@ -185,26 +192,13 @@ class ScriptedGraspSupervisor(LeafSystem):
         new = s
         if s.mode == Mode.APPROACH and elapsed >= m.approach_time_s:
             new = replace(s, mode=Mode.DESCEND, mode_start_s=t)
-        elif s.mode == Mode.JUDGE:
-            new = replace(s, mode=Mode.DONE, mode_start_s=t, outcome=self._Judge(context, s))
-        else:
+        elif s.mode != Mode.DONE:
             speed = float(np.abs(self._gripper_state.Eval(context)[2:]).max())
             nxt = grasp_motion_next(s.mode.value, elapsed, m, speed)
             if nxt is not None:
                 new = replace(s, mode=Mode(nxt), mode_start_s=t)
-                if nxt == "lift":
-                    new = replace(new, held_after_close=self._holding(context))
         if new is not s:
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
-
-    def _Judge(self, context, s: SupervisorState) -> dict:
-        lowest = float(self._object_points_W(context)[:, 2].min()) - self._table_z
-        holding = self._holding(context)
-        lifted = lowest >= self._judge.min_lift_m
-        success = lifted and holding
-        reason = judge_failure_reason(success, s.held_after_close)
-        return {"success": success, "failure_reason": reason,
-                "object_lowest_point_m": lowest, "held_after_close": s.held_after_close}
 
     # -- outputs ----------------------------------------------------------------------
 
@@ -231,7 +225,14 @@ class ScriptedGraspSupervisor(LeafSystem):
 
     def _CalcGripperCommand(self, context, output: BasicVector):
         s = self.get_supervisor_state(context)
-        closed = s.mode in (Mode.CLOSE, Mode.LIFT, Mode.HOLD, Mode.JUDGE) or (
+        closed = s.mode in (Mode.CLOSE, Mode.LIFT, Mode.HOLD) or (
             s.mode == Mode.DONE and s.X_WG_grasp is not None)
         width = 0.0 if closed else self._gripper.open_width_m
         output.SetFromVector([width, self._gripper.grip_force_n])
+
+    def _CalcStatus(self, context, output: BasicVector):
+        s = self.get_supervisor_state(context)
+        step = int(round(context.get_time() / self._period))
+        approaching = s.mode in (Mode.APPROACH, Mode.DESCEND)
+        output.SetFromVector([float(step), 1.0 if approaching else 0.0,
+                              motion_phase_code(s.mode.value)])
