@@ -7,6 +7,7 @@ import trimesh
 
 from drake_grasp.grasps import (
     FINGERTIP_Z_M,
+    PAD_HALF_WIDTH_M,
     TABLE_TOP_Z_M,
     GraspSet,
     angle_difference_deg,
@@ -91,11 +92,33 @@ def test_sphere_wider_than_the_stroke_has_no_grasps():
 
 
 def test_small_sphere_is_grasped():
-    sphere = _on_table(trimesh.creation.icosphere(subdivisions=3, radius=0.03))
-    grasps = find_grasps_in_meshes([sphere], np.random.default_rng(0))
+    """On a sphere of radius R the surface normal at a contact a distance d from the
+    centre line makes the angle asin(d / R) with the closing line, so two pads hold it
+    only when d <= R sin(atan mu) (the friction cone): for mu = 0.5, 13.4 mm of a 3 cm
+    sphere, and the pads close to a chord of at least 2 R cos(atan mu) = 53.7 mm."""
+    R, mu = 0.03, 0.5
+    sphere = _on_table(trimesh.creation.icosphere(subdivisions=3, radius=R))
+    grasps = find_grasps_in_meshes([sphere], np.random.default_rng(0), mu=mu)
     assert len(grasps) > 0
-    assert np.all(np.hypot(grasps.xy_theta[:, 0] - 0.5, grasps.xy_theta[:, 1]) < 0.03)
-    assert np.all((grasps.widths > 0.04) & (grasps.widths <= 0.06 + 1e-3))
+    d_max = R * mu / np.sqrt(1 + mu * mu)
+    assert np.all(grasps.widths >= 2 * R / np.sqrt(1 + mu * mu) - 1e-3)
+    assert np.all(grasps.widths <= 2 * R + 1e-3)
+    # The contacts (re-measured on a dense sample) lie within d_max of the centre line.
+    dense = sample_scene_points([sphere], np.random.default_rng(1), spacing_m=0.002)
+    check = check_grasp_poses(grasps.poses, dense, mu=mu)
+    c1, c2 = check.contacts[:, 0], check.contacts[:, 1]
+    axis = (c2 - c1) / np.linalg.norm(c2 - c1, axis=1, keepdims=True)
+    r = sphere.center_mass - c1
+    offset = np.linalg.norm(r - np.sum(r * axis, axis=1, keepdims=True) * axis, axis=1)
+    # The re-measurement uses other random samples: ~3% of the hands find no dense
+    # sample in a pad's 2 mm contact layer, so their contacts are undefined there.
+    measured = np.isfinite(offset)
+    assert measured.mean() > 0.95
+    assert np.all(offset[measured] <= d_max + 1e-3), offset[measured].max()
+    # The pad centre is at most d_max plus the pad's half width beside the centre line
+    # (the pad can touch the sphere near its edge), with 2 mm for the sampling.
+    horizontal = np.hypot(grasps.xy_theta[:, 0] - 0.5, grasps.xy_theta[:, 1])
+    assert np.all(horizontal <= d_max + PAD_HALF_WIDTH_M + 0.002), horizontal.max()
 
 
 def test_fingers_may_not_go_through_the_table():
