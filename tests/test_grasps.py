@@ -103,7 +103,8 @@ def test_small_sphere_is_grasped():
     d_max = R * mu / np.sqrt(1 + mu * mu)
     assert np.all(grasps.widths >= 2 * R / np.sqrt(1 + mu * mu) - 1e-3)
     assert np.all(grasps.widths <= 2 * R + 1e-3)
-    # The contacts (re-measured on a dense sample) lie within d_max of the centre line.
+    # The contacts (re-measured on a dense sample) lie within d_max of the centre line
+    # (2 mm for the random samples of the contact layers).
     dense = sample_scene_points([sphere], np.random.default_rng(1), spacing_m=0.002)
     check = check_grasp_poses(grasps.poses, dense, mu=mu)
     c1, c2 = check.contacts[:, 0], check.contacts[:, 1]
@@ -114,7 +115,7 @@ def test_small_sphere_is_grasped():
     # sample in a pad's 2 mm contact layer, so their contacts are undefined there.
     measured = np.isfinite(offset)
     assert measured.mean() > 0.95
-    assert np.all(offset[measured] <= d_max + 1e-3), offset[measured].max()
+    assert np.all(offset[measured] <= d_max + 2e-3), offset[measured].max()  # 2 mm: sampling
     # The pad centre is at most d_max plus the pad's half width beside the centre line
     # (the pad can touch the sphere near its edge), with 2 mm for the sampling.
     horizontal = np.hypot(grasps.xy_theta[:, 0] - 0.5, grasps.xy_theta[:, 1])
