@@ -238,9 +238,10 @@ def bench_trials_per_hour(trials: int = 6, workers: int = 2) -> dict:
 def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
     """Grasp-lab checks per second on one core: sampled ground-truth grasps of one
     settled object (scene settling and grasp sampling excluded), each a full descend,
-    close, lift, hold and shake."""
+    close, lift, hold and shake - at the lab's step (5 ms) and, side by side on the same
+    grasps, at the station's 2 ms (`_reference`), with how often the two verdicts agree."""
     from drake_grasp.grasps import find_grasps
-    from drake_grasp.lab import check_grasps, isolated_scene
+    from drake_grasp.lab import LabConfig, check_grasps, isolated_scene
     from drake_grasp.objects import load_library
 
     library = load_library(None)
@@ -248,16 +249,25 @@ def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
     scene = isolated_scene("can_000", library, lying=True)
     found = find_grasps(scene, library, rng)
     chosen = rng.choice(len(found), size=min(grasps, len(found)), replace=False)
-    t0 = time.perf_counter()
-    results = check_grasps(None, found.poses[chosen], scene=scene, library=library,
-                           object_indices=found.object_index[chosen])
-    wall = time.perf_counter() - t0
-    return {"grasp_checks_per_s": round(len(results) / wall, 3),
-            "grasp_checks_per_s_detail": {
-                "checks": len(results), "held": int(sum(r.held for r in results)),
-                "wall_s": round(wall, 2), "s_per_check": round(wall / len(results), 3),
-                "sim_s_per_check": round(float(np.mean([r.details["sim_time_s"]
-                                                        for r in results])), 2)}}
+    out, verdicts = {}, {}
+    for key, lab in (("grasp_checks_per_s", LabConfig()),
+                     ("grasp_checks_per_s_reference", LabConfig(time_step_s=None))):
+        t0 = time.perf_counter()
+        results = check_grasps(None, found.poses[chosen], scene=scene, library=library,
+                               object_indices=found.object_index[chosen], lab=lab)
+        wall = time.perf_counter() - t0
+        verdicts[key] = [r.held for r in results]
+        out[key] = round(len(results) / wall, 3)
+        out[key + "_detail"] = {
+            "checks": len(results), "held": int(sum(r.held for r in results)),
+            "wall_s": round(wall, 2), "s_per_check": round(wall / len(results), 3),
+            "time_step_s": lab.time_step_s,
+            "sim_s_per_check": round(float(np.mean([r.details["sim_time_s"] for r in results])), 2)}
+    out["grasp_checks_speedup"] = round(out["grasp_checks_per_s"]
+                                        / out["grasp_checks_per_s_reference"], 2)
+    out["grasp_checks_verdicts_agree"] = int(sum(
+        a == b for a, b in zip(*verdicts.values())))
+    return out
 
 
 BENCHMARKS = {
@@ -286,7 +296,9 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
     "controller_step_ms": ("controller_step_ms",),
     "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
     "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail"),
-    "grasp_checks_per_s": ("grasp_checks_per_s", "grasp_checks_per_s_detail"),
+    "grasp_checks_per_s": ("grasp_checks_per_s", "grasp_checks_per_s_detail",
+                           "grasp_checks_per_s_reference", "grasp_checks_per_s_reference_detail",
+                           "grasp_checks_speedup", "grasp_checks_verdicts_agree"),
 }
 
 
