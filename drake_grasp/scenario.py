@@ -127,21 +127,51 @@ class ScriptedGraspConfig:
     min_grasp_height_m: float = 0.02
 
 
+# The paper's two settings of the closed-loop controller (Viereck, ten Pas, Saenko, Platt,
+# CoRL 2017), as named profiles of `ControllerConfig` (`controller.profile`):
+#
+# sim, Section 5 (simulation, Figure 5): "The initial camera position is set to 0.3 m
+#   above the table. At each iteration the camera height is reduced by a constant step
+#   until height 0.15 m is reached. We run the controller for a total of 75 iterations,
+#   using r=0.2 as the step ratio to a target pose". (z steps of (start - end) / 75.)
+# robot, Section 6 (the UR5, Table 1): "we run the controller with a step ratio of r=0.5
+#   and a z step size of 1cm. [...] The controller runs until the depth data indicates
+#   that an object is within 14 cm distance from the sensor or the robot hand is too
+#   close to the table." Here "too close to the table" is the camera at 0.15 m (the open
+#   fingertips then 1 cm above the table), and the iteration budget is only a safety cap:
+#   from any start height below 0.65 m the 1 cm steps reach the table first.
+CONTROLLER_PROFILES: dict[str, dict[str, float]] = {
+    "sim": {"step_ratio": 0.2, "iterations": 75, "z_step_m": 0.0,
+            "end_camera_height_m": 0.15, "stop_distance_m": 0.14},
+    "robot": {"step_ratio": 0.5, "iterations": 50, "z_step_m": 0.01,
+              "end_camera_height_m": 0.15, "stop_distance_m": 0.14},
+}
+
+
 @dataclass
 class ControllerConfig:
     """The paper's closed-loop controller (Algorithm 1) and the learned evaluator.
 
-    Defaults are the paper's simulation: camera from 0.3 m to 0.15 m above the table in
-    75 iterations, each moving a fraction r = 0.2 of the way to the best candidate. (The
-    robot used r = 0.5 and 1 cm z steps.)
+    `profile` names one of the paper's two settings (`CONTROLLER_PROFILES`): "sim" (the
+    default; camera from 0.3 m to 0.15 m above the table in 75 equal z steps, each
+    iteration moving a fraction r = 0.2 of the way to the best candidate) or "robot"
+    (r = 0.5, 1 cm z steps until an object is within 14 cm of the sensor or the hand is
+    at its lowest height). A profile given in a scenario file or `--scenario-text` sets
+    `step_ratio`, `iterations`, `z_step_m`, `end_camera_height_m` and `stop_distance_m`,
+    except those given beside it in the same `controller:` mapping.
     """
 
+    # One of CONTROLLER_PROFILES; the settings below are the "sim" profile's.
+    profile: str = "sim"
     # Control period [s] (the robot's loop ran at about 5 Hz).
     period_s: float = 0.1
+    # Iteration budget (the "sim" profile's stop rule; a safety cap for "robot").
     iterations: int = 75
     step_ratio: float = 0.2
-    # Camera height above the table at the last iteration [m]; the start height is
-    # `arm.start_camera_height_m`. z steps = (start - end) / iterations.
+    # Camera step down per iteration [m]; 0: (start - end) / iterations, the start height
+    # being `arm.start_camera_height_m` (possibly raised over standing objects).
+    z_step_m: float = 0.0
+    # Camera height above the table at the last iteration [m]: the hand's lowest height.
     end_camera_height_m: float = 0.15
     # Stop when the depth image shows an object this close to the sensor [m].
     stop_distance_m: float = 0.14
@@ -264,7 +294,8 @@ class Scenario:
                            ("plant.discrete_contact_approximation",
                             self.plant.discrete_contact_approximation),
                            ("plant.contact_surface_representation",
-                            self.plant.contact_surface_representation)):
+                            self.plant.contact_surface_representation),
+                           ("controller.profile", self.controller.profile)):
             allowed = _CHOICES[key]
             if value not in allowed:
                 why = _CHOICE_REASONS.get(key, "")
@@ -307,6 +338,46 @@ class Scenario:
             self.depth_noise.validate()
         except ValueError as e:
             raise ValueError(f"depth_noise: {e}") from None
+
+
+# --------------------------------------------------------------------------- profiles
+
+def controller_profile(name: str) -> dict:
+    """The settings of a named controller profile (`CONTROLLER_PROFILES`).
+
+    Raises:
+        ValueError: an unknown name; the message names `controller.profile` and the
+            profiles there are.
+    """
+    if name not in CONTROLLER_PROFILES:
+        close = difflib.get_close_matches(str(name), list(CONTROLLER_PROFILES), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"controller.profile: got {name!r}{hint}, expected one of "
+                         f"{tuple(CONTROLLER_PROFILES)}")
+    return dict(CONTROLLER_PROFILES[name])
+
+
+def apply_controller_profile(controller: ControllerConfig, name: str, *,
+                             keep=()) -> ControllerConfig:
+    """A copy of `controller` with the named profile's settings, except the keys in
+    `keep` (those given explicitly beside the profile), and `profile` set to `name`.
+    The one place a profile turns into numbers."""
+    values = {k: v for k, v in controller_profile(name).items() if k not in set(keep)}
+    return dataclasses.replace(controller, profile=name, **values)
+
+
+def _apply_profile_given(raw, scenario: "Scenario", where: str) -> "Scenario":
+    """Applies `controller.profile` where the raw YAML mapping gives one: the profile
+    sets its settings, except the ones the same `controller:` mapping gives."""
+    c = raw.get("controller") if isinstance(raw, dict) else None
+    if not isinstance(c, dict) or "profile" not in c:
+        return scenario
+    try:
+        controller = apply_controller_profile(scenario.controller, c["profile"],
+                                              keep=set(c) - {"profile"})
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    return dataclasses.replace(scenario, controller=controller)
 
 
 # --------------------------------------------------------------------------- validation
@@ -358,6 +429,7 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.period_s": (0, _INF, True, True, "s"),
     "controller.iterations": (1, 10_000, False, False, ""),
     "controller.step_ratio": (0, 1, True, False, ""),
+    "controller.z_step_m": (0, 0.1, False, False, "m"),
     "controller.end_camera_height_m": (0, _INF, True, True, "m"),
     "controller.stop_distance_m": (0, _INF, False, True, "m"),
     "controller.stop_window_half_m": (0, 0.1, True, False, "m"),
@@ -395,6 +467,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "plant.contact_model": ("hydroelastic_with_fallback", "hydroelastic", "point"),
     "plant.discrete_contact_approximation": ("lagged", "sap", "similar"),
     "plant.contact_surface_representation": ("polygon", "triangle"),
+    "controller.profile": tuple(CONTROLLER_PROFILES),
 }
 _CHOICE_REASONS = {
     "plant.discrete_contact_approximation":
@@ -590,6 +663,7 @@ def load_scenario(
     scenario_name: str = "isolation",
     scenario_file: str | Path | None = None,
     scenario_text: str = "",
+    controller_profile: str = "",
 ) -> Scenario:
     """Loads a named scenario, then applies an inline YAML override.
 
@@ -597,6 +671,9 @@ def load_scenario(
         scenario_name: key in the scenarios file.
         scenario_file: a `*.scenarios.yaml`; None -> the shipped default file.
         scenario_text: YAML text whose keys override the named scenario's.
+        controller_profile: a `CONTROLLER_PROFILES` name applied to the named scenario
+            before `scenario_text` ("" keeps the scenario's); how experiments choose
+            the paper's sim or robot controller settings.
 
     Raises:
         FileNotFoundError: the file is missing.
@@ -615,6 +692,13 @@ def load_scenario(
     _check_yaml(data[scenario_name], Scenario, where, "")
     scenario = _load_typed(where, filename=str(path), child_name=scenario_name,
                            defaults=Scenario())
+    scenario = _apply_profile_given(data[scenario_name], scenario, where)
+    if controller_profile:
+        try:
+            scenario = dataclasses.replace(scenario, controller=apply_controller_profile(
+                scenario.controller, controller_profile))
+        except ValueError as e:
+            raise ValueError(f"controller_profile: {e}") from None
     named = scenario
     shown = scenario_text if len(scenario_text) <= 80 else scenario_text[:77] + "..."
     text_where = f"--scenario-text {shown!r}"
@@ -626,6 +710,7 @@ def load_scenario(
         if override is not None:  # blank or comment-only text overrides nothing
             _check_yaml(override, Scenario, text_where, "")
             scenario = _load_typed(text_where, data=scenario_text, defaults=scenario)
+            scenario = _apply_profile_given(override, scenario, text_where)
     try:
         scenario.validate()
     except ValueError as e:

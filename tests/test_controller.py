@@ -109,6 +109,37 @@ def test_each_step_moves_the_fraction_r_and_steps_down(scenario):
     assert [s1.hand[0], s1.hand[1], s1.hand[3]] == pytest.approx(list(expected))
 
 
+def test_robot_profile_moves_half_way_and_steps_down_1_cm_until_the_lowest_height():
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text="{seed: 2, controller: {profile: robot}}")
+    c = scenario.controller
+    assert (c.step_ratio, c.z_step_m) == (0.5, 0.01)
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
+    sim.AdvanceTo(1.5 * c.period_s)
+    s1 = ctrl.get_controller_state(ctx)
+    rec = s1.last_step
+    np.testing.assert_allclose(rec.moved, 0.5 * rec.chosen)  # half way to the best candidate
+    assert rec.chosen.tolist() == rec.actions[np.argmin(rec.distances)].tolist()
+    assert s1.hand[2] == pytest.approx(rec.hand[2] - 0.01)
+    # 1 cm per iteration until the camera is at its lowest height: 0.3 -> 0.15 m in 15.
+    sim.AdvanceTo(c.period_s * 17.5)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND and s.stop_reason == "hand at its lowest height"
+    assert s.iteration == 15
+    assert s.hand[2] + 0.115 == pytest.approx(c.end_camera_height_m, abs=1e-9)
+    # r = 0.5 converges faster than the sim profile's 0.2 in 15 iterations.
+    assert np.linalg.norm(np.array(s.hand[:2]) - GOAL[:2]) < 0.003
+
+
+def test_robot_profile_stops_at_14_cm():
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text="{seed: 2, controller: {profile: robot}}")
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))
+    sim.AdvanceTo(1.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND and "within 0.14 m" in s.stop_reason
+
+
 @pytest.mark.parametrize("near,stops", [(0.139, True), (0.141, False)])
 def test_stop_rule_fires_at_14_cm(scenario, near, stops):
     sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=near))

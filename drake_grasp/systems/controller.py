@@ -6,6 +6,9 @@ is decided outside it, by the `GraspJudge` (systems/judge.py).
 Policies (`policy` argument):
     ctr: Algorithm 1 - every control period score the sampled candidates, move a
         fraction r toward the best one in (x, y, theta), step down in z; stop at 14 cm.
+        r and the z steps are the scenario's controller profile
+        (`scenario.CONTROLLER_PROFILES`): "sim", r = 0.2 and the camera from 0.3 m to
+        0.15 m in 75 equal steps; "robot", r = 0.5 and 1 cm steps until the stop rule.
     cnn-ctr: the CNN's global best action from the first image, then CTR.
     cnn-only: the CNN's global best action from the first image, executed open loop.
     gpd: a GPD-style detection on the first image (`drake_grasp.gpd`), open loop.
@@ -138,7 +141,10 @@ class GraspController(LeafSystem):
         self._detect = detect_fn
         self._target_label = target_label
         start_cam = self._start[2] + self._cam_dz
-        self._dz = max(0.0, (start_cam - c.end_camera_height_m) / c.iterations)
+        # The "robot" profile's fixed z step, or the "sim" profile's schedule: equal steps
+        # from the start height to the end height in `iterations`.
+        self._dz = (c.z_step_m if c.z_step_m > 0 else
+                    max(0.0, (start_cam - c.end_camera_height_m) / c.iterations))
         cam = scenario.camera
         self._focal = 0.5 * cam.height / np.tan(np.deg2rad(cam.fov_y_deg) / 2.0)
 
