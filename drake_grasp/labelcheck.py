@@ -168,6 +168,32 @@ def _first_difference(a, b, path="") -> str | None:
     return None if a == b else f"{path}: {a!r} in the folder, {b!r} now"
 
 
+def prepare_run_folder(out: Path, identity: dict, *, what: str) -> None:
+    """Creates `out` with `run.json` = `identity` and `out/scenes/`, or checks that an
+    existing folder holds the same run (resume).
+
+    Raises:
+        ValueError: `out` holds another run (the first difference named) or something
+            that is not such a run.
+    """
+    run_json = out / "run.json"
+    if run_json.exists():
+        try:
+            stored = json.loads(run_json.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{run_json}: not a {what} run file ({e})") from None
+        diff = _first_difference(stored, identity)
+        if diff:
+            raise ValueError(f"{run_json}: {diff}. Resuming into {out} would mix two different "
+                             f"{what} runs; choose another --out.")
+    elif out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out}: exists and is not a {what} folder (no run.json); "
+                         "choose another --out")
+    (out / RECORDS).mkdir(parents=True, exist_ok=True)
+    if not run_json.exists():
+        atomic_write_text(run_json, json.dumps(identity, indent=1))
+
+
 def run_label_check(*, num_scenes: int, seed: int, out, scenario, library,
                     config: LabelCheckConfig | None = None, lab=None, workers: int = 1,
                     objects_dir: str = "", show_progress: bool = True) -> dict:
@@ -190,23 +216,7 @@ def run_label_check(*, num_scenes: int, seed: int, out, scenario, library,
         raise ValueError(f"workers: expected >= 1, got {workers}")
     out = Path(out)
     identity = _identity(seed=seed, scenario=scenario, library=library, config=config, lab=lab)
-    run_json = out / "run.json"
-    if run_json.exists():
-        try:
-            stored = json.loads(run_json.read_text())
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{run_json}: not a label-check run file ({e})") from None
-        diff = _first_difference(stored, identity)
-        if diff:
-            raise ValueError(f"{run_json}: {diff}. Resuming into {out} would mix two different "
-                             "label checks; choose another --out.")
-    elif out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out}: exists and is not a label-check folder (no run.json); "
-                         "choose another --out")
-    (out / RECORDS).mkdir(parents=True, exist_ok=True)
-    if not run_json.exists():
-        atomic_write_text(run_json, json.dumps(identity, indent=1))
-
+    prepare_run_folder(out, identity, what="label-check")
     todo = [i for i in range(num_scenes) if not _record_path(out, i).exists()]
     bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="label-check",
                unit="scene", disable=not show_progress)
@@ -394,5 +404,5 @@ def make_label_report(out, *, num_scenes: int | None = None, wall_s: float | Non
     return summary
 
 
-__all__ = ["LabelCheckConfig", "check_scene", "make_label_report", "read_records",
-           "run_label_check", "summarize"]
+__all__ = ["LabelCheckConfig", "check_scene", "make_label_report", "prepare_run_folder",
+           "read_records", "run_label_check", "summarize"]

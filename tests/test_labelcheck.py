@@ -103,3 +103,36 @@ def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
     with pytest.raises(ValueError, match="seed: 3 in the folder, 4 now"):
         run_label_check(num_scenes=1, seed=4, out=out, scenario=Scenario(), library=library,
                         config=config, show_progress=False)
+
+
+def test_displaced_pose_has_the_asked_metric_distance():
+    from drake_grasp.grasps import grasp_distance, topdown_rotation
+    from drake_grasp.tolerance import displaced_pose, random_offset
+
+    X = np.eye(4)
+    X[:3, :3] = topdown_rotation(np.deg2rad(30.0))
+    X[:3, 3] = [0.5, 0.1, 0.04]
+    rng = np.random.default_rng(0)
+    for d in (0.0, 0.005, 0.02):
+        offset = random_offset(rng, d)
+        Y = displaced_pose(X, offset)
+        assert Y[2, 3] == pytest.approx(0.04)  # same height
+        yaw = lambda M: np.rad2deg(np.arctan2(M[1, 0], M[0, 0]))  # noqa: E731
+        a = np.array([X[0, 3], X[1, 3], yaw(X)])
+        b = np.array([Y[0, 3], Y[1, 3], yaw(Y)])
+        assert float(grasp_distance(a, b)) == pytest.approx(d, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_grasp_tolerance_runs_and_an_undisplaced_grasp_holds(tmp_path, library):
+    """The 0 mm offset repeats the verified grasp: the lab is deterministic, so it holds."""
+    from drake_grasp.scenario import Scenario
+    from drake_grasp.tolerance import run_grasp_tolerance
+
+    summary = run_grasp_tolerance(num_scenes=1, seed=1, out=tmp_path / "tol", scenario=Scenario(),
+                                  library=library, offsets_mm=[0.0, 40.0], show_progress=False)
+    assert summary["scenes_with_verified_grasp"] == 1
+    assert summary["by_offset_mm"]["0"] == {"n": 1, "held": 1, "success": 1.0,
+                                            "ci95": pytest.approx([0.2065, 1.0], abs=1e-4)}
+    assert summary["by_offset_mm"]["40"]["n"] == 1
+    assert (tmp_path / "tol" / "tolerance.png").stat().st_size > 1000
