@@ -41,6 +41,7 @@ import numpy as np
 
 from drake_grasp.objects import ObjectLibrary
 from drake_grasp.scenario import Scenario
+from drake_grasp.systems.judge import pad_contacts
 from drake_grasp.scene import (
     OBJECT_BODY_NAME,
     ObjectPlacement,
@@ -55,7 +56,6 @@ from drake_grasp.scene import (
 GRIPPER_URI = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
 FAILURES = ("missed", "slipped-during-lift", "slipped-during-hold", "dropped-by-shake",
             "simulation-error")
-_PAD_BODIES = ("left_finger", "right_finger")
 
 
 @dataclass
@@ -166,29 +166,6 @@ def _base_trajectory(X_WB_grasp, lab: LabConfig, t_close_end: float):
     phases = {"descend": t_descend, "close": t_close, "lift": t_lift, "hold": t_hold,
               "shake": t_shake}
     return traj, q_start, phases
-
-
-def _pad_contacts(plant, plant_context, object_body) -> set:
-    """Names of the pad bodies the object touches (hydroelastic or point contact)."""
-    results = plant.get_contact_results_output_port().Eval(plant_context)
-    query = plant.get_geometry_query_input_port().Eval(plant_context)
-    inspector = query.inspector()
-    touching = set()
-
-    def note(body_a, body_b):
-        if body_a.index() == object_body.index() and body_b.name() in _PAD_BODIES:
-            touching.add(body_b.name())
-        if body_b.index() == object_body.index() and body_a.name() in _PAD_BODIES:
-            touching.add(body_a.name())
-
-    for i in range(results.num_hydroelastic_contacts()):
-        surface = results.hydroelastic_contact_info(i).contact_surface()
-        note(plant.GetBodyFromFrameId(inspector.GetFrameId(surface.id_M())),
-             plant.GetBodyFromFrameId(inspector.GetFrameId(surface.id_N())))
-    for i in range(results.num_point_pair_contacts()):
-        info = results.point_pair_contact_info(i)
-        note(plant.get_body(info.bodyA_index()), plant.get_body(info.bodyB_index()))
-    return touching
 
 
 def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
@@ -328,7 +305,7 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
         simulator.Initialize()
         for phase, failure_name, need_lift in checks:
             simulator.AdvanceTo(phases[phase])
-            pads = _pad_contacts(plant, plant_context, body)
+            pads = pad_contacts(plant, plant_context, body)
             rise = float(plant.EvalBodyPoseInWorld(plant_context, body).translation()[2]) - z_rest
             details[f"{phase}_pads"] = sorted(pads)
             details[f"{phase}_rise_m"] = round(rise, 5)
