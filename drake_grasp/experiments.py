@@ -94,10 +94,12 @@ EXPERIMENTS: dict[str, Experiment] = {
             description="Table 1 row 1: the 10 test objects, each in 4 configurations "
                         "(3 lying, 1 upright); CTR with the robot's controller settings "
                         "(r = 0.5, 1 cm z steps) and, as ctr-sim, with the simulation's "
-                        "(r = 0.2, 75 iterations).",
+                        "(r = 0.2, 75 iterations); the scripted grasp planned from the "
+                        "object's true pose shows what the station can hold.",
             conditions=(Condition("ctr", "ctr"),
                         Condition("ctr-sim", "ctr", controller_profile="sim"),
-                        Condition("gpd", "gpd")),
+                        Condition("gpd", "gpd"),
+                        Condition("scripted", "scripted")),
             paper={"ctr": 0.975, "gpd": 0.975}, controller_profile="robot",
         ),
         Experiment(

@@ -106,7 +106,7 @@ def test_table1_experiments_run_the_robot_profile_and_isolation_also_the_sim_one
         assert profiles["ctr"].profile == "robot" and profiles["ctr"].step_ratio == 0.5
         assert profiles["ctr"].z_step_m == 0.01
     iso = EXPERIMENTS["isolation"]
-    assert [c.name for c in iso.conditions] == ["ctr", "ctr-sim", "gpd"]
+    assert [c.name for c in iso.conditions] == ["ctr", "ctr-sim", "gpd", "scripted"]
     ctr_sim = condition_scenario(iso, iso.conditions[1])
     assert (ctr_sim.policy, ctr_sim.controller.profile, ctr_sim.controller.step_ratio,
             ctr_sim.controller.iterations) == ("ctr", "sim", 0.2, 75)
