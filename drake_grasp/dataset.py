@@ -99,11 +99,11 @@ class DatasetConfig:
     # Settling only has to bring objects to rest, not resolve a grasp: a coarser step
     # than the episodes' 2 ms is enough and makes generation faster.
     settle_time_step_s: float = 0.005
-    # Friction coefficient of the force-closure test.
-    friction_coefficient: float = 0.5
-    # Largest gravity-and-shake torque about the contact axis per unit of the pads'
-    # torsional friction lever (`grasps.MAX_TORQUE_RATIO`, calibrated in the grasp lab).
-    max_torque_ratio: float = 0.15
+    # Friction coefficient of the force-closure test and the largest gravity-and-shake
+    # torque about the contact axis per unit of the pads' torsional friction lever
+    # (`grasps.FORCE_CLOSURE_MU`, `grasps.MAX_TORQUE_RATIO`: calibrated in the grasp lab).
+    friction_coefficient: float = 0.25
+    max_torque_ratio: float = 0.12
     # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
