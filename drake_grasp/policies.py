@@ -84,13 +84,15 @@ def min_depth_under_axis(depth: np.ndarray, focal_px: float, camera_xy_G, at_dep
 
 
 def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_WG: np.ndarray,
-                        half_x_m: float, half_y_m: float, max_depth_m: float = np.inf) -> np.ndarray:
+                        half_x_m: float, half_y_m: float, max_depth_m: float = np.inf,
+                        *, return_x: bool = False):
     """World heights of the depth image's points that lie under the hand at `X_WG`.
 
     Each valid pixel (finite, positive, nearer than `max_depth_m`) is back-projected
     from the camera at `X_WC` (4x4, Drake's camera frame: x right, y down, z along the
     view) and kept when it lies in the box |x_G| <= half_x, |y_G| <= half_y of the grasp
-    frame: the image may have been taken from another pose than the grasp's.
+    frame: the image may have been taken from another pose than the grasp's. With
+    `return_x`, also each point's x_G (along the closing direction): (heights, x_G).
     """
     h, w = depth.shape[:2]
     d = np.asarray(depth, float).reshape(h, w)
@@ -102,19 +104,47 @@ def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_
     P_W = np.asarray(X_WC, float) @ P_C
     P_G = np.linalg.inv(np.asarray(X_WG, float)) @ P_W
     keep = (np.abs(P_G[0]) <= half_x_m) & (np.abs(P_G[1]) <= half_y_m)
+    if return_x:
+        return P_W[2, keep], P_G[0, keep]
     return P_W[2, keep]
+
+
+def widest_section_height(heights: np.ndarray, x_G: np.ndarray, *,
+                          edge_m: float = 0.003) -> float | None:
+    """Height of the object's widest section between the pads, seen from above.
+
+    Seen from above, the outermost points of a convex section along the closing
+    direction lie where the object is widest (a lying can's sides at its axis, an
+    apple's equator); a box's vertical walls are not seen, so its outermost points are
+    its top edges. Near a curved silhouette the surface is steep, so the points within
+    `edge_m` of the outermost x_G on each side span a range of heights; the lower
+    quartile of each side is taken (about 3 mm above a 3 cm can's axis). Returns the
+    mean of the two sides, or None when no points are given.
+    """
+    z = np.asarray(heights, float)
+    x = np.asarray(x_G, float)
+    ok = np.isfinite(z) & np.isfinite(x)
+    z, x = z[ok], x[ok]
+    if z.size == 0:
+        return None
+    left = z[x <= x.min() + edge_m]
+    right = z[x >= x.max() - edge_m]
+    return 0.5 * (float(np.percentile(left, 25)) + float(np.percentile(right, 25)))
 
 
 def grasp_height(between: np.ndarray, around: np.ndarray, *, depth_below_top_m: float,
                  fingertip_below_centre_m: float, support_margin_m: float,
-                 table_z: float = 0.0) -> float:
+                 table_z: float = 0.0, widest_z: float | None = None) -> float:
     """Grasp-centre height from the heights seen under the open hand.
 
     `between`: heights between the pads; `around`: heights under the whole hand, fingers
     included. The support (the table or sheet top) is the lowest surface seen under the
-    hand, never below `table_z`; the fingertips stay `support_margin_m` above it. The pads
-    reach `depth_below_top_m` below the highest surface between them (the object's top),
-    so they lie across the object's section under the fingers, as deep as the hand allows.
+    hand, never below `table_z`; the fingertips stay `support_margin_m` above it. The pad
+    centres go `depth_below_top_m` below the highest surface between them (the object's
+    top), or lower, to the object's widest section between the pads (`widest_z`, from
+    `widest_section_height`) where that lies deeper: there the surface normals face the
+    pads (a lying can grasped high on its curve is squeezed out of the grip). Never lower
+    than the support margin allows.
     """
     a = np.asarray(around, float)
     a = a[np.isfinite(a)]
@@ -123,7 +153,10 @@ def grasp_height(between: np.ndarray, around: np.ndarray, *, depth_below_top_m: 
     support = max(float(table_z), float(a.min())) if a.size else float(table_z)
     top = float(b.max()) if b.size else support
     floor = support + support_margin_m + fingertip_below_centre_m
-    return max(floor, top - depth_below_top_m)
+    centre = top - depth_below_top_m
+    if widest_z is not None and np.isfinite(widest_z):
+        centre = min(centre, float(widest_z))
+    return max(floor, centre)
 
 
 def wrap_theta_deg(theta) -> np.ndarray:

@@ -122,9 +122,10 @@ class ScriptedGraspConfig:
     # Pads reach this far below the object's top [m] (capped by the table clearance).
     grasp_depth_below_top_m: float = 0.025
     # The scripted grasp (planned on the object model) keeps its centre at least this far
-    # above the table [m]. Grasps read from the depth image keep the fingertips
-    # `controller.support_margin_m` above the support they see instead.
-    min_grasp_height_m: float = 0.02
+    # above the table [m]: 25 mm puts the fingertips (19 mm below the centre) 4 mm above
+    # the sheet's top (2 mm), the margin the depth-image grasps keep
+    # (`controller.support_margin_m`); 20 mm had them 1 mm below it.
+    min_grasp_height_m: float = 0.025
 
 
 # The paper's two settings of the closed-loop controller (Viereck, ten Pas, Saenko, Platt,

@@ -62,6 +62,30 @@ def test_grasp_height_rule():
     assert grasp_height([], [], **kw) == pytest.approx(0.023)
 
 
+def test_grasp_height_goes_down_to_the_widest_section_seen_between_the_pads():
+    """A lying 4.5 cm-radius cylinder seen from above (axis along y_G, 2 mm sheet): its
+    widest section along the closing direction is at the axis, 47 mm up, below the
+    default 2.5 cm under its 92 mm top; the pads go there. A box's walls are not seen
+    from above, so its widest section reads as its top and the default depth stays."""
+    from drake_grasp.policies import widest_section_height
+
+    kw = dict(depth_below_top_m=0.025, fingertip_below_centre_m=0.019, support_margin_m=0.004)
+    R, sheet = 0.045, 0.002
+    x = np.linspace(-R, R, 61)  # pixels ~1.5 mm apart across the closing direction
+    z = sheet + R + np.sqrt(R * R - x * x)
+    widest = widest_section_height(z, x)
+    assert sheet + R <= widest <= sheet + R + 0.006
+    z_grasp = grasp_height(z, np.concatenate([z, [sheet]]), widest_z=widest, **kw)
+    assert z_grasp == pytest.approx(widest)
+    assert z_grasp < z.max() - 0.025 - 0.01  # 1 cm deeper than the top rule alone
+    # A 6 cm wide, 8 cm tall box: only its top is seen.
+    xb = np.linspace(-0.03, 0.03, 41)
+    zb = np.full_like(xb, sheet + 0.08)
+    assert widest_section_height(zb, xb) == pytest.approx(sheet + 0.08)
+    assert grasp_height(zb, np.concatenate([zb, [sheet]]), widest_z=widest_section_height(zb, xb),
+                        **kw) == pytest.approx(sheet + 0.08 - 0.025)
+
+
 @pytest.mark.parametrize("where,stops", [("axis", True), ("centre", False)])
 def test_stop_rule_looks_under_the_grasp_axis(where, stops):
     # An object 13.9 cm from the sensor: under the grasp axis it lies ~22 px off the

@@ -39,6 +39,7 @@ from drake_grasp.policies import (
     gaussian_noisy_displacement,
     grasp_height,
     heights_under_grasp,
+    widest_section_height,
     min_depth_under_axis,
     offset_fraction,
 )
@@ -217,13 +218,19 @@ class GraspController(LeafSystem):
         X_WC = (hand_to_pose(seen_from) @ self._X_GC).GetAsMatrix4()
         X_WG = hand_to_pose(hand).GetAsMatrix4()
         far = self._s.camera.depth_max_m
-        between = heights_under_grasp(depth, self._focal, X_WC, X_WG, 0.5 * STROKE_M,
-                                      PAD_HALF_WIDTH_M, far)
+        between, x_between = heights_under_grasp(depth, self._focal, X_WC, X_WG, 0.5 * STROKE_M,
+                                                 PAD_HALF_WIDTH_M, far, return_x=True)
         around = heights_under_grasp(depth, self._focal, X_WC, X_WG, FINGER_OUTER_X_M,
                                      PAD_HALF_WIDTH_M, far)
+        # The object's widest section: only points above the support (the table or sheet
+        # seen between the pads is not the object).
+        support = float(np.min(around)) if np.size(around) else 0.0
+        on_object = between > support + self._s.controller.support_margin_m
+        widest = widest_section_height(between[on_object], x_between[on_object])
         z = grasp_height(between, around, depth_below_top_m=self._s.scripted.grasp_depth_below_top_m,
                          fingertip_below_centre_m=FINGERTIP_Z_M,
-                         support_margin_m=self._s.controller.support_margin_m)
+                         support_margin_m=self._s.controller.support_margin_m,
+                         widest_z=widest)
         return (hand[0], hand[1], min(z, hand[2]), hand[3])
 
     def _target_mask(self, context, actions: np.ndarray, hand) -> np.ndarray | None:
