@@ -74,6 +74,31 @@ def _object_surface_points(library: ObjectLibrary, object_id: str, count: int = 
     return np.vstack([np.asarray(points), np.asarray(mesh.vertices)])
 
 
+def plan_scripted_grasp(scene: SceneSpec, library: ObjectLibrary,
+                        seed: int) -> tuple[int, np.ndarray, np.ndarray | None]:
+    """The scripted grasp, planned from the objects' true poses: among the scene's
+    ground-truth grasps (`grasps.find_grasps`, whose physical tests were calibrated in
+    the grasp lab) of the object nearest the workspace centre that has any, the one whose
+    centre is nearest that object's centre of mass (horizontally). Returns (object index,
+    its surface points in the object frame, X_WG as a 4x4), with X_WG None when no object
+    has a ground-truth grasp (the supervisor then plans with `plan_topdown_grasp`)."""
+    from drake_grasp.grasps import ObjectMasses, find_grasps
+
+    grasps = find_grasps(scene, library, np.random.default_rng([int(seed), 67]))
+    center = np.asarray(scene.center_xy_m, dtype=float)
+    order = np.argsort([np.linalg.norm(np.asarray(o.xyz[:2]) - center) for o in scene.objects])
+    masses = ObjectMasses.of_scene(scene, library)
+    for i in (int(k) for k in order):
+        mine = np.flatnonzero(grasps.object_index == i)
+        if len(mine) == 0:
+            continue
+        off = np.linalg.norm(grasps.poses[mine, :2, 3] - masses.com_W[i, :2], axis=1)
+        best = int(mine[np.argmin(off)])
+        return i, _object_surface_points(library, scene.objects[i].object_id), grasps.poses[best]
+    i, P_O = choose_scripted_target(scene, library)
+    return i, P_O, None
+
+
 def choose_scripted_target(scene: SceneSpec, library: ObjectLibrary) -> tuple[int, np.ndarray]:
     """The object the scripted grasp goes for: the one nearest the workspace centre that
     a top-down grasp fits (else simply the nearest). Returns (index, surface points in
@@ -142,6 +167,7 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     SheetDisturbance moving the sheet. The GraspJudge watches the station's contact
     results and body poses and reads the policy's `control_status`.
     """
+    from pydrake.math import RigidTransform
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource
 
@@ -157,11 +183,12 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     if scenario.policy == "scripted":
         from drake_grasp.systems.supervisor import ScriptedGraspSupervisor
 
-        target, points_O = choose_scripted_target(scene, library)
+        target, points_O, X_WG_plan = plan_scripted_grasp(scene, library, scenario.seed)
         policy = builder.AddNamedSystem("supervisor", ScriptedGraspSupervisor(
             object_body_index=station.object_body(target).index(),
             object_points_O=points_O, X_WG_start=station.X_WG_start,
-            motion=scenario.scripted, gripper=scenario.gripper))
+            motion=scenario.scripted, gripper=scenario.gripper,
+            X_WG_planned=None if X_WG_plan is None else RigidTransform(X_WG_plan)))
         sheet = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
         builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
         builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))

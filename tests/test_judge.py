@@ -89,15 +89,16 @@ def _can(extra: str = ""):
 
 
 def _shifted_plan(monkeypatch, d_W):
-    """The scripted supervisor plans on the object's points shifted by d_W (world)."""
-    original = episode_module.choose_scripted_target
+    """The scripted supervisor's planned grasp shifted by d_W (world)."""
+    original = episode_module.plan_scripted_grasp
 
-    def shifted(scene, library):
-        i, P_O = original(scene, library)
-        R = scene.objects[i].pose().rotation().matrix()
-        return i, P_O + R.T @ np.asarray(d_W, float)
+    def shifted(scene, library, seed):
+        i, P_O, X = original(scene, library, seed)
+        X = np.array(X, dtype=float, copy=True)
+        X[:3, 3] += np.asarray(d_W, float)
+        return i, P_O, X
 
-    monkeypatch.setattr(episode_module, "choose_scripted_target", shifted)
+    monkeypatch.setattr(episode_module, "plan_scripted_grasp", shifted)
 
 
 def test_scripted_grasp_of_a_can_is_judged_a_success(library):

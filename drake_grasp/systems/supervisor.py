@@ -93,7 +93,10 @@ def interpolate_pose(X_a: RigidTransform, X_b: RigidTransform, s: float) -> Rigi
 
 
 class ScriptedGraspSupervisor(LeafSystem):
-    """Grasps one object from above, planned from its true pose (an oracle by design).
+    """Grasps one object from above, planned from its true pose (an oracle by design):
+    a grasp planned outside from the scene's true poses (`X_WG_planned`, e.g. a
+    ground-truth grasp), else `plan_topdown_grasp` on the object's points at
+    initialization.
 
     Modes (abstract state): approach -> descend -> close -> lift -> hold -> done. The
     `GraspJudge` decides whether the grasp held.
@@ -112,8 +115,10 @@ class ScriptedGraspSupervisor(LeafSystem):
 
     def __init__(self, *, object_body_index, object_points_O: np.ndarray,
                  X_WG_start: RigidTransform, motion: ScriptedGraspConfig,
-                 gripper: GripperConfig, table_z: float = 0.0, period_s: float = 0.01):
+                 gripper: GripperConfig, table_z: float = 0.0, period_s: float = 0.01,
+                 X_WG_planned: RigidTransform | None = None):
         super().__init__()
+        self._X_WG_planned = X_WG_planned
         self._object = int(object_body_index)
         self._points_O = np.asarray(object_points_O, dtype=float)
         self._X_WG_start = X_WG_start
@@ -170,6 +175,11 @@ class ScriptedGraspSupervisor(LeafSystem):
     # -- events ---------------------------------------------------------------------
 
     def _Initialize(self, context, state):
+        if self._X_WG_planned is not None:
+            new = SupervisorState(mode=Mode.APPROACH, mode_start_s=context.get_time(),
+                                  X_WG_grasp=self._X_WG_planned)
+            state.get_mutable_abstract_state(int(self._state)).set_value(new)
+            return
         try:
             plan = plan_topdown_grasp(
                 self._object_points_W(context), table_z=self._table_z,
