@@ -82,7 +82,9 @@ def test_supervisor_plans_from_the_true_pose_and_walks_its_modes():
     sup.ExecuteInitializationEvents(ctx)
     s = sup.get_supervisor_state(ctx)
     assert s.mode == Mode.APPROACH
-    assert s.X_WG_grasp.translation() == pytest.approx([0.5, 0.0, 0.02], abs=2e-3)
+    # 2.5 cm under the cube's 4 cm top would be 1.5 cm; the scripted grasp keeps its
+    # centre >= 2.5 cm up (min_grasp_height_m: the fingertips 4 mm above the sheet's top).
+    assert s.X_WG_grasp.translation() == pytest.approx([0.5, 0.0, 0.025], abs=2e-3)
     assert sup.GetOutputPort("gripper_command").Eval(ctx)[0] == pytest.approx(0.085)
     # Start of the approach: the desired pose is the start pose.
     assert sup.GetOutputPort("X_WG_desired").Eval(ctx).translation() == pytest.approx([0.5, 0, 0.2])
