@@ -21,6 +21,7 @@ from the records at the end of every call (`make_label_report`).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import time
@@ -71,8 +72,6 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     from drake_grasp.grasps import find_grasps
     from drake_grasp.lab import check_grasp
     from drake_grasp.scene import sample_scene, settle_scene
-
-    import copy
 
     dataset_config = dataset_config if dataset_config is not None else DatasetConfig()
     t0 = time.perf_counter()
