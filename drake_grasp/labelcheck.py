@@ -59,7 +59,8 @@ class LabelCheckConfig:
             raise ValueError(f"split: got {self.split!r}, expected 'train' or 'test'")
 
 
-def _record_path(out: Path, scene_index: int) -> Path:
+def record_path(out: Path, scene_index: int) -> Path:
+    """Where scene `scene_index`'s record lives in a run folder."""
     return out / RECORDS / f"scene-{scene_index:05d}.json"
 
 
@@ -139,7 +140,7 @@ def _task(scene_index: int, out: str, seed: int, scenario_yaml: str, objects_dir
     library = load_library(objects_dir or None)
     record = check_scene(scene_index, seed=seed, scenario=scenario, library=library,
                          config=LabelCheckConfig(**config), lab=LabConfig(**lab))
-    atomic_write_text(_record_path(Path(out), scene_index), json.dumps(record))
+    atomic_write_text(record_path(Path(out), scene_index), json.dumps(record))
     return record
 
 
@@ -216,7 +217,7 @@ def run_label_check(*, num_scenes: int, seed: int, out, scenario, library,
     out = Path(out)
     identity = _identity(seed=seed, scenario=scenario, library=library, config=config, lab=lab)
     prepare_run_folder(out, identity, what="label-check")
-    todo = [i for i in range(num_scenes) if not _record_path(out, i).exists()]
+    todo = [i for i in range(num_scenes) if not record_path(out, i).exists()]
     bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="label-check",
                unit="scene", disable=not show_progress)
     t0 = time.perf_counter()
@@ -255,17 +256,18 @@ def _rate(held: int, n: int) -> dict:
             "ci95": [round(lo, 4), round(hi, 4)]}
 
 
-def read_records(out, num_scenes: int | None = None) -> list[dict]:
-    """The scene records of a label-check folder (the first `num_scenes`, or all)."""
+def read_records(out, num_scenes: int | None = None, *, format: str = FORMAT) -> list[dict]:
+    """The scene records of a run folder (the first `num_scenes`, or all), each checked to
+    be of `format` (a label check's by default)."""
     out = Path(out)
     records = []
     for path in sorted((out / RECORDS).glob("scene-*.json")):
         try:
             record = json.loads(path.read_text())
         except ValueError as e:
-            raise ValueError(f"{path}: not a valid label-check record ({e})") from None
-        if record.get("format") != FORMAT:
-            raise ValueError(f"{path}: format {record.get('format')!r}, expected {FORMAT!r}")
+            raise ValueError(f"{path}: not a valid record ({e})") from None
+        if record.get("format") != format:
+            raise ValueError(f"{path}: format {record.get('format')!r}, expected {format!r}")
         if num_scenes is None or record["scene_index"] < num_scenes:
             records.append(record)
     return records
@@ -404,4 +406,4 @@ def make_label_report(out, *, num_scenes: int | None = None, wall_s: float | Non
 
 
 __all__ = ["LabelCheckConfig", "check_scene", "make_label_report", "prepare_run_folder",
-           "read_records", "run_label_check", "summarize"]
+           "read_records", "record_path", "run_label_check", "summarize"]

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.labelcheck import RECORDS, prepare_run_folder
+from drake_grasp.labelcheck import prepare_run_folder, read_records, record_path
 from drake_grasp.results import atomic_write_bytes, atomic_write_text, wilson_interval
 
 FORMAT = "drake_grasp.grasp_tolerance/1"
@@ -114,7 +114,7 @@ def _task(scene_index: int, out: str, seed: int, scenario_yaml: str, objects_dir
                              scenario=yaml_load_typed(schema=Scenario, data=scenario_yaml),
                              library=load_library(objects_dir or None), offsets_mm=offsets_mm,
                              max_verify=max_verify, lab=LabConfig(**lab))
-    atomic_write_text(Path(out) / RECORDS / f"scene-{scene_index:05d}.json", json.dumps(record))
+    atomic_write_text(record_path(Path(out), scene_index), json.dumps(record))
     return record
 
 
@@ -143,7 +143,7 @@ def run_grasp_tolerance(*, num_scenes: int, seed: int, out, scenario, library,
                 "code_version": code_version()}
     prepare_run_folder(out, identity, what="grasp-tolerance")
     todo = [i for i in range(num_scenes)
-            if not (out / RECORDS / f"scene-{i:05d}.json").exists()]
+            if not record_path(out, i).exists()]
     args = dict(out=str(out), seed=int(seed), scenario_yaml=dump_scenario(scenario),
                 objects_dir=str(objects_dir or ""), offsets_mm=offsets_mm,
                 max_verify=int(max_verify), lab=dataclasses.asdict(lab))
@@ -240,13 +240,7 @@ def tolerance_picture(summary: dict, path) -> None:
 def make_tolerance_report(out, *, num_scenes: int | None = None) -> dict:
     """`summary.json`, `tolerance.png` and `report.md` from the folder's records."""
     out = Path(out)
-    records = []
-    for path in sorted((out / RECORDS).glob("scene-*.json")):
-        record = json.loads(path.read_text())
-        if record.get("format") != FORMAT:
-            raise ValueError(f"{path}: format {record.get('format')!r}, expected {FORMAT!r}")
-        if num_scenes is None or record["scene_index"] < num_scenes:
-            records.append(record)
+    records = read_records(out, num_scenes, format=FORMAT)
     summary = summarize_tolerance(records)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     tolerance_picture(summary, out / "tolerance.png")
