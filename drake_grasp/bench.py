@@ -2,7 +2,9 @@
 
 Keys:
     rtf_isolation: real-time factor (sim time / wall time of the simulation loop) of a
-        scripted-grasp episode with one object, wrist depth frames at 10 Hz, one core.
+        scripted-grasp episode with one object, wrist depth frames at 10 Hz, one core;
+        `_reference`: the same episode with the reference physics profile in the same
+        run, `_speedup` the ratio.
     rtf_clutter5: the same with 5 objects in a pile.
     depth_frame_ms: render + post-process one 64x64 wrist depth frame (median).
     labels_per_s: dataset generation, 2 workers, paper settings.
@@ -42,27 +44,43 @@ def _machine() -> dict:
     return info
 
 
-def _episode_rtf(scenario_name: str, text: str = "") -> dict:
+def _episode_rtf(scenario_name: str, text: str = "", *, physics_profile: str = "") -> dict:
+    """One scripted episode: the simulation loop's real-time factor, and the wall time of
+    the whole episode (settling and Diagram building included)."""
     from drake_grasp.episode import simulate_episode
     from drake_grasp.scenario import load_scenario, replace
 
-    scenario = replace(load_scenario(scenario_name=scenario_name, scenario_text=text),
+    scenario = replace(load_scenario(scenario_name=scenario_name, scenario_text=text,
+                                     physics_profile=physics_profile),
                        seed=BENCH_SEED, visualize=False)
+    t0 = time.perf_counter()
     run = simulate_episode(scenario, scenario_name=scenario_name)
+    episode_wall = time.perf_counter() - t0
     r = run.result
     wall = r.details["simulation_wall_time_s"]
-    return {"rtf": r.sim_time_s / wall, "sim_time_s": r.sim_time_s, "wall_s": wall,
-            "success": r.success, "objects": len(r.object_ids)}
+    return {"rtf": r.sim_time_s / wall, "sim_time_s": r.sim_time_s, "wall_s": round(wall, 3),
+            "episode_wall_s": round(episode_wall, 3), "success": r.success,
+            "objects": len(r.object_ids), "physics_profile": scenario.physics.profile,
+            "time_step_s": scenario.plant.time_step}
+
+
+def _rtf_side_by_side(key: str, scenario_name: str, text: str) -> dict:
+    """The same scripted episode with the reference physics profile, then the default
+    one, in this process: `key`, `key_reference` and their ratio `key_speedup`."""
+    ref = _episode_rtf(scenario_name, text, physics_profile="reference")
+    new = _episode_rtf(scenario_name, text)
+    return {key: round(new["rtf"], 3), f"{key}_detail": new,
+            f"{key}_reference": round(ref["rtf"], 3), f"{key}_reference_detail": ref,
+            f"{key}_speedup": round(new["rtf"] / ref["rtf"], 2)}
 
 
 def bench_rtf_isolation() -> dict:
-    out = _episode_rtf("isolation", "{policy: scripted}")
-    return {"rtf_isolation": round(out["rtf"], 3), "rtf_isolation_detail": out}
+    return _rtf_side_by_side("rtf_isolation", "isolation", "{policy: scripted}")
 
 
 def bench_rtf_clutter5() -> dict:
-    out = _episode_rtf("clutter", "{policy: scripted, scene: {clutter_objects: 5}}")
-    return {"rtf_clutter5": round(out["rtf"], 3), "rtf_clutter5_detail": out}
+    return _rtf_side_by_side("rtf_clutter5", "clutter",
+                             "{policy: scripted, scene: {clutter_objects: 5}}")
 
 
 def bench_rtf_ctr_clutter5() -> dict:
@@ -107,7 +125,8 @@ def bench_depth_frame_ms(repeats: int = 200) -> dict:
     scenario = replace(scenario, seed=BENCH_SEED)
     scenario.depth_noise.enabled = True
     library = load_library(None)
-    scene = make_scene(scenario.scene, scenario.seed, library)
+    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                       physics=scenario.physics)
     ed = build_episode_diagram(scenario, scene, library)
     diagram, station = ed.diagram, ed.station
     root = diagram.CreateDefaultContext()
@@ -220,29 +239,38 @@ def bench_cnn(rounds: int = 8) -> dict:
 
 def bench_trials_per_hour(trials: int = 6, workers: int = 2) -> dict:
     """Physical CTR trials of the isolation experiment per hour on 2 local workers
-    (worker start-up included; each worker keeps the CNN and meshes across trials)."""
+    (worker start-up included; each worker keeps the CNN and meshes across trials), with
+    the reference physics profile and then the default one, in this run."""
     import tempfile
 
     from drake_grasp.montecarlo import evaluate
 
-    with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        result = evaluate(experiment="isolation", out=tmp, trials=trials, workers=workers,
-                          seed=BENCH_SEED, conditions=["ctr"], progress=False, report=False)
-        wall = time.perf_counter() - t0
-    return {"trials_per_hour": round(result["records"] / wall * 3600, 1),
-            "trials_per_hour_detail": {"trials": result["records"], "wall_s": round(wall, 1),
-                                       "workers": workers}}
+    out = {}
+    for key, profile in (("trials_per_hour_reference", "reference"), ("trials_per_hour", "")):
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            result = evaluate(experiment="isolation", out=tmp, trials=trials, workers=workers,
+                              seed=BENCH_SEED, conditions=["ctr"], progress=False,
+                              report=False, physics_profile=profile)
+            wall = time.perf_counter() - t0
+        out[key] = round(result["records"] / wall * 3600, 1)
+        out[key + "_detail"] = {"trials": result["records"], "wall_s": round(wall, 1),
+                                "workers": workers, "physics_profile": profile or "default"}
+    out["trials_per_hour_speedup"] = round(out["trials_per_hour"]
+                                           / out["trials_per_hour_reference"], 2)
+    return out
 
 
 def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
     """Grasp-lab checks per second on one core: sampled ground-truth grasps of one
     settled object (scene settling and grasp sampling excluded), each a full descend,
-    close, lift, hold and shake - at the lab's step (5 ms) and, side by side on the same
-    grasps, at the station's 2 ms (`_reference`), with how often the two verdicts agree."""
+    close, lift, hold and shake - with the default physics profile and, side by side on
+    the same grasps, the reference one (`_reference`), with how often the two verdicts
+    agree."""
     from drake_grasp.grasps import find_grasps
     from drake_grasp.lab import LabConfig, check_grasps, isolated_scene
     from drake_grasp.objects import load_library
+    from drake_grasp.scenario import load_scenario
 
     library = load_library(None)
     rng = np.random.default_rng(BENCH_SEED)
@@ -250,18 +278,21 @@ def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
     found = find_grasps(scene, library, rng)
     chosen = rng.choice(len(found), size=min(grasps, len(found)), replace=False)
     out, verdicts = {}, {}
-    for key, lab in (("grasp_checks_per_s", LabConfig()),
-                     ("grasp_checks_per_s_reference", LabConfig(time_step_s=None))):
+    lab = LabConfig()
+    for key, profile in (("grasp_checks_per_s", ""), ("grasp_checks_per_s_reference", "reference")):
+        scenario = load_scenario(physics_profile=profile)
         t0 = time.perf_counter()
         results = check_grasps(None, found.poses[chosen], scene=scene, library=library,
-                               object_indices=found.object_index[chosen], lab=lab)
+                               object_indices=found.object_index[chosen], lab=lab,
+                               scenario=scenario)
         wall = time.perf_counter() - t0
         verdicts[key] = [r.held for r in results]
         out[key] = round(len(results) / wall, 3)
         out[key + "_detail"] = {
             "checks": len(results), "held": int(sum(r.held for r in results)),
             "wall_s": round(wall, 2), "s_per_check": round(wall / len(results), 3),
-            "time_step_s": lab.time_step_s,
+            "time_step_s": lab.time_step_s or scenario.plant.time_step,
+            "physics_profile": scenario.physics.profile,
             "sim_s_per_check": round(float(np.mean([r.details["sim_time_s"] for r in results])), 2)}
     out["grasp_checks_speedup"] = round(out["grasp_checks_per_s"]
                                         / out["grasp_checks_per_s_reference"], 2)
@@ -286,8 +317,10 @@ BENCHMARKS = {
 # any printed key as well as a group name. `run_benchmarks` checks a group's output
 # against this list, so it cannot drift from the code silently.
 PRINTED_KEYS: dict[str, tuple[str, ...]] = {
-    "rtf_isolation": ("rtf_isolation", "rtf_isolation_detail"),
-    "rtf_clutter5": ("rtf_clutter5", "rtf_clutter5_detail"),
+    "rtf_isolation": ("rtf_isolation", "rtf_isolation_detail", "rtf_isolation_reference",
+                      "rtf_isolation_reference_detail", "rtf_isolation_speedup"),
+    "rtf_clutter5": ("rtf_clutter5", "rtf_clutter5_detail", "rtf_clutter5_reference",
+                     "rtf_clutter5_reference_detail", "rtf_clutter5_speedup"),
     "depth_frame_ms": ("depth_frame_ms",),
     "labels_per_s": ("labels_per_s", "labels_per_s_detail"),
     "cnn": ("cnn_infer_ms_128", "cnn_infer_direct_ms_128", "cnn_infer_speedup",
@@ -295,7 +328,8 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
             "cnn_ip1_gflops_infer", "cnn_ip1_gflops_train"),
     "controller_step_ms": ("controller_step_ms",),
     "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
-    "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail"),
+    "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail", "trials_per_hour_reference",
+                        "trials_per_hour_reference_detail", "trials_per_hour_speedup"),
     "grasp_checks_per_s": ("grasp_checks_per_s", "grasp_checks_per_s_detail",
                            "grasp_checks_per_s_reference", "grasp_checks_per_s_reference_detail",
                            "grasp_checks_speedup", "grasp_checks_verdicts_agree"),

@@ -143,7 +143,7 @@ def _cmd_evaluate(args) -> int:
                       workers=args.workers, scheduler=args.scheduler, seed=args.seed,
                       objects_dir=args.objects,
                       conditions=[c for c in args.conditions.split(",") if c] or None,
-                      force_new=args.force_new)
+                      force_new=args.force_new, physics_profile=args.physics_profile)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -353,6 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "this flag that is an error naming the first difference), run in a "
                         "new folder next to it instead: the first of OUT-2, OUT-3, ... that "
                         "does not exist or already holds this same run (printed)")
+    p.add_argument("--physics-profile", default="", metavar="NAME",
+                   help="contact-simulation settings of every trial: 'fast' (the default "
+                        "profile: 5 ms steps, ...) or 'reference' (2 ms, the settings of "
+                        "results measured before the fast profile); default: the scenarios'")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

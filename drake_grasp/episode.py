@@ -234,6 +234,8 @@ def _add_judge(builder, scenario, scene, library, station, policy):
 
 
 def _add_controller(builder, scenario, scene, library, station, model, out):
+    from pydrake.systems.primitives import ConstantVectorSource
+
     from drake_grasp.systems.controller import GraspController
     from drake_grasp.systems.disturbance import SheetDisturbance
     from drake_grasp.systems.evaluator import (
@@ -284,13 +286,19 @@ def _add_controller(builder, scenario, scene, library, station, model, out):
         none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
             AbstractValue.Make(np.zeros(0))))
         builder.Connect(none.get_output_port(), controller.GetInputPort("predicted_distances"))
-    disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(
-        scenario.disturbance, seed=scenario.seed, period_s=c.period_s))
-    builder.Connect(controller.GetOutputPort("control_status"),
-                    disturbance.GetInputPort("control_status"))
-    builder.Connect(disturbance.GetOutputPort("sheet_desired_state"),
-                    sd.GetInputPort("sheet_desired_state"))
-    out.disturbance = disturbance
+    if scenario.disturbance.kind == "none":
+        # A constant: a Python system here would be evaluated at every plant step.
+        hold = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
+        builder.Connect(hold.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+        out.disturbance = None
+    else:
+        disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(
+            scenario.disturbance, seed=scenario.seed, period_s=c.period_s))
+        builder.Connect(controller.GetOutputPort("control_status"),
+                        disturbance.GetInputPort("control_status"))
+        builder.Connect(disturbance.GetOutputPort("sheet_desired_state"),
+                        sd.GetInputPort("sheet_desired_state"))
+        out.disturbance = disturbance
     out.sampler = sampler
     return target, controller
 
@@ -338,7 +346,8 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
     wall_start = time.perf_counter()
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:
-        scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant)
+        scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                           physics=scenario.physics)
     visualize = scenario.visualize if visualize is None else visualize
     meshcat = None
     if visualize:

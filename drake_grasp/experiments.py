@@ -58,6 +58,9 @@ class Experiment:
     # "robot" for the paper's Table 1 robot runs; "" keeps the named scenario's (the
     # shipped scenarios: "sim", as the paper's simulation experiments).
     controller_profile: str = ""
+    # The contact-simulation settings (scenario.PHYSICS_PROFILES); "" keeps the named
+    # scenario's (the default profile). `evaluate --physics-profile` sets it.
+    physics_profile: str = ""
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -173,7 +176,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     """
     s = load_scenario(scenario_name=experiment.scenario, scenario_text=experiment.scenario_text,
                       controller_profile=condition.controller_profile
-                      or experiment.controller_profile)
+                      or experiment.controller_profile,
+                      physics_profile=experiment.physics_profile)
     s = dataclasses.replace(s, seed=0, policy=condition.policy)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))

@@ -24,6 +24,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -361,6 +362,12 @@ def failure_picture(records: list[dict], path, *, library, max_panels: int = 16)
     return len(fails)
 
 
+def _scenario_time_step(run: dict) -> float | None:
+    """The plant step of a run.json's scenario (the lab's step when it sets none)."""
+    m = re.search(r"^  time_step: *([0-9.eE+-]+)", run.get("scenario", ""), re.MULTILINE)
+    return float(m.group(1)) if m else None
+
+
 def make_label_report(out, *, num_scenes: int | None = None, wall_s: float | None = None,
                       library=None) -> dict:
     """`summary.json` and `report.md` (+ `failures.png`) from the folder's records."""
@@ -369,7 +376,7 @@ def make_label_report(out, *, num_scenes: int | None = None, wall_s: float | Non
     summary = summarize(records)
     run = json.loads((out / "run.json").read_text())
     summary["seed"] = run["seed"]
-    summary["lab_time_step_s"] = run["lab"].get("time_step_s")
+    summary["lab_time_step_s"] = run["lab"].get("time_step_s") or _scenario_time_step(run)
     if wall_s is not None:
         summary["wall_s_this_call"] = round(wall_s, 1)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))

@@ -52,10 +52,20 @@ class TrialTask:
     condition: str
     index: int
     base_seed: int
+    # A `PHYSICS_PROFILES` name the trial runs with; "" = the scenario's (the default).
+    physics_profile: str = ""
 
     @property
     def trial_id(self) -> str:
         return f"{self.experiment}/{self.condition}/{self.index:04d}"
+
+
+def task_experiment(task: TrialTask) -> Experiment:
+    """The experiment a task belongs to, with the task's physics profile."""
+    experiment = get_experiment(task.experiment)
+    if task.physics_profile:
+        experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
+    return experiment
 
 
 def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
@@ -70,7 +80,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
             raise ValueError(f"--conditions: {unknown} not in experiment "
                              f"{experiment.name}; its conditions: {names}")
         names = [c for c in names if c in conditions]
-    return [TrialTask(experiment.name, c, i, int(seed)) for i in range(n) for c in names]
+    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile)
+            for i in range(n) for c in names]
 
 
 def _condition(experiment: Experiment, name: str) -> Condition:
@@ -272,7 +283,7 @@ def _condition_hash(task: TrialTask, condition: Condition, objects_dir) -> str:
     from drake_grasp.scenario import dump_scenario
 
     try:
-        experiment = get_experiment(task.experiment)
+        experiment = task_experiment(task)
         return config_hash(dump_scenario(
             condition_scenario(experiment, condition, objects_dir=objects_dir)))
     except Exception:  # noqa: BLE001 - the trial records its own error
@@ -306,7 +317,7 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
             condition=task.condition, policy=condition.policy, noise=condition.noise,
             noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
             offset_m=condition.offset_m, disturbance={"kind": condition.disturbance},
-            scenario_name=get_experiment(task.experiment).scenario, scenario_yaml=yaml,
+            scenario_name=task_experiment(task).scenario, scenario_yaml=yaml,
             seed=seed, config_hash=chash, code_version=code_version(),
             success=False, failure_class=classify_failure(False, reason, exception=error),
             failure_reason=reason, final_distance_m=None, sim_time_s=0.0, wall_time_s=wall,
@@ -320,7 +331,7 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
         condition=task.condition, policy=condition.policy, noise=condition.noise,
         noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
         offset_m=condition.offset_m, disturbance=r.disturbance,
-        scenario_name=get_experiment(task.experiment).scenario, scenario_yaml=yaml,
+        scenario_name=task_experiment(task).scenario, scenario_yaml=yaml,
         seed=seed, config_hash=chash, code_version=code_version(),
         success=bool(r.success),
         failure_class=classify_failure(r.success, r.failure_reason, disturbance=r.disturbance),
@@ -342,7 +353,7 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
     """
     from drake_grasp.results import write_record
 
-    experiment = get_experiment(task.experiment)
+    experiment = task_experiment(task)
     condition = _condition(experiment, task.condition)
     library = _library(objects_dir)
     if experiment.kind == "clutter-runs":
@@ -480,7 +491,8 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
         if records:
             scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
         else:
-            scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant)
+            scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                               physics=scenario.physics)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
         finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
                            run_index=task.index, attempt_index=attempt,
@@ -503,7 +515,8 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
             stage = "settle"
             _forced(fail_trials, trial_id, "settle")
             next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
-                                      plant_config=scenario.plant) if objects else \
+                                      plant_config=scenario.plant,
+                                      physics=scenario.physics) if objects else \
                 dataclasses.replace(remaining, objects=[], settled=True)
             rec = _record_for(task, condition, attempt_scenario, run.result,
                               wall=time.perf_counter() - t0, run_index=task.index,
@@ -534,7 +547,8 @@ def _clutter_run_finished(out: Path, task: TrialTask, experiment: Experiment, re
 def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, workers: int = 2,
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
-             fail_trials: tuple = (), force_new: bool = False) -> dict:
+             fail_trials: tuple = (), force_new: bool = False,
+             physics_profile: str = "") -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -558,6 +572,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         fail_trials: Forced failures, for tests (see `run_task`).
         force_new: When `out` holds another run, run in the first free `OUT-2`, `OUT-3`,
             ... next to it (or the one already holding this run: see `choose_folder`).
+        physics_profile: A `scenario.PHYSICS_PROFILES` name every trial runs with; ""
+            keeps the scenarios' (the default profile).
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -571,6 +587,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     from drake_grasp.results import done_trial_ids, load_records, read_run_info, write_run_info
 
     exp = get_experiment(experiment)
+    if physics_profile:
+        exp = dataclasses.replace(exp, physics_profile=physics_profile)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     out, replaced = choose_folder(Path(out), identity, force_new=force_new)
@@ -660,7 +678,7 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
 
     from drake_grasp.episode import run_episode
     from drake_grasp.results import load_records, replay_path
-    from drake_grasp.scenario import Scenario
+    from drake_grasp.scenario import Scenario, apply_physics_profile
     from drake_grasp.scene import SceneSpec
 
     results_dir = Path(results_dir)
@@ -672,6 +690,10 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
         raise ValueError(f"{results_dir}: trial {trial_id!r} has no scenario to replay (building "
                          f"it failed: {rec.failure_reason})")
     scenario = yaml_load_typed(schema=Scenario, data=rec.scenario_yaml)
+    if not re.search(r"^physics:", rec.scenario_yaml, re.MULTILINE):
+        # Recorded before physics profiles existed: those trials ran the reference
+        # settings (their plant.time_step is in the record).
+        scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
     page = replay_path(results_dir, trial_id)
     out = Path(out) if out else page.with_suffix("")

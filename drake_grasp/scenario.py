@@ -6,6 +6,7 @@ resolved scenario is written beside every output with `yaml_dump_typed`.
 """
 
 
+import copy
 import dataclasses
 import difflib
 import math
@@ -34,7 +35,7 @@ def _default_plant() -> MultibodyPlantConfig:
     # SAP-family solver (lagged): needed for in-plant PD gains and the gripper's
     # mimic coupler constraint; hydroelastic pads/objects decide grasp success.
     return MultibodyPlantConfig(
-        time_step=0.002,
+        time_step=PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["plant.time_step"],
         contact_model="hydroelastic_with_fallback",
         discrete_contact_approximation="lagged",
     )
@@ -254,6 +255,43 @@ class JudgeConfig:
     max_push_m: float = 0.02
 
 
+# Named contact-simulation settings (`physics.profile`). "reference" is what every result
+# before the fast profile was measured with; "fast" is the default. Each lever's speed-up
+# and the fidelity checks behind the choice: README, "Physics profiles".
+PHYSICS_PROFILES: dict[str, dict] = {
+    "reference": {"plant.time_step": 0.002, "hydroelastic_margin_m": 0.0,
+                  "sheet_collision": "box", "settle_time_step_s": 0.0},
+    "fast": {"plant.time_step": 0.005, "hydroelastic_margin_m": 1e-4,
+             "sheet_collision": "auto", "settle_time_step_s": 0.005},
+}
+DEFAULT_PHYSICS_PROFILE = "fast"
+
+
+@dataclass
+class PhysicsConfig:
+    """Contact-simulation settings beyond Drake's `MultibodyPlantConfig` (`plant`).
+
+    `profile` names a set of them (`PHYSICS_PROFILES`: "fast", the default, or
+    "reference"). A profile given in a scenario file or `--scenario-text` sets
+    `plant.time_step` and the fields below, except those given beside it (in the same
+    `physics:` mapping, or `plant.time_step` in the same text).
+    """
+
+    # One of PHYSICS_PROFILES; the settings below are the "fast" profile's.
+    profile: str = DEFAULT_PHYSICS_PROFILE
+    # Drake's `hydroelastic_margin` on the gripper's compliant pads and fingers [m] (0:
+    # none): keeps flat-on-flat contact stable at larger time steps (the objects' convex
+    # pieces cannot take one: `physics.apply_hydroelastic_margin`).
+    hydroelastic_margin_m: float = 1e-4
+    # The sheet's collision geometry: "box" (its 2 mm box), "halfspace" (a rigid half
+    # space at its top surface, anchored to the world: cheaper to intersect with
+    # compliant geometry; the box stays as its visual) or "auto" (the half space where
+    # the sheet stays still, the box where a disturbance moves it).
+    sheet_collision: str = "auto"
+    # Time step of scene settling [s]; 0: `plant.time_step`.
+    settle_time_step_s: float = 0.005
+
+
 @dataclass
 class Scenario:
     """One grasp episode: the scene, the station, the policy and the seed."""
@@ -262,6 +300,7 @@ class Scenario:
     policy: str = "scripted"
     scene: SceneConfig = field(default_factory=SceneConfig)
     plant: MultibodyPlantConfig = field(default_factory=_default_plant)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     camera: WristCameraConfig = field(default_factory=WristCameraConfig)
     depth_noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     gripper: GripperConfig = field(default_factory=GripperConfig)
@@ -296,7 +335,9 @@ class Scenario:
                             self.plant.discrete_contact_approximation),
                            ("plant.contact_surface_representation",
                             self.plant.contact_surface_representation),
-                           ("controller.profile", self.controller.profile)):
+                           ("controller.profile", self.controller.profile),
+                           ("physics.sheet_collision", self.physics.sheet_collision),
+                           ("physics.profile", self.physics.profile)):
             allowed = _CHOICES[key]
             if value not in allowed:
                 why = _CHOICE_REASONS.get(key, "")
@@ -332,6 +373,10 @@ class Scenario:
                 f"camera.depth_min_m/depth_max_m: expected 0 < min < max, got "
                 f"{self.camera.depth_min_m}, {self.camera.depth_max_m}")
         d = self.disturbance
+        if self.physics.sheet_collision == "halfspace" and d.kind != "none":
+            raise ValueError(
+                f"physics.sheet_collision: 'halfspace' is anchored to the world and cannot "
+                f"follow the sheet that disturbance.kind {d.kind!r} moves; use 'box' or 'auto'")
         if not d.shift_min_m <= d.shift_max_m:
             raise ValueError(f"disturbance.shift_min_m/shift_max_m: expected min <= max, got "
                              f"{d.shift_min_m}, {d.shift_max_m}")
@@ -367,18 +412,52 @@ def apply_controller_profile(controller: ControllerConfig, name: str, *,
     return dataclasses.replace(controller, profile=name, **values)
 
 
+def apply_physics_profile(scenario: "Scenario", name: str, *, keep=()) -> "Scenario":
+    """A copy of `scenario` with the named `PHYSICS_PROFILES` settings (`plant.time_step`
+    and the `physics` fields), except the keys in `keep` (given explicitly beside the
+    profile: "plant.time_step" or a `physics` field name), and `physics.profile` set.
+
+    Raises:
+        ValueError: an unknown name, naming `physics.profile` and the profiles there are.
+    """
+    if name not in PHYSICS_PROFILES:
+        close = difflib.get_close_matches(str(name), list(PHYSICS_PROFILES), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"physics.profile: got {name!r}{hint}, expected one of "
+                         f"{tuple(PHYSICS_PROFILES)}")
+    values = {k: v for k, v in PHYSICS_PROFILES[name].items() if k not in set(keep)}
+    plant = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
+    if "plant.time_step" in values:
+        plant.time_step = float(values.pop("plant.time_step"))
+    physics = dataclasses.replace(scenario.physics, profile=name, **values)
+    return dataclasses.replace(scenario, plant=plant, physics=physics)
+
+
 def _apply_profile_given(raw, scenario: "Scenario", where: str) -> "Scenario":
-    """Applies `controller.profile` where the raw YAML mapping gives one: the profile
-    sets its settings, except the ones the same `controller:` mapping gives."""
-    c = raw.get("controller") if isinstance(raw, dict) else None
-    if not isinstance(c, dict) or "profile" not in c:
+    """Applies `controller.profile` and `physics.profile` where the raw YAML mapping gives
+    them: a profile sets its settings, except the ones given beside it (the same
+    `controller:` / `physics:` mapping; for physics also `plant.time_step`)."""
+    if not isinstance(raw, dict):
         return scenario
-    try:
-        controller = apply_controller_profile(scenario.controller, c["profile"],
-                                              keep=set(c) - {"profile"})
-    except ValueError as e:
-        raise ValueError(f"{where}: {e}") from None
-    return dataclasses.replace(scenario, controller=controller)
+    c = raw.get("controller")
+    if isinstance(c, dict) and "profile" in c:
+        try:
+            controller = apply_controller_profile(scenario.controller, c["profile"],
+                                                  keep=set(c) - {"profile"})
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        scenario = dataclasses.replace(scenario, controller=controller)
+    ph = raw.get("physics")
+    if isinstance(ph, dict) and "profile" in ph:
+        keep = set(ph) - {"profile"}
+        plant = raw.get("plant")
+        if isinstance(plant, dict) and "time_step" in plant:
+            keep.add("plant.time_step")
+        try:
+            scenario = apply_physics_profile(scenario, ph["profile"], keep=keep)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+    return scenario
 
 
 # --------------------------------------------------------------------------- validation
@@ -453,6 +532,8 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "plant.penetration_allowance": (0, _INF, True, True, "m"),
     "plant.stiction_tolerance": (0, _INF, True, True, "m/s"),
     "plant.sap_near_rigid_threshold": (0, _INF, False, True, ""),
+    "physics.hydroelastic_margin_m": (0, 0.01, False, False, "m"),
+    "physics.settle_time_step_s": (0, 0.05, False, False, "s"),
 }
 _INTEGER_KEYS = {"seed", "camera.width", "camera.height", "scene.num_objects_min",
                  "scene.num_objects_max", "scene.clutter_objects", "controller.iterations",
@@ -469,6 +550,8 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "plant.discrete_contact_approximation": ("lagged", "sap", "similar"),
     "plant.contact_surface_representation": ("polygon", "triangle"),
     "controller.profile": tuple(CONTROLLER_PROFILES),
+    "physics.sheet_collision": ("box", "halfspace", "auto"),
+    "physics.profile": tuple(PHYSICS_PROFILES),
 }
 _CHOICE_REASONS = {
     "plant.discrete_contact_approximation":
@@ -665,6 +748,7 @@ def load_scenario(
     scenario_file: str | Path | None = None,
     scenario_text: str = "",
     controller_profile: str = "",
+    physics_profile: str = "",
 ) -> Scenario:
     """Loads a named scenario, then applies an inline YAML override.
 
@@ -675,6 +759,8 @@ def load_scenario(
         controller_profile: a `CONTROLLER_PROFILES` name applied to the named scenario
             before `scenario_text` ("" keeps the scenario's); how experiments choose
             the paper's sim or robot controller settings.
+        physics_profile: a `PHYSICS_PROFILES` name applied to the named scenario before
+            `scenario_text` ("" keeps the scenario's).
 
     Raises:
         FileNotFoundError: the file is missing.
@@ -700,6 +786,11 @@ def load_scenario(
                 scenario.controller, controller_profile))
         except ValueError as e:
             raise ValueError(f"controller_profile: {e}") from None
+    if physics_profile:
+        try:
+            scenario = apply_physics_profile(scenario, physics_profile)
+        except ValueError as e:
+            raise ValueError(f"physics_profile: {e}") from None
     named = scenario
     shown = scenario_text if len(scenario_text) <= 80 else scenario_text[:77] + "..."
     text_where = f"--scenario-text {shown!r}"

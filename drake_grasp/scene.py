@@ -11,6 +11,7 @@ sheet, objects), so both use one implementation.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ import numpy as np
 
 from drake_grasp.assets import make_parser
 from drake_grasp.objects import ObjectLibrary, visual_mesh
+from drake_grasp.physics import sheet_collision
 from drake_grasp.scenario import SceneConfig
 
 TABLE_URI = "package://drake_grasp/scene/table.urdf"
@@ -91,11 +93,13 @@ class SceneSpec:
 # Plant building, shared with the station.
 
 
-def add_table_and_sheet(plant, scene_graph, center_xy_m) -> tuple:
+def add_table_and_sheet(plant, scene_graph, center_xy_m, *, sheet_collision: str = "box") -> tuple:
     """Adds the table (top surface at world z=0) and the movable sheet centred at
     `center_xy_m`; its three joints (x, y, yaw) measure the sheet's displacement.
 
     The sheet's joints fix its height, so sheet-table contact is filtered out.
+    `sheet_collision` "halfspace" replaces the sheet's box collision by a rigid half
+    space at its top surface (`PhysicsConfig.sheet_collision`); call before Finalize.
 
     Returns:
         (table_instance, sheet_instance)
@@ -114,11 +118,52 @@ def add_table_and_sheet(plant, scene_graph, center_xy_m) -> tuple:
         RigidTransform([float(center_xy_m[0]) - SHEET_CENTER_IN_MODEL_M[0],
                         float(center_xy_m[1]) - SHEET_CENTER_IN_MODEL_M[1], 0.0]),
     )
+    if sheet_collision == "halfspace":
+        _sheet_as_half_space(plant, scene_graph, plant.GetBodyByName("sheet", sheet))
+    elif sheet_collision != "box":
+        raise ValueError(f"sheet_collision: got {sheet_collision!r}, expected 'box' or 'halfspace'")
     geometries = plant.CollectRegisteredGeometries(
         [plant.GetBodyByName("table", table), plant.GetBodyByName("sheet", sheet)])
     scene_graph.collision_filter_manager().Apply(
         CollisionFilterDeclaration().ExcludeWithin(geometries))
     return table, sheet
+
+
+class _HalfSpaceWarningFilter:
+    """Drops Drake's notice that rigid half spaces do not touch deformable bodies."""
+
+    def filter(self, record) -> bool:
+        return "half spaces are not currently supported for deformable" not in record.getMessage()
+
+
+def _sheet_as_half_space(plant, scene_graph, sheet_body) -> None:
+    """Swaps the sheet's box collision for a rigid half space at its top (z = 2 mm), with
+    the box's friction. The half space is anchored to the world: Drake's broad phase
+    crashed (segmentation fault) with a half space on a moving body, so this is only for
+    scenes whose sheet stays where it is."""
+    import logging
+
+    from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties, Role
+    from pydrake.math import RigidTransform
+
+    inspector = scene_graph.model_inspector()
+    # By frame through the inspector: ids taken from GetCollisionGeometriesForBody came
+    # back corrupted here (pydrake 1.51).
+    frame_id = plant.GetBodyFrameIdOrThrow(sheet_body.index())
+    (box_id,) = [g for g in inspector.GetAllGeometryIds(Role.kProximity)
+                 if inspector.GetFrameId(g) == frame_id]
+    friction = inspector.GetProximityProperties(box_id).GetProperty("material", "coulomb_friction")
+    props = ProximityProperties()
+    AddRigidHydroelasticProperties(props)
+    props.AddProperty("material", "coulomb_friction", friction)
+    # Drake warns (whenever a Context is made) that deformable bodies cannot touch a rigid
+    # half space; there are none here. pydrake routes Drake's log through `logging`.
+    logger = logging.getLogger("drake")
+    if not any(isinstance(f, _HalfSpaceWarningFilter) for f in logger.filters):
+        logger.addFilter(_HalfSpaceWarningFilter())
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.0, 0.0, SHEET_THICKNESS_M]),
+                                    HalfSpace(), "sheet_halfspace", props)
+    scene_graph.RemoveRole(source_id=plant.get_source_id(), geometry_id=box_id, role=Role.kProximity)
 
 
 def add_scene_objects(plant, spec: SceneSpec, library: ObjectLibrary) -> list:
@@ -302,25 +347,33 @@ class SceneWorld:
         return [self.plant.GetBodyByName(OBJECT_BODY_NAME, i) for i in self.instances]
 
 
+def default_scene_plant_config():
+    """The plant settings of scene worlds built without any: the station's defaults."""
+    from pydrake.multibody.plant import MultibodyPlantConfig
+
+    return MultibodyPlantConfig(time_step=0.002, contact_model="hydroelastic_with_fallback",
+                                discrete_contact_approximation="lagged")
+
+
 def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
-                      renderer_name: str | None = None) -> SceneWorld:
+                      renderer_name: str | None = None, physics=None) -> SceneWorld:
     """Table, sheet (held still) and the spec's objects at their poses, no robot.
 
     Args:
         renderer_name: also add a VTK renderer of this name (for depth images).
+        physics: a `scenario.PhysicsConfig` (its sheet collision; a scene world has no
+            gripper to take the margin); None: the reference settings.
     """
-    from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+    from pydrake.multibody.plant import AddMultibodyPlant
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
 
     if plant_config is None:
-        plant_config = MultibodyPlantConfig(
-            time_step=0.002, contact_model="hydroelastic_with_fallback",
-            discrete_contact_approximation="lagged",
-        )
+        plant_config = default_scene_plant_config()
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(plant_config, builder)
-    _, sheet = add_table_and_sheet(plant, scene_graph, spec.center_xy_m)
+    _, sheet = add_table_and_sheet(plant, scene_graph, spec.center_xy_m,
+                                   sheet_collision=sheet_collision(physics, sheet_moves=False))
     instances = add_scene_objects(plant, spec, library)
     plant.Finalize()
     connect_sheet_hold(builder, plant, sheet)
@@ -391,20 +444,27 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
 
 
 def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
-                 speed_tol_m_s: float = 0.005, max_time_s: float = 4.0) -> SceneSpec:
+                 speed_tol_m_s: float = 0.005, max_time_s: float = 4.0,
+                 physics=None) -> SceneSpec:
     """Drops the objects onto the sheet and simulates until all are at rest.
 
     Objects that end below the table top (fell off) are removed. Returns a new spec
     with the final poses; `settled` says whether every remaining object came to rest
-    within `max_time_s` (see `settle_world`).
+    within `max_time_s` (see `settle_world`). `physics` (a `scenario.PhysicsConfig`)
+    sets the margin, the sheet's collision and the settling time step.
     """
-    world = build_scene_world(spec, library, plant_config=plant_config)
+    if physics is not None and physics.settle_time_step_s > 0:
+        # A Drake config: no dataclasses.replace.
+        plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
+        plant_config.time_step = float(physics.settle_time_step_s)
+    world = build_scene_world(spec, library, plant_config=plant_config, physics=physics)
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
-def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None) -> SceneSpec:
+def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None,
+               physics=None) -> SceneSpec:
     """`sample_scene` then `settle_scene` with the config's settling tolerances."""
     spec = sample_scene(config, seed, library)
-    return settle_scene(spec, library, plant_config=plant_config,
+    return settle_scene(spec, library, plant_config=plant_config, physics=physics,
                         speed_tol_m_s=config.settle_speed_tol_m_s,
                         max_time_s=config.settle_max_time_s)

@@ -66,7 +66,8 @@ def tolerance_scene(scene_index: int, *, seed: int, scenario, library, offsets_m
     t0 = time.perf_counter()
     s_seed = int(np.random.default_rng([int(seed), int(scene_index), 71]).integers(2**31 - 1))
     config = dataclasses.replace(scenario.scene, kind="isolation", split="test", object_ids=[])
-    spec = make_scene(config, s_seed, library, plant_config=scenario.plant)
+    spec = make_scene(config, s_seed, library, plant_config=scenario.plant,
+                      physics=scenario.physics)
     rng = np.random.default_rng([s_seed, 1])
     grasps = find_grasps(spec, library, rng)
     record = {"format": FORMAT, "scene_index": int(scene_index), "seed": s_seed,

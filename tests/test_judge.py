@@ -147,8 +147,13 @@ def test_grasp_beside_the_can_is_missed(library, monkeypatch):
 
 
 def test_a_finger_landing_on_the_can_is_a_collision(library, monkeypatch):
-    _shifted_plan(monkeypatch, [0.0, 0.05, 0.0])  # a finger comes down on the can
-    r = simulate_episode(_can(), library=library, record_depth=False).result
+    # A finger comes down on the flat top of an upright can. (On a lying can's curved
+    # flank the outcome is ill-conditioned: the finger either pins the can or squeezes
+    # it out to roll away, which the judge rightly calls pushed-away.)
+    _shifted_plan(monkeypatch, [0.05, 0.0, 0.0])
+    upright = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 0, policy: scripted, scene: {object_ids: [can_000], pose: upright}}"))
+    r = simulate_episode(upright, library=library, record_depth=False).result
     assert not r.success
     assert r.details["failure_class"] == "collision", r.failure_reason
     hit = r.details["judge"]["collision"]

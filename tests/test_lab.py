@@ -4,8 +4,6 @@ misses; a too-weak grip lets it slip."""
 import numpy as np
 import pytest
 
-from drake_grasp.grasps import topdown_rotation
-
 
 @pytest.fixture(scope="module")
 def can_scene(library):
@@ -14,56 +12,38 @@ def can_scene(library):
     return isolated_scene("can_000", library, lying=True)
 
 
-def _across_can(scene, library, offset_m=0.0):
-    """Top-down grasp at the can's centre, closing across its (horizontal) axis."""
-    from pydrake.math import RigidTransform, RotationMatrix
-
-    from drake_grasp.objects import visual_mesh
-
-    X_WO = scene.objects[0].pose()
-    R = X_WO.rotation().matrix()
-    V = np.asarray(visual_mesh(library.get("can_000")).vertices) @ R.T + X_WO.translation()
-    centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
-    axis = R[:, 2]
-    yaw = np.arctan2(axis[1], axis[0]) + np.pi / 2
-    R_WG = topdown_rotation(yaw)
-    radius = 0.5 * float(V.max(axis=0)[2] - V.min(axis=0)[2])
-    shift = (radius + offset_m) * R_WG[:, 0] if offset_m else np.zeros(3)
-    return RigidTransform(RotationMatrix(R_WG), centre + shift)
-
-
-def test_centred_grasp_across_lying_can_holds(can_scene, library):
+def test_centred_grasp_across_lying_can_holds(can_scene, library, across_can):
     from drake_grasp.lab import check_grasp
 
-    result = check_grasp(None, _across_can(can_scene, library), scene=can_scene, library=library)
+    result = check_grasp(None, across_can(can_scene, library), scene=can_scene, library=library)
     assert result.held, result.details
     assert result.failure == ""
     assert result.details["shake_pads"] == ["left_finger", "right_finger"]
     assert result.details["shake_rise_m"] >= 0.05
 
 
-def test_grasp_beside_the_can_is_missed(can_scene, library):
+def test_grasp_beside_the_can_is_missed(can_scene, library, across_can):
     from drake_grasp.lab import check_grasp
 
-    X = _across_can(can_scene, library, offset_m=0.06)  # 6 cm beyond the can's side
+    X = across_can(can_scene, library, offset_m=0.06)  # 6 cm beyond the can's side
     result = check_grasp(None, X, scene=can_scene, library=library)
     assert not result.held
     assert result.failure == "missed", result.details
 
 
-def test_weak_grip_does_not_hold(can_scene, library):
+def test_weak_grip_does_not_hold(can_scene, library, across_can):
     from drake_grasp.lab import FAILURES, check_grasp
 
-    result = check_grasp(None, _across_can(can_scene, library), scene=can_scene,
+    result = check_grasp(None, across_can(can_scene, library), scene=can_scene,
                          library=library, grip_force_n=0.2)
     assert not result.held
     assert result.failure in FAILURES and result.failure != "simulation-error", result.details
 
 
-def test_check_grasps_takes_grasp_set_poses(can_scene, library):
+def test_check_grasps_takes_grasp_set_poses(can_scene, library, across_can):
     from drake_grasp.lab import check_grasps
 
-    X = _across_can(can_scene, library).GetAsMatrix4()
+    X = across_can(can_scene, library).GetAsMatrix4()
     seen = []
     results = check_grasps(None, np.stack([X]), scene=can_scene, library=library,
                            object_indices=[0], progress=seen.append)

@@ -1,0 +1,106 @@
+"""Physics profiles: what each one sets, how a profile combines with explicit keys, the
+half-space sheet, the gripper's hydroelastic margin, and a small fidelity comparison of
+the fast profile against the reference one in the grasp lab."""
+
+import pytest
+
+from drake_grasp.scenario import PHYSICS_PROFILES, load_scenario
+
+
+def test_default_is_the_fast_profile_and_reference_restores_the_old_settings():
+    fast = load_scenario(scenario_name="clutter")
+    assert fast.physics.profile == "fast"
+    assert fast.plant.time_step == PHYSICS_PROFILES["fast"]["plant.time_step"] == 0.005
+    ref = load_scenario(scenario_name="clutter", physics_profile="reference")
+    assert ref.physics.profile == "reference"
+    assert ref.plant.time_step == 0.002
+    assert ref.physics.hydroelastic_margin_m == 0.0
+    assert ref.physics.sheet_collision == "box"
+    assert ref.physics.settle_time_step_s == 0.0
+
+
+def test_keys_given_beside_a_profile_win():
+    s = load_scenario(scenario_name="clutter", scenario_text=(
+        "{physics: {profile: reference, sheet_collision: auto}, plant: {time_step: 0.003}}"))
+    assert s.physics.profile == "reference"
+    assert s.physics.sheet_collision == "auto"        # given beside the profile
+    assert s.plant.time_step == 0.003                 # given in the same text
+    assert s.physics.hydroelastic_margin_m == 0.0     # from the profile
+
+
+@pytest.mark.parametrize("text, words", [
+    ("{physics: {profile: refrence}}", ["physics.profile", "refrence", "reference"]),
+    ("{physics: {sheet_collision: plane}}", ["physics.sheet_collision", "plane"]),
+    ("{physics: {hydroelastic_margin_m: -1.0}}", ["physics.hydroelastic_margin_m"]),
+])
+def test_bad_physics_values_name_the_key(text, words):
+    with pytest.raises(ValueError) as e:
+        load_scenario(scenario_name="isolation", scenario_text=text)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_half_space_sheet_cannot_follow_a_moving_sheet():
+    with pytest.raises(ValueError, match="physics.sheet_collision.*moves"):
+        load_scenario(scenario_name="clutter_shift",
+                      scenario_text="{physics: {sheet_collision: halfspace}}")
+    from drake_grasp.physics import sheet_collision
+
+    s = load_scenario(scenario_name="clutter_shift")
+    assert s.physics.sheet_collision == "auto"
+    assert sheet_collision(s.physics, sheet_moves=True) == "box"
+    assert sheet_collision(s.physics, sheet_moves=False) == "halfspace"
+
+
+def _world(physics):
+    from pydrake.multibody.plant import AddMultibodyPlant
+    from pydrake.systems.framework import DiagramBuilder
+
+    from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision
+    from drake_grasp.scene import add_table_and_sheet
+    from drake_grasp.station import _add_robot
+
+    s = load_scenario(scenario_name="isolation", physics_profile=physics)
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(s.plant, builder)
+    _, gripper = _add_robot(plant)
+    add_table_and_sheet(plant, scene_graph, [0.5, 0.0],
+                        sheet_collision=sheet_collision(s.physics, sheet_moves=False))
+    plant.Finalize()
+    n = apply_hydroelastic_margin(plant, scene_graph, s.physics.hydroelastic_margin_m, [gripper])
+    return plant, scene_graph, n
+
+
+def test_fast_profile_puts_a_half_space_under_the_objects_and_a_margin_on_the_pads():
+    from pydrake.geometry import Role
+
+    plant, scene_graph, changed = _world("fast")
+    inspector = scene_graph.model_inspector()
+    names = {inspector.GetName(g): g for g in inspector.GetAllGeometryIds(Role.kProximity)}
+    assert "sheet::sheet_collision" not in names          # the box's proximity role is gone
+    hs = [g for n, g in names.items() if n.endswith("sheet_halfspace")]
+    assert len(hs) == 1
+    assert inspector.GetFrameId(hs[0]) == scene_graph.world_frame_id()
+    assert changed == 4                                    # two pads, two finger bodies
+    pad = names["robotiq_2f85::left_pad_collision"]
+    assert inspector.GetProximityProperties(pad).GetProperty("hydroelastic", "margin") == 1e-4
+
+    plant, scene_graph, changed = _world("reference")
+    inspector = scene_graph.model_inspector()
+    names = [inspector.GetName(g) for g in inspector.GetAllGeometryIds(Role.kProximity)]
+    assert "sheet::sheet_collision" in names and changed == 0
+    assert not any(n.endswith("sheet_halfspace") for n in names)
+
+
+def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can):
+    """The fidelity guard in small: the same grasps (a centred one that holds, one 6 cm
+    beside the can that misses) get the same verdict under both profiles."""
+    from drake_grasp.lab import check_grasp, isolated_scene
+
+    scene = isolated_scene("can_000", library, lying=True)
+    for offset, held in ((0.0, True), (0.06, False)):
+        X = across_can(scene, library, offset_m=offset)
+        verdicts = {p: check_grasp(None, X, scene=scene, library=library,
+                                   scenario=load_scenario(physics_profile=p)).held
+                    for p in ("reference", "fast")}
+        assert verdicts == {"reference": held, "fast": held}, (offset, verdicts)
