@@ -424,7 +424,9 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     spec = sample_scene(scene_cfg, s_seed, library)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
     plant_config.time_step = config.settle_time_step_s
-    world = build_scene_world(spec, library, plant_config=plant_config, renderer_name="vtk")
+    # The profile's sheet collision (the half space for `fast`); the step is the config's.
+    world = build_scene_world(spec, library, plant_config=plant_config, renderer_name="vtk",
+                              physics=scenario.physics)
     lap("build")
     settled = settle_world(world, spec, speed_tol_m_s=config.settle_speed_tol_m_s,
                            max_time_s=config.settle_max_time_s)

@@ -84,8 +84,10 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     attempts = []
     for attempt in range(dataset_config.max_attempts_per_scene):
         s_seed = scene_seed(seed, scene_index, attempt)
+        # As `dataset.generate_scene`: the profile's sheet, the dataset config's step.
         spec = settle_scene(sample_scene(scene_cfg, s_seed, library), library,
                             plant_config=plant_config,
+                            physics=dataclasses.replace(scenario.physics, settle_time_step_s=0.0),
                             speed_tol_m_s=dataset_config.settle_speed_tol_m_s,
                             max_time_s=dataset_config.settle_max_time_s)
         if not spec.settled:
