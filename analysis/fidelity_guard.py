@@ -1,0 +1,143 @@
+"""Fidelity guard of the physics profiles: the same grasps, executed in the grasp lab under
+each profile, must be held as often.
+
+It re-executes the checks recorded by a `drake-grasp label-check` run (same settled
+scenes, same grasp poses, neighbours present) under each physics profile named, and
+writes per profile: checked, held, hold rate of the accepted ("true") grasps with its
+Wilson 95% interval, the rejected candidates' hold rate, and how often each profile's
+verdict agrees with the others' and with the verdict recorded by the label-check run.
+
+    python analysis/fidelity_guard.py analysis/results/label-check --scenes 84 \
+        --profiles reference,fast --workers 2 --out analysis/results/fidelity-guard
+
+Each (profile, scene) result is one file written atomically under OUT/<profile>/; a
+re-run skips the finished ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+
+def _scene_task(args) -> dict:
+    record_file, profile, out_file = args
+    import numpy as np
+
+    from drake_grasp.lab import check_grasp
+    from drake_grasp.objects import load_library
+    from drake_grasp.results import atomic_write_text
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import SceneSpec
+
+    record = json.loads(Path(record_file).read_text())
+    name, _, step = profile.partition("@")
+    scenario = load_scenario(physics_profile=name)
+    if step:
+        scenario.plant.time_step = float(step)
+    library = load_library(None)
+    scene = SceneSpec.from_dict(record["scene"])
+    t0 = time.perf_counter()
+    checks = []
+    for c in record["checks"]:
+        r = check_grasp(None, np.asarray(c["X_WG"]), scene=scene, scenario=scenario,
+                        library=library, object_index=c["object_index"], neighbours=True)
+        checks.append({"kind": c["kind"], "category": c["category"], "held": bool(r.held),
+                       "failure": r.failure, "recorded_held": bool(c["held"])})
+    out = {"scene_index": record["scene_index"], "profile": profile, "checks": checks,
+           "wall_s": round(time.perf_counter() - t0, 2)}
+    atomic_write_text(out_file, json.dumps(out))
+    return out
+
+
+def summarize(results: dict[str, list[dict]]) -> dict:
+    """Hold rates per profile and verdict agreement between profiles (same checks)."""
+    from drake_grasp.results import wilson_interval
+
+    summary = {}
+    for profile, scenes in results.items():
+        checks = [c for s in scenes for c in s["checks"]]
+        acc = [c for c in checks if c["kind"] == "accepted"]
+        rej = [c for c in checks if c["kind"] == "rejected"]
+        held = sum(c["held"] for c in acc)
+        lo, hi = wilson_interval(held, len(acc))
+        summary[profile] = {
+            "checked": len(acc), "held": held,
+            "precision": round(held / len(acc), 4) if acc else None,
+            "precision_ci95": [round(lo, 4), round(hi, 4)],
+            "rejected_checked": len(rej), "rejected_held": sum(c["held"] for c in rej),
+            "agree_with_recorded": sum(c["held"] == c["recorded_held"] for c in checks),
+            "checks": len(checks),
+            "wall_s_per_check": round(sum(s["wall_s"] for s in scenes) / max(len(checks), 1), 3)}
+    names = list(results)
+    pairs = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            va = {s["scene_index"]: [c["held"] for c in s["checks"]] for s in results[a]}
+            vb = {s["scene_index"]: [c["held"] for c in s["checks"]] for s in results[b]}
+            common = sorted(set(va) & set(vb))
+            both = [(x, y) for k in common for x, y in zip(va[k], vb[k])]
+            pairs[f"{a}/{b}"] = {"checks": len(both), "agree": sum(x == y for x, y in both),
+                                 f"held_{a}_only": sum(x and not y for x, y in both),
+                                 f"held_{b}_only": sum(y and not x for x, y in both)}
+    return {"profiles": summary, "agreement": pairs}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("label_check", help="folder of a `drake-grasp label-check` run (built-in objects)")
+    p.add_argument("--scenes", type=int, required=True, help="its first N scene records")
+    p.add_argument("--profiles", default="reference,fast",
+                   help="comma-separated physics profiles, each optionally with another plant "
+                        "step as NAME@SECONDS, e.g. fast@0.01 (default: reference,fast)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--out", required=True, help="results folder (re-running resumes)")
+    args = p.parse_args(argv)
+
+    from drake_grasp.labelcheck import record_path
+    from drake_grasp.results import atomic_write_text
+    from drake_grasp.scenario import PHYSICS_PROFILES
+
+    profiles = [x for x in args.profiles.split(",") if x]
+    unknown = [x for x in profiles if x.partition("@")[0] not in PHYSICS_PROFILES]
+    if unknown:
+        raise SystemExit(f"--profiles: unknown {unknown}; known: {list(PHYSICS_PROFILES)}")
+    src, out = Path(args.label_check), Path(args.out)
+    records = [record_path(src, i) for i in range(args.scenes)]
+    missing = [str(r) for r in records if not r.is_file()]
+    if missing:
+        raise SystemExit(f"{src}: no record {missing[0]} (expected {args.scenes} scene records)")
+    todo = []
+    for profile in profiles:
+        (out / profile).mkdir(parents=True, exist_ok=True)
+        for r in records:
+            target = out / profile / r.name
+            if not target.is_file():
+                todo.append((str(r), profile, str(target)))
+    print(f"{len(todo)} scene checks to run ({args.scenes} scenes x {len(profiles)} profiles, "
+          f"{args.scenes * len(profiles) - len(todo)} done)", flush=True)
+    t0 = time.perf_counter()
+    if todo:
+        import multiprocessing as mp
+
+        from tqdm import tqdm
+
+        with mp.get_context("spawn").Pool(args.workers) as pool:
+            for _ in tqdm(pool.imap_unordered(_scene_task, todo), total=len(todo)):
+                pass
+    results = {profile: [json.loads((out / profile / r.name).read_text()) for r in records]
+               for profile in profiles}
+    summary = summarize(results)
+    summary.update({"label_check": str(src), "scenes": args.scenes,
+                    "wall_s_this_call": round(time.perf_counter() - t0, 1),
+                    "date": time.strftime("%Y-%m-%d")})
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
