@@ -6,6 +6,9 @@ cd "$(dirname "$0")/.."
 DG=${DG:-drake-grasp}
 R=analysis/results
 $DG evaluate --experiment isolation --workers 2 --seed 0 --out $R/isolation
+# CTR alone on the 40 configurations x 3 seeds (trials 40-119 repeat the configurations).
+$DG evaluate --experiment isolation --conditions ctr --trials 120 --workers 2 --seed 0 \
+    --out $R/isolation-ctr120
 $DG evaluate --experiment sim-distance --trials 40 --workers 2 --seed 0 --out $R/sim-distance
 $DG evaluate --experiment clutter --trials 3 --workers 2 --seed 0 --out $R/clutter
 $DG evaluate --experiment clutter-shift --trials 3 --workers 2 --seed 0 --out $R/clutter-shift
