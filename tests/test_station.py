@@ -83,3 +83,37 @@ def test_wrist_camera_sees_the_object(scenario, scene, library):
     assert np.median(depth) == pytest.approx(scenario.arm.start_camera_height_m, abs=0.01)
     assert depth.min() < scenario.arm.start_camera_height_m - 0.02
     assert np.isfinite(raw).any()
+
+
+def test_start_configuration_solves_at_every_start_height_on_one_branch():
+    """The local IK solver failed at 0.19196 m and jumped to a far branch (elbow at 4.5
+    rad) at 0.19 m from Q_HOME alone; with its restarts every height from 0.15 to 0.40 m
+    solves, and neighbouring heights give neighbouring joint angles."""
+    from pydrake.multibody.plant import MultibodyPlant
+
+    from drake_grasp.station import (Q_HOME, _add_robot, gripper_frame_offsets,
+                                      make_control_plant, solve_start_configuration,
+                                      topdown_pose)
+
+    plant = MultibodyPlant(0.0)
+    arm, gripper = _add_robot(plant)
+    plant.Finalize()
+    M_T = plant.CalcSpatialInertia(plant.CreateDefaultContext(), plant.GetFrameByName("tool0", arm),
+                                   plant.GetBodyIndices(gripper))
+    control_plant = make_control_plant(M_T, gripper_frame_offsets()[1])
+    heights = [0.15, 0.185, 0.19, 0.19195959, 0.195, 0.25, 0.30, 0.40]
+    qs = [solve_start_configuration(control_plant, topdown_pose([0.5, 0.0], z)) for z in heights]
+    for z, q in zip(heights, qs):
+        X = control_plant.CalcRelativeTransform(_context(control_plant, q),
+                                                control_plant.world_frame(),
+                                                control_plant.GetFrameByName("grasp_frame"))
+        assert np.allclose(X.translation(), [0.5, 0.0, z], atol=2e-4), z
+    steps = [np.max(np.abs(b - a)) for a, b in zip(qs, qs[1:])]
+    assert max(steps) < 0.6, steps          # one branch: no jumps between nearby heights
+    assert all(np.linalg.norm(q - Q_HOME) < 3.5 for q in qs)
+
+
+def _context(plant, q):
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, q)
+    return context
