@@ -14,3 +14,4 @@ $DG evaluate --experiment clutter --trials 3 --workers 2 --seed 0 --out $R/clutt
 $DG evaluate --experiment clutter-shift --trials 3 --workers 2 --seed 0 --out $R/clutter-shift
 python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
 python analysis/figure5.py $R/sim-distance --out $R/figure5.png
+python -c "from drake_grasp.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$R')"
