@@ -671,14 +671,25 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
         bar.close()
 
 
+def recorded_scenario(scenario_yaml: str):
+    """The `Scenario` a trial record's YAML describes. A record written before physics
+    profiles existed has no `physics:` entry: it ran the reference settings (its
+    `plant.time_step` is in the record), so it gets the `reference` profile."""
+    from pydrake.common.yaml import yaml_load_typed
+
+    from drake_grasp.scenario import Scenario, apply_physics_profile
+
+    scenario = yaml_load_typed(schema=Scenario, data=scenario_yaml)
+    if not re.search(r"^physics:", scenario_yaml, re.MULTILINE):
+        scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
+    return scenario
+
+
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):
     """Re-runs one recorded trial exactly (its resolved scenario, and for clutter attempts
     the pile it started from) and writes its episode files with the replay page."""
-    from pydrake.common.yaml import yaml_load_typed
-
     from drake_grasp.episode import run_episode
     from drake_grasp.results import load_records, replay_path
-    from drake_grasp.scenario import Scenario, apply_physics_profile
     from drake_grasp.scene import SceneSpec
 
     results_dir = Path(results_dir)
@@ -689,11 +700,7 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     if not rec.scenario_yaml:
         raise ValueError(f"{results_dir}: trial {trial_id!r} has no scenario to replay (building "
                          f"it failed: {rec.failure_reason})")
-    scenario = yaml_load_typed(schema=Scenario, data=rec.scenario_yaml)
-    if not re.search(r"^physics:", rec.scenario_yaml, re.MULTILINE):
-        # Recorded before physics profiles existed: those trials ran the reference
-        # settings (their plant.time_step is in the record).
-        scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
+    scenario = recorded_scenario(rec.scenario_yaml)
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
     page = replay_path(results_dir, trial_id)
     out = Path(out) if out else page.with_suffix("")

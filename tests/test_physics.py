@@ -2,6 +2,8 @@
 half-space sheet, the gripper's hydroelastic margin, and a small fidelity comparison of
 the fast profile against the reference one in the grasp lab."""
 
+import re
+
 import pytest
 
 from drake_grasp.scenario import PHYSICS_PROFILES, load_scenario
@@ -104,3 +106,18 @@ def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can)
                                    scenario=load_scenario(physics_profile=p)).held
                     for p in ("reference", "fast")}
         assert verdicts == {"reference": held, "fast": held}, (offset, verdicts)
+
+
+def test_a_record_made_before_physics_profiles_replays_with_the_reference_settings():
+    from drake_grasp.montecarlo import recorded_scenario
+    from drake_grasp.scenario import dump_scenario
+
+    fast = load_scenario(scenario_name="isolation")
+    now = recorded_scenario(dump_scenario(fast))
+    assert now.physics == fast.physics and now.plant.time_step == 0.005
+    ref = load_scenario(scenario_name="isolation", physics_profile="reference")
+    old_yaml = re.sub(r"^physics:\n(?:  .*\n)+", "", dump_scenario(ref), flags=re.M)
+    assert "physics" not in old_yaml
+    old = recorded_scenario(old_yaml)
+    assert old.physics == ref.physics
+    assert old.plant.time_step == 0.002
