@@ -53,21 +53,19 @@ def _scene_task(args) -> dict:
 
 
 def summarize(results: dict[str, list[dict]]) -> dict:
-    """Hold rates per profile and verdict agreement between profiles (same checks)."""
-    from drake_grasp.results import wilson_interval
+    """Hold rates per profile (`labelcheck.summarize`, the label-check's own definition)
+    and verdict agreement between profiles (same checks)."""
+    from drake_grasp.labelcheck import summarize as label_summary
 
     summary = {}
     for profile, scenes in results.items():
+        base = label_summary([{**s, "replaced_attempts": []} for s in scenes])
         checks = [c for s in scenes for c in s["checks"]]
-        acc = [c for c in checks if c["kind"] == "accepted"]
-        rej = [c for c in checks if c["kind"] == "rejected"]
-        held = sum(c["held"] for c in acc)
-        lo, hi = wilson_interval(held, len(acc))
         summary[profile] = {
-            "checked": len(acc), "held": held,
-            "precision": round(held / len(acc), 4) if acc else None,
-            "precision_ci95": [round(lo, 4), round(hi, 4)],
-            "rejected_checked": len(rej), "rejected_held": sum(c["held"] for c in rej),
+            "checked": base["checked"], "held": base["held"],
+            "precision": round(base["precision"], 4) if base["precision"] is not None else None,
+            "precision_ci95": [round(v, 4) for v in base["precision_ci95"]],
+            "rejected_checked": base["rejected_checked"], "rejected_held": base["rejected_held"],
             "agree_with_recorded": sum(c["held"] == c["recorded_held"] for c in checks),
             "checks": len(checks),
             "wall_s_per_check": round(sum(s["wall_s"] for s in scenes) / max(len(checks), 1), 3)}

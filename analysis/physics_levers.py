@@ -34,31 +34,24 @@ def main(argv=None) -> int:
     p.add_argument("--objects", type=int, default=5, help="objects in the pile (default 5)")
     args = p.parse_args(argv)
 
-    from drake_grasp.bench import BENCH_SEED, _machine
-    from drake_grasp.episode import simulate_episode
-    from drake_grasp.scenario import load_scenario, replace
+    from drake_grasp.bench import BENCH_SEED, _machine, episode_rtf
 
     rows = []
     for name, text in LEVERS:
         override = yaml.safe_load(text) if text else {}
         override.setdefault("scene", {})["clutter_objects"] = args.objects
         override["policy"] = "scripted"
-        scenario = load_scenario(scenario_name="clutter", physics_profile="reference",
-                                 scenario_text=json.dumps(override))
-        scenario = replace(scenario, seed=BENCH_SEED, visualize=False)
-        t0 = time.perf_counter()
-        run = simulate_episode(scenario, scenario_name="clutter", record_depth=False)
-        wall = time.perf_counter() - t0
-        r = run.result
-        sim_wall = r.details["simulation_wall_time_s"]
-        rows.append({"lever": name, "scenario_text": text, "time_step_s": scenario.plant.time_step,
-                     "rtf": round(r.sim_time_s / sim_wall, 3), "simulation_wall_s": round(sim_wall, 2),
-                     "episode_wall_s": round(wall, 2), "success": bool(r.success),
-                     "failure_class": r.details.get("failure_class")})
+        r = episode_rtf("clutter", json.dumps(override), physics_profile="reference",
+                        record_depth=False)
+        rows.append({"lever": name, "scenario_text": text, "time_step_s": r["time_step_s"],
+                     "rtf": round(r["rtf"], 3), "simulation_wall_s": round(r["wall_s"], 2),
+                     "episode_wall_s": round(r["episode_wall_s"], 2),
+                     "success": bool(r["success"]), "failure_class": r["failure_class"]})
         ref = rows[0]
         print(f"{name:60s} rtf {rows[-1]['rtf']:6.3f} ({rows[-1]['rtf'] / ref['rtf']:4.2f}x)  "
-              f"episode {wall:6.2f} s ({ref['episode_wall_s'] / wall:4.2f}x)  "
-              f"success {r.success}", flush=True)
+              f"episode {r['episode_wall_s']:6.2f} s "
+              f"({ref['episode_wall_s'] / r['episode_wall_s']:4.2f}x)  success {r['success']}",
+              flush=True)
     for row in rows:
         row["rtf_ratio"] = round(row["rtf"] / rows[0]["rtf"], 2)
         row["episode_speedup"] = round(rows[0]["episode_wall_s"] / row["episode_wall_s"], 2)

@@ -44,7 +44,8 @@ def _machine() -> dict:
     return info
 
 
-def _episode_rtf(scenario_name: str, text: str = "", *, physics_profile: str = "") -> dict:
+def episode_rtf(scenario_name: str, text: str = "", *, physics_profile: str = "",
+                record_depth: bool = True) -> dict:
     """One scripted episode: the simulation loop's real-time factor, and the wall time of
     the whole episode (settling and Diagram building included)."""
     from drake_grasp.episode import simulate_episode
@@ -54,12 +55,13 @@ def _episode_rtf(scenario_name: str, text: str = "", *, physics_profile: str = "
                                      physics_profile=physics_profile),
                        seed=BENCH_SEED, visualize=False)
     t0 = time.perf_counter()
-    run = simulate_episode(scenario, scenario_name=scenario_name)
+    run = simulate_episode(scenario, scenario_name=scenario_name, record_depth=record_depth)
     episode_wall = time.perf_counter() - t0
     r = run.result
     wall = r.details["simulation_wall_time_s"]
     return {"rtf": r.sim_time_s / wall, "sim_time_s": r.sim_time_s, "wall_s": round(wall, 3),
             "episode_wall_s": round(episode_wall, 3), "success": r.success,
+            "failure_class": r.details.get("failure_class"),
             "objects": len(r.object_ids), "physics_profile": scenario.physics.profile,
             "time_step_s": scenario.plant.time_step}
 
@@ -67,8 +69,8 @@ def _episode_rtf(scenario_name: str, text: str = "", *, physics_profile: str = "
 def _rtf_side_by_side(key: str, scenario_name: str, text: str) -> dict:
     """The same scripted episode with the reference physics profile, then the default
     one, in this process: `key`, `key_reference` and their ratio `key_speedup`."""
-    ref = _episode_rtf(scenario_name, text, physics_profile="reference")
-    new = _episode_rtf(scenario_name, text)
+    ref = episode_rtf(scenario_name, text, physics_profile="reference")
+    new = episode_rtf(scenario_name, text)
     return {key: round(new["rtf"], 3), f"{key}_detail": new,
             f"{key}_reference": round(ref["rtf"], 3), f"{key}_reference_detail": ref,
             f"{key}_speedup": round(new["rtf"] / ref["rtf"], 2)}
@@ -85,7 +87,7 @@ def bench_rtf_clutter5() -> dict:
 
 def bench_rtf_ctr_clutter5() -> dict:
     """A full CTR episode (CNN every 0.1 s, 128 candidates) in a 5-object pile."""
-    out = _episode_rtf("clutter", "{policy: ctr, scene: {clutter_objects: 5}}")
+    out = episode_rtf("clutter", "{policy: ctr, scene: {clutter_objects: 5}}")
     return {"rtf_ctr_clutter5": round(out["rtf"], 3), "rtf_ctr_clutter5_detail": out}
 
 

@@ -169,7 +169,6 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     """
     from pydrake.math import RigidTransform
     from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import ConstantVectorSource
 
     from drake_grasp.station import MakeGraspStation
 
@@ -189,8 +188,7 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
             object_points_O=points_O, X_WG_start=station.X_WG_start,
             motion=scenario.scripted, gripper=scenario.gripper,
             X_WG_planned=None if X_WG_plan is None else RigidTransform(X_WG_plan)))
-        sheet = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
-        builder.Connect(sheet.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+        _hold_sheet(builder, sd)
         builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
         out.target = target
     else:
@@ -233,9 +231,16 @@ def _add_judge(builder, scenario, scene, library, station, policy):
     return judge
 
 
-def _add_controller(builder, scenario, scene, library, station, model, out):
+def _hold_sheet(builder, station_diagram) -> None:
+    """Holds the sheet still with a constant source ("sheet_hold"): a Python system here
+    would be evaluated at every plant step."""
     from pydrake.systems.primitives import ConstantVectorSource
 
+    hold = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
+    builder.Connect(hold.get_output_port(), station_diagram.GetInputPort("sheet_desired_state"))
+
+
+def _add_controller(builder, scenario, scene, library, station, model, out):
     from drake_grasp.systems.controller import GraspController
     from drake_grasp.systems.disturbance import SheetDisturbance
     from drake_grasp.systems.evaluator import (
@@ -287,9 +292,7 @@ def _add_controller(builder, scenario, scene, library, station, model, out):
             AbstractValue.Make(np.zeros(0))))
         builder.Connect(none.get_output_port(), controller.GetInputPort("predicted_distances"))
     if scenario.disturbance.kind == "none":
-        # A constant: a Python system here would be evaluated at every plant step.
-        hold = builder.AddNamedSystem("sheet_hold", ConstantVectorSource(np.zeros(6)))
-        builder.Connect(hold.get_output_port(), sd.GetInputPort("sheet_desired_state"))
+        _hold_sheet(builder, sd)
         out.disturbance = None
     else:
         disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(

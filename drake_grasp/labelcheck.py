@@ -21,10 +21,8 @@ from the records at the end of every call (`make_label_report`).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,15 +77,14 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     t0 = time.perf_counter()
     scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=config.split,
                                     object_ids=[])
-    plant_config = copy.deepcopy(scenario.plant)
-    plant_config.time_step = dataset_config.settle_time_step_s
+    # As `dataset.generate_scene`: the profile's sheet, the dataset config's settling step.
+    physics = dataclasses.replace(scenario.physics,
+                                  settle_time_step_s=dataset_config.settle_time_step_s)
     attempts = []
     for attempt in range(dataset_config.max_attempts_per_scene):
         s_seed = scene_seed(seed, scene_index, attempt)
-        # As `dataset.generate_scene`: the profile's sheet, the dataset config's step.
         spec = settle_scene(sample_scene(scene_cfg, s_seed, library), library,
-                            plant_config=plant_config,
-                            physics=dataclasses.replace(scenario.physics, settle_time_step_s=0.0),
+                            plant_config=scenario.plant, physics=physics,
                             speed_tol_m_s=dataset_config.settle_speed_tol_m_s,
                             max_time_s=dataset_config.settle_max_time_s)
         if not spec.settled:
@@ -364,10 +361,13 @@ def failure_picture(records: list[dict], path, *, library, max_panels: int = 16)
     return len(fails)
 
 
-def _scenario_time_step(run: dict) -> float | None:
+def _scenario_time_step(run: dict) -> float:
     """The plant step of a run.json's scenario (the lab's step when it sets none)."""
-    m = re.search(r"^  time_step: *([0-9.eE+-]+)", run.get("scenario", ""), re.MULTILINE)
-    return float(m.group(1)) if m else None
+    from pydrake.common.yaml import yaml_load_typed
+
+    from drake_grasp.scenario import Scenario
+
+    return yaml_load_typed(schema=Scenario, data=run["scenario"]).plant.time_step
 
 
 def make_label_report(out, *, num_scenes: int | None = None, wall_s: float | None = None,

@@ -77,5 +77,5 @@ def sheet_collision(physics, *, sheet_moves: bool) -> str:
         return "box" if sheet_moves else "halfspace"
     if choice == "halfspace" and sheet_moves:
         raise ValueError("physics.sheet_collision: 'halfspace' is anchored to the world and "
-                         "cannot follow a moving sheet (disturbance); use 'box' or 'auto'")
+                         "cannot follow the sheet that a disturbance moves; use 'box' or 'auto'")
     return choice

@@ -277,19 +277,19 @@ class PhysicsConfig:
     `physics:` mapping, or `plant.time_step` in the same text).
     """
 
-    # One of PHYSICS_PROFILES; the settings below are the "fast" profile's.
+    # One of PHYSICS_PROFILES; the defaults below are the default profile's.
     profile: str = DEFAULT_PHYSICS_PROFILE
     # Drake's `hydroelastic_margin` on the gripper's compliant pads and fingers [m] (0:
     # none): keeps flat-on-flat contact stable at larger time steps (the objects' convex
     # pieces cannot take one: `physics.apply_hydroelastic_margin`).
-    hydroelastic_margin_m: float = 1e-4
+    hydroelastic_margin_m: float = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["hydroelastic_margin_m"]
     # The sheet's collision geometry: "box" (its 2 mm box), "halfspace" (a rigid half
     # space at its top surface, anchored to the world: cheaper to intersect with
     # compliant geometry; the box stays as its visual) or "auto" (the half space where
     # the sheet stays still, the box where a disturbance moves it).
-    sheet_collision: str = "auto"
+    sheet_collision: str = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["sheet_collision"]
     # Time step of scene settling [s]; 0: `plant.time_step`.
-    settle_time_step_s: float = 0.005
+    settle_time_step_s: float = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["settle_time_step_s"]
 
 
 @dataclass
@@ -373,10 +373,9 @@ class Scenario:
                 f"camera.depth_min_m/depth_max_m: expected 0 < min < max, got "
                 f"{self.camera.depth_min_m}, {self.camera.depth_max_m}")
         d = self.disturbance
-        if self.physics.sheet_collision == "halfspace" and d.kind != "none":
-            raise ValueError(
-                f"physics.sheet_collision: 'halfspace' is anchored to the world and cannot "
-                f"follow the sheet that disturbance.kind {d.kind!r} moves; use 'box' or 'auto'")
+        from drake_grasp.physics import sheet_collision
+
+        sheet_collision(self.physics, sheet_moves=d.kind != "none")  # raises for 'halfspace'
         if not d.shift_min_m <= d.shift_max_m:
             raise ValueError(f"disturbance.shift_min_m/shift_max_m: expected min <= max, got "
                              f"{d.shift_min_m}, {d.shift_max_m}")
