@@ -144,7 +144,7 @@ class EpisodeDiagram:
 
 def _gpd_detector(scenario: Scenario):
     """detect(depth, X_WC) -> (x, y, theta_deg, z) of the best GPD-style grasp, or None."""
-    from drake_grasp import gpd
+    from drake_grasp import gpd_geometric as gpd
 
     def detect(depth, X_WC):
         rng = np.random.default_rng([scenario.seed, 53])

@@ -26,7 +26,7 @@ from drake_grasp.sensing import DepthNoiseConfig
 
 DEFAULT_SCENARIO_FILE = "default.scenarios.yaml"
 SCENE_KINDS = ("isolation", "random", "clutter")
-POLICIES = ("scripted", "ctr", "gpd", "cnn-only", "cnn-ctr", "init")
+POLICIES = ("scripted", "ctr", "gpd", "gpd-geometric", "cnn-only", "cnn-ctr", "init")
 NOISE_KINDS = ("none", "gaussian", "offset")
 DISTURBANCE_KINDS = ("none", "shift", "moving")
 
@@ -55,6 +55,43 @@ class WristCameraConfig:
     depth_max_m: float = 1.5
     # Frame rate of recorded pictures in demos [Hz].
     fps: float = 10.0
+
+
+def _structure_noise() -> DepthNoiseConfig:
+    # Off by default, like the wrist camera's (both policies see noiseless renders unless
+    # a scenario turns noise on); when on, the Kinect-v1 axial model of Nguyen et al.
+    # (the Structure IO is a PrimeSense-type structured-light sensor of the same kind).
+    # No hole filling: GPD works on the point cloud and drops invalid pixels.
+    return DepthNoiseConfig(enabled=False, fill_max_iterations=0)
+
+
+@dataclass
+class GpdConfig:
+    """The GPD baseline: its depth sensor, viewpoint and learned grasp classifier.
+
+    The paper runs GPD on a point cloud from a Structure IO on the wrist (640x480 depth,
+    about 58 x 45 degrees field of view, working range from about 0.4 m), taken once with
+    the hand moved to a fixed pose above the table, pointing down (Viereck et al. 2017,
+    Section 6). `drake_grasp.gpd` is the pipeline.
+    """
+
+    # Structure IO depth stream (Occipital datasheet: VGA 640x480, 58 deg H x 45 deg V).
+    width: int = 640
+    height: int = 480
+    fov_y_deg: float = 45.0
+    depth_min_m: float = 0.4
+    depth_max_m: float = 3.5
+    noise: DepthNoiseConfig = field(default_factory=_structure_noise)
+    # The viewpoint: this camera this high above the table over the scene centre [m]
+    # (at 0.6 m the view spans about 0.66 x 0.50 m of table; an upright 20 cm object
+    # stays beyond the 0.4 m minimum range).
+    view_camera_height_m: float = 0.6
+    # Time the hand rests at the viewpoint before the image is taken [s].
+    view_settle_s: float = 0.5
+    # Largest angle between a grasp's approach and straight down [deg].
+    approach_max_tilt_deg: float = 30.0
+    # Classifier weights; "" = the shipped models/gpd/weights.safetensors.
+    weights: str = ""
 
 
 @dataclass
@@ -302,6 +339,7 @@ class Scenario:
     plant: MultibodyPlantConfig = field(default_factory=_default_plant)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     camera: WristCameraConfig = field(default_factory=WristCameraConfig)
+    gpd: GpdConfig = field(default_factory=GpdConfig)
     depth_noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     gripper: GripperConfig = field(default_factory=GripperConfig)
     arm: ArmConfig = field(default_factory=ArmConfig)
@@ -345,9 +383,9 @@ class Scenario:
         for key, (low, high, low_open, high_open, unit) in _RANGES.items():
             _check_number(key, _get(self, key), low, high, low_open, high_open, unit,
                           integer=key in _INTEGER_KEYS)
-        for key in ("target", "objects_dir"):
-            if not isinstance(getattr(self, key), str):
-                raise ValueError(f"{key}: expected a string, got {getattr(self, key)!r}")
+        for key in ("target", "objects_dir", "gpd.weights"):
+            if not isinstance(_get(self, key), str):
+                raise ValueError(f"{key}: expected a string, got {_get(self, key)!r}")
         if not isinstance(self.visualize, bool):
             raise ValueError(f"visualize: expected true or false, got {self.visualize!r}")
         ids = self.scene.object_ids
@@ -383,6 +421,14 @@ class Scenario:
             self.depth_noise.validate()
         except ValueError as e:
             raise ValueError(f"depth_noise: {e}") from None
+        if not self.gpd.depth_min_m < self.gpd.depth_max_m:
+            raise ValueError(
+                f"gpd.depth_min_m/depth_max_m: expected 0 < min < max, got "
+                f"{self.gpd.depth_min_m}, {self.gpd.depth_max_m}")
+        try:
+            self.gpd.noise.validate()
+        except ValueError as e:
+            raise ValueError(f"gpd.noise: {e}") from None
 
 
 # --------------------------------------------------------------------------- profiles
@@ -475,6 +521,14 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "camera.depth_min_m": (0, _INF, True, True, "m"),
     "camera.depth_max_m": (0, _INF, True, True, "m"),
     "camera.fps": (0, _INF, True, True, "Hz"),
+    "gpd.width": (1, 4096, False, False, "px"),
+    "gpd.height": (1, 4096, False, False, "px"),
+    "gpd.fov_y_deg": (0, 180, True, True, "deg"),
+    "gpd.depth_min_m": (0, _INF, True, True, "m"),
+    "gpd.depth_max_m": (0, _INF, True, True, "m"),
+    "gpd.view_camera_height_m": (0, _INF, True, True, "m"),
+    "gpd.view_settle_s": (0, _INF, False, True, "s"),
+    "gpd.approach_max_tilt_deg": (0, 60, False, False, "deg"),
     # Robotiq 2F-85 datasheet: 20-235 N; lower forces are allowed for slip studies.
     "gripper.grip_force_n": (0, 235, True, False, "N"),
     "gripper.closing_speed_m_s": (0, _INF, True, True, "m/s"),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from drake_grasp.gpd import (
+from drake_grasp.gpd_geometric import (
     DetectedGrasps,
     ScoreWeights,
     best_grasp,
