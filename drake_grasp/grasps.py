@@ -916,6 +916,35 @@ def _evaluate(
     )
 
 
+def evaluate_hands(fine: ScenePoints, coarse: ScenePoints, origins, approach, basis_x, base_angle,
+                   num_rotations: int, depths, *, mu: float = 0.5, min_width_m: float = 0.005,
+                   min_points_between: int = 5, contact_tolerance_m: float = 0.002,
+                   table_z: float = TABLE_TOP_Z_M, table_clearance_m: float = 0.002):
+    """The candidate tests of `find_grasps_in_meshes` on any point set (e.g. a point
+    cloud seen by a camera, where `drake_grasp.gpd` uses them as GPD's geometric
+    filters): S axes through `origins` along `approach` (S, 3), `num_rotations` closing
+    directions from `base_angle` (S,) measured from `basis_x` (S, 3) toward
+    approach x basis_x, at `depths` below the local top.
+
+    Returns:
+        Per-hand arrays of shape (S, K, D): ``collision_free``, ``num_points_between``,
+        ``width``, ``object_index``, ``force_closure``, ``valid``, the hands'
+        ``centers`` (S, K, D, 3) and closing axes ``x_axis`` (S, K, 3).
+    """
+    origins = np.asarray(origins, dtype=float).reshape(-1, 3)
+    if len(origins) == 0 or len(fine) == 0 or len(coarse) == 0:
+        raise ValueError("evaluate_hands: expected at least one axis and non-empty point sets")
+    return _evaluate(
+        _Scene.build(fine, coarse), origins, np.asarray(approach, float),
+        np.asarray(basis_x, float), np.asarray(base_angle, float),
+        _positive_int("num_rotations", num_rotations), np.atleast_1d(np.asarray(depths, float)),
+        mu=_positive("mu", mu, allow_zero=True),
+        min_width_m=_positive("min_width_m", min_width_m, allow_zero=True), max_width_m=STROKE_M,
+        min_points_between=_positive_int("min_points_between", min_points_between),
+        contact_tolerance_m=_positive("contact_tolerance_m", contact_tolerance_m, allow_zero=True),
+        table_z=float(table_z), table_clearance_m=float(table_clearance_m), timings=None)
+
+
 @dataclass(frozen=True)
 class GraspCheck:
     """Per-pose outcome of `check_grasp_poses`, every array of length N.

@@ -1,0 +1,168 @@
+"""The learned GPD baseline's pipeline (drake_grasp.gpd), without Drake."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from drake_grasp import gpd
+from drake_grasp.grasps import TABLE_TOP_Z_M, topdown_rotation
+
+
+def _view(height=0.6, xy=(0.5, 0.0)):
+    X = np.eye(4)
+    X[:3, :3] = topdown_rotation(0.0)
+    X[:3, 3] = [xy[0], xy[1], height]
+    return X
+
+
+def _render(mesh: trimesh.Trimesh, X_WC, H=120, W=160, fov_y_deg=45.0):
+    """Depth of `mesh` over a table at z = 0 by ray casting (Drake's pinhole model)."""
+    f = 0.5 * H / np.tan(np.deg2rad(fov_y_deg) / 2)
+    v, u = np.mgrid[0:H, 0:W]
+    d_C = np.stack([(u - (W / 2 - 0.5)) / f, (v - (H / 2 - 0.5)) / f, np.ones_like(u, float)], -1)
+    d_C = d_C.reshape(-1, 3)
+    R, t = X_WC[:3, :3], X_WC[:3, 3]
+    dirs = d_C @ R.T
+    # The table plane z = 0 first, then the object where it is nearer.
+    depth = (0.0 - t[2]) / dirs[:, 2]
+    locs, ray, _ = mesh.ray.intersects_location(np.tile(t, (len(dirs), 1)), dirs, multiple_hits=False)
+    hit = ((locs - t) @ R)[:, 2]
+    depth[ray] = np.minimum(depth[ray], hit)
+    return depth.reshape(H, W).astype(np.float32)
+
+
+def _box_scene(size=(0.05, 0.12, 0.06), xy=(0.5, 0.0)):
+    box = trimesh.creation.box(extents=size)
+    box.apply_translation([xy[0], xy[1], size[2] / 2 + TABLE_TOP_Z_M])
+    return box
+
+
+def test_back_project_drops_invalid_and_places_points():
+    X = _view(0.6)
+    depth = np.full((6, 8), 0.6, np.float32)
+    depth[0, 0] = 0.0
+    depth[1, 1] = np.inf
+    depth[2, 2] = np.nan
+    P = gpd.back_project(depth, fov_y_deg=45.0, X_WC=X, depth_min_m=0.4, depth_max_m=3.5)
+    assert len(P) == 6 * 8 - 3
+    np.testing.assert_allclose(P[:, 2], 0.0, atol=1e-6)  # the camera looks straight down (float32 depth)
+    with pytest.raises(ValueError, match="depth"):
+        gpd.back_project(np.zeros(5), fov_y_deg=45.0, X_WC=X, depth_min_m=0.4, depth_max_m=3.5)
+    with pytest.raises(ValueError, match="X_WC"):
+        gpd.back_project(depth, fov_y_deg=45.0, X_WC=np.eye(3), depth_min_m=0.4, depth_max_m=3.5)
+
+
+def test_cloud_removes_table_and_normals_face_camera():
+    X = _view(0.6)
+    box = _box_scene()
+    depth = _render(box, X)
+    cloud = gpd.cloud_from_depth(depth, fov_y_deg=45.0, X_WC=X, depth_min_m=0.4, depth_max_m=3.5)
+    assert len(cloud) > 100
+    assert cloud.points[:, 2].min() > TABLE_TOP_Z_M  # no table points
+    top = cloud.points[:, 2] > 0.06
+    assert top.sum() > 50
+    # The box top's normals point up (toward the camera).
+    assert np.median(cloud.normals[top, 2]) > 0.99
+
+
+def test_curvature_axis_of_a_lying_cylinder_is_its_axis():
+    cyl = trimesh.creation.cylinder(radius=0.03, height=0.15, sections=64)
+    cyl.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # axis along y
+    cyl.apply_translation([0.5, 0.0, 0.03 + TABLE_TOP_Z_M])
+    X = _view(0.5)
+    cloud = gpd.cloud_from_depth(_render(cyl, X, H=240, W=320), fov_y_deg=45.0, X_WC=X,
+                                 depth_min_m=0.3, depth_max_m=3.5)
+    middle = np.abs(cloud.points[:, 1]) < 0.05
+    along_y = np.abs(cloud.axes[middle, 1])
+    assert np.median(along_y) > 0.9
+
+
+def test_sample_hands_finds_collision_free_grasps_across_a_box():
+    X = _view(0.6)
+    box = _box_scene()
+    cloud = gpd.cloud_from_depth(_render(box, X, H=240, W=320), fov_y_deg=45.0, X_WC=X,
+                                 depth_min_m=0.4, depth_max_m=3.5)
+    hands = gpd.sample_hands(cloud, np.random.default_rng(0), gpd.HandSearch(num_samples=100))
+    assert len(hands) > 0
+    z = hands.poses[:, :3, 2]
+    # Every approach is within the 30 degree cone about straight down.
+    assert np.all(-z[:, 2] >= np.cos(np.deg2rad(30.0)) - 1e-9)
+    # Rotation blocks are proper rotations.
+    R = hands.poses[:, :3, :3]
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.tile(np.eye(3), (len(R), 1, 1)), atol=1e-9)
+    # Some hands close across the 5 cm side (x_G along world x) near the box's middle.
+    across = (np.abs(hands.poses[:, 0, 0]) > 0.95) & (np.abs(hands.poses[:, 1, 3]) < 0.03)
+    assert across.any()
+    assert np.all(hands.width <= 0.085)
+    # The same seed gives the same hands.
+    again = gpd.sample_hands(cloud, np.random.default_rng(0), gpd.HandSearch(num_samples=100))
+    np.testing.assert_array_equal(hands.poses, again.poses)
+
+
+def test_grasp_images_see_the_object_between_the_pads():
+    X = _view(0.6)
+    box = _box_scene()
+    cloud = gpd.cloud_from_depth(_render(box, X, H=240, W=320), fov_y_deg=45.0, X_WC=X,
+                                 depth_min_m=0.4, depth_max_m=3.5)
+    on_box = np.eye(4)
+    on_box[:3, :3] = topdown_rotation(0.0)
+    on_box[:3, 3] = [0.5, 0.0, 0.05]
+    far = on_box.copy()
+    far[:3, 3] = [0.9, 0.4, 0.05]
+    images = gpd.grasp_images(cloud, np.stack([on_box, far]))
+    assert images.shape == (2, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)
+    assert images.dtype == np.float32
+    assert images.min() >= 0.0 and images.max() <= 1.0
+    assert images[0, 0].sum() > 50  # occupancy seen along the approach
+    assert images[1].sum() == 0.0  # nothing there
+    # The box's 5 cm width along x_G: occupied rows span about 5/8.5 of the image.
+    rows = np.flatnonzero(images[0, 0].any(axis=1))
+    assert 0.45 < (rows.max() - rows.min() + 1) / gpd.IMAGE_SIZE < 0.75
+
+
+def test_selection_prefers_confident_clustered_high_grasps():
+    def pose(x, z, tilt_deg=0.0):
+        X = np.eye(4)
+        t = np.deg2rad(tilt_deg)
+        R_tilt = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+        X[:3, :3] = R_tilt @ topdown_rotation(0.0)
+        X[:3, 3] = [x, 0.0, z]
+        return X
+
+    poses = np.stack([pose(0.0, 0.03), pose(0.002, 0.03), pose(0.004, 0.03),  # a cluster
+                      pose(0.3, 0.03),                                       # alone, confident
+                      pose(0.6, 0.03)])                                      # rejected
+    prob = np.array([0.8, 0.8, 0.8, 0.99, 0.2])
+    order = gpd.select(poses, prob)
+    assert set(order[:3]) == {0, 1, 2}  # the cluster comes first
+    assert order[3] == 3 and 4 not in order
+    # Without clustering, the confident one wins; a high grasp beats a low one.
+    sel = gpd.Selection(min_cluster_size=1)
+    assert gpd.select(poses, prob, sel)[0] == 3
+    high = np.stack([pose(0.0, 0.03), pose(0.3, 0.13)])
+    assert gpd.select(high, np.array([0.9, 0.8]), sel)[0] == 1
+    assert len(gpd.select(poses, np.zeros(5))) == 0
+
+
+def test_classifier_weights_round_trip_and_bad_files(tmp_path):
+    torch.manual_seed(0)
+    model = gpd.GraspClassifier()
+    path = tmp_path / "w.safetensors"
+    gpd.save_classifier(model, path)
+    loaded = gpd.load_classifier(path)
+    x = np.random.default_rng(0).random((4, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)).astype(np.float32)
+    np.testing.assert_allclose(loaded.probabilities(x), model.probabilities(x), rtol=1e-6)
+    with pytest.raises(FileNotFoundError, match="gpd-train"):
+        gpd.load_classifier(tmp_path / "missing.safetensors")
+    import safetensors.torch
+
+    other = tmp_path / "other.safetensors"
+    safetensors.torch.save_file({"a": torch.zeros(1)}, str(other), metadata={"format": "x"})
+    with pytest.raises(ValueError, match="not GPD classifier weights"):
+        gpd.load_classifier(other)
+
+
+def test_shipped_classifier_loads():
+    model = gpd.load_classifier()
+    assert isinstance(model, gpd.GraspClassifier)
