@@ -136,6 +136,28 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _cmd_gpd_generate(args) -> int:
+    from drake_grasp.gpd_training import GpdDataConfig, generate
+
+    scenario = _load(args, seed=args.seed)
+    summary = generate(out=args.out, num_scenes=args.scenes, split=args.split, seed=args.seed,
+                       scenario=scenario,
+                       config=GpdDataConfig(candidates_per_scene=args.candidates_per_scene),
+                       workers=args.workers, objects_dir=args.objects)
+    print(json.dumps({k: summary[k] for k in ("num_scenes", "candidates", "positives")}))
+    return 0
+
+
+def _cmd_gpd_train(args) -> int:
+    from drake_grasp.gpd_training import GpdTrainConfig, train
+
+    metrics = train(data=args.data, test_data=args.test_data, out=args.out,
+                    config=GpdTrainConfig(epochs=args.epochs, seed=args.seed,
+                                          threads=args.threads))
+    print(json.dumps(metrics["held_out"]))
+    return 0
+
+
 def _cmd_evaluate(args) -> int:
     from drake_grasp.montecarlo import evaluate
 
@@ -326,6 +348,34 @@ def build_parser() -> argparse.ArgumentParser:
                         "datasets stream from the shards (slower epochs, the same batches). "
                         "Too small for one batch is an error. May differ when resuming")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("gpd-generate", help="training data of the GPD baseline's grasp "
+                                             "classifier (labelled candidates and grasp "
+                                             "images in .npz shards); re-running resumes")
+    _add_scenario_flags(p, default="random")
+    p.add_argument("--scenes", type=int, required=True,
+                   help="number of scenes (isolation, random and clutter in turn)")
+    p.add_argument("--split", required=True, choices=["train", "test"],
+                   help="object instances to use (test: held-out instances)")
+    p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="data seed (default 0)")
+    p.add_argument("--out", required=True, help="data folder")
+    p.add_argument("--candidates-per-scene", type=int, default=300,
+                   help="labelled candidates kept per scene: positives up to half, "
+                        "negatives fill up (default 300)")
+    p.set_defaults(func=_cmd_gpd_generate)
+
+    p = sub.add_parser("gpd-train", help="train the GPD baseline's grasp classifier (Adam, "
+                                          "class-weighted cross-entropy); re-running resumes")
+    p.add_argument("--data", required=True, help="gpd-generate folder of the train split")
+    p.add_argument("--test-data", required=True,
+                   help="gpd-generate folder of the test split (held-out object instances)")
+    p.add_argument("--out", required=True,
+                   help="output folder (checkpoint.pt, metrics.json, weights.safetensors)")
+    p.add_argument("--epochs", type=int, default=12, help="epochs (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="initial weights and shuffling seed")
+    p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    p.set_defaults(func=_cmd_gpd_train)
 
     p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "
                                          "write its report; re-running resumes")
