@@ -1,0 +1,72 @@
+"""GPD classifier data (resumable shards, ground-truth labels) and training."""
+
+import json
+
+import numpy as np
+import pytest
+
+from drake_grasp import gpd, gpd_training
+from drake_grasp.scenario import Scenario
+
+TINY = gpd_training.GpdDataConfig(scene_kinds=("isolation",), candidates_per_scene=16,
+                                  scenes_per_shard=1, noisy_fraction=0.0)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gpd_data")
+    summary = gpd_training.generate(out=out, num_scenes=2, split="train", seed=3,
+                                    scenario=Scenario(), config=TINY, progress=False)
+    return out, summary
+
+
+def test_generate_writes_labelled_candidates(tiny_data):
+    out, summary = tiny_data
+    assert summary["complete"] and summary["num_scenes"] == 2
+    data = gpd_training.load_data(out)
+    n = len(data["labels"])
+    assert n == summary["candidates"] and 0 < n <= 2 * TINY.candidates_per_scene
+    assert data["images"].shape == (n, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)
+    assert data["images"].dtype == np.uint8
+    assert set(np.unique(data["labels"])) <= {0, 1}
+    # Positives are at most half of each scene's kept candidates.
+    for s in (0, 1):
+        assert data["labels"][data["scene"] == s].sum() <= TINY.candidates_per_scene // 2
+    # Approaches stay in the configured cone.
+    tilt = np.degrees(np.arccos(np.clip(-data["poses"][:, 2, 2], -1, 1)))
+    assert tilt.max() <= Scenario().gpd.approach_max_tilt_deg + 1e-3
+    # A positive's pads touch an object (its category is recorded).
+    assert all(c for c in data["category"][data["labels"] == 1])
+
+
+def test_generate_resumes_a_lost_shard_identically_and_refuses_other_settings(tiny_data):
+    out, _ = tiny_data
+    shard = out / "gpd-shard-00001.npz"
+    before = np.load(shard)["labels"].copy()
+    shard.unlink()
+    gpd_training.generate(out=out, num_scenes=2, split="train", seed=3, scenario=Scenario(),
+                          config=TINY, progress=False)
+    np.testing.assert_array_equal(np.load(shard)["labels"], before)
+    with pytest.raises(ValueError, match="different settings"):
+        gpd_training.generate(out=out, num_scenes=2, split="train", seed=4, scenario=Scenario(),
+                              config=TINY, progress=False)
+
+
+def test_load_data_refuses_incomplete_folders(tmp_path):
+    with pytest.raises(ValueError, match="not a complete GPD data folder"):
+        gpd_training.load_data(tmp_path)
+
+
+def test_train_writes_weights_metrics_and_resumes(tiny_data, tmp_path):
+    out, _ = tiny_data
+    cfg = gpd_training.GpdTrainConfig(epochs=1, batch_size=8, threads=1)
+    metrics = gpd_training.train(data=out, test_data=out, out=tmp_path, config=cfg, progress=False)
+    assert (tmp_path / "weights.safetensors").exists()
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["held_out"]["0.5"]["num"] == metrics["test"]["candidates"]
+    assert len(saved["history"]) == 1
+    gpd.load_classifier(tmp_path / "weights.safetensors")
+    # A second run with more epochs continues from the checkpoint (one more epoch).
+    cfg2 = gpd_training.GpdTrainConfig(epochs=2, batch_size=8, threads=1)
+    again = gpd_training.train(data=out, test_data=out, out=tmp_path, config=cfg2, progress=False)
+    assert [h["epoch"] for h in again["history"]] == [1, 2]
