@@ -8,6 +8,7 @@ Keys:
     rtf_clutter5: the same with 5 objects in a pile.
     depth_frame_ms: render + post-process one 64x64 wrist depth frame (median).
     labels_per_s: dataset generation, 2 workers, paper settings.
+    gpd_detect_s_isolation / _clutter5: the GPD baseline's one decision (image -> grasp).
     cnn: cnn_infer_ms_128 / cnn_infer_direct_ms_128 (one image, 128 actions),
         train_samples_per_s / train_direct_samples_per_s (2 threads).
 """
@@ -303,6 +304,51 @@ def bench_grasp_checks_per_s(grasps: int = 6) -> dict:
     return out
 
 
+def bench_gpd_detect(repeats: int = 3) -> dict:
+    """The GPD baseline's one decision: GPD sensor image (640x480, rendered at the
+    viewpoint of a settled isolation / 5-object pile scene) -> selected grasp, with the
+    shipped classifier, one thread (median of `repeats`; per-stage seconds in _detail)."""
+    import dataclasses
+
+    import torch
+
+    from drake_grasp import gpd
+    from drake_grasp.gpd_training import _render_view, view_pose
+    from drake_grasp.objects import load_library
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+    from drake_grasp.station import make_depth_camera
+
+    library = load_library(None)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    out = {}
+    try:
+        for key, name in (("isolation", "isolation"), ("clutter5", "clutter")):
+            scenario = load_scenario(scenario_name=name)
+            spec = sample_scene(dataclasses.replace(scenario.scene, split="test"), BENCH_SEED, library)
+            world = build_scene_world(spec, library, renderer_name="vtk", physics=scenario.physics)
+            settled = settle_world(world, spec)
+            X_WC = view_pose(settled.center_xy_m, scenario.gpd.view_camera_height_m)
+            depth = _render_view(world, make_depth_camera(scenario.gpd), X_WC)
+            detect = gpd.make_detector(dataclasses.replace(scenario, seed=BENCH_SEED))
+            times, runs = [], []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                d = detect.detector.detect(depth, X_WC, np.random.default_rng(0))
+                times.append(time.perf_counter() - t0)
+                runs.append(d)
+            d = runs[0]
+            out[f"gpd_detect_s_{key}"] = round(float(np.median(times)), 3)
+            out[f"gpd_detect_s_{key}_detail"] = {
+                "stages_s": {k: round(v, 3) for k, v in d.timings.items()},
+                "cloud_points": d.num_cloud_points, "candidates": d.num_candidates,
+                "detections": len(d.poses), "objects": len(settled.objects)}
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
 BENCHMARKS = {
     "rtf_isolation": bench_rtf_isolation,
     "rtf_clutter5": bench_rtf_clutter5,
@@ -313,6 +359,7 @@ BENCHMARKS = {
     "rtf_ctr_clutter5": bench_rtf_ctr_clutter5,
     "trials_per_hour": bench_trials_per_hour,
     "grasp_checks_per_s": bench_grasp_checks_per_s,
+    "gpd_detect": bench_gpd_detect,
 }
 
 # Every key each benchmark prints (besides "machine" and "date"), so that `--only` takes
@@ -335,6 +382,8 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
     "grasp_checks_per_s": ("grasp_checks_per_s", "grasp_checks_per_s_detail",
                            "grasp_checks_per_s_reference", "grasp_checks_per_s_reference_detail",
                            "grasp_checks_speedup", "grasp_checks_verdicts_agree"),
+    "gpd_detect": ("gpd_detect_s_isolation", "gpd_detect_s_isolation_detail",
+                   "gpd_detect_s_clutter5", "gpd_detect_s_clutter5_detail"),
 }
 
 

@@ -333,21 +333,29 @@ def grasp_images(cloud: Cloud, poses: np.ndarray, *, size: int = IMAGE_SIZE,
         counts = np.array([len(a) for a in arrays], dtype=np.int64)
         if counts.sum() == 0:
             continue
-        idx = np.concatenate(arrays)
-        owner = np.repeat(np.arange(hi - lo), counts)
-        Rg = R[lo:hi][owner]
-        p = np.einsum("nji,nj->ni", Rg, cloud.points[idx] - t[lo:hi][owner])
-        n = np.einsum("nji,nj->ni", Rg, cloud.normals[idx])
-        inside = np.all(np.abs(p) <= half_m, axis=1)
-        p, n, owner = p[inside], n[inside], owner[inside]
+        # Hand coordinates, one small product per hand (cheaper than gathering a
+        # rotation per point).
+        ps, ns, owners = [], [], []
+        for j, ids in enumerate(arrays):
+            if len(ids) == 0:
+                continue
+            Rj = R[lo + j]
+            q = (cloud.points[ids] - t[lo + j]) @ Rj
+            inside = np.all(np.abs(q) <= half_m, axis=1)
+            ps.append(q[inside])
+            ns.append(cloud.normals[ids[inside]] @ Rj)
+            owners.append(np.full(int(inside.sum()), j, dtype=np.int64))
+        p, n, owner = np.concatenate(ps), np.concatenate(ns), np.concatenate(owners)
         cell = np.clip(((p + half_m) / (2.0 * half_m) * size).astype(np.int64), 0, size - 1)
         depth = (p + half_m) / (2.0 * half_m)  # 0 nearest the viewer along +axis
         for v, (axis, row, col) in enumerate(views):
             flat = (owner * size + cell[:, row]) * size + cell[:, col]
-            # Nearest point per pixel: sort by depth, keep the first of each pixel.
-            order = np.lexsort((depth[:, axis], flat))
+            # Nearest point per pixel: sort by (pixel, depth), keep each pixel's first.
+            key = (flat << 21) + np.round(depth[:, axis] * (1 << 20)).astype(np.int64)
+            order = np.argsort(key, kind="stable")
+            f_sorted = flat[order]
             first = np.ones(len(order), dtype=bool)
-            first[1:] = flat[order][1:] != flat[order][:-1]
+            first[1:] = f_sorted[1:] != f_sorted[:-1]
             sel = order[first]
             o, r, c = owner[sel] + lo, cell[sel, row], cell[sel, col]
             base = 5 * v
