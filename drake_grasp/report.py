@@ -644,6 +644,63 @@ def _write_json(path: Path, data: dict) -> None:
 
 # --------------------------------------------------------------------------- one experiment
 
+# What each policy senses and knows (the fairness table). Sensor sizes come from the
+# trial's own scenario; decision times from the controller's record (`extra`).
+POLICY_SENSING = {
+    "ctr": ("wrist depth camera (`camera`)", "depth images, gripper state, time",
+            "one per control step"),
+    "cnn-ctr": ("wrist depth camera (`camera`)", "depth images, gripper state, time",
+                "one per control step"),
+    "cnn-only": ("wrist depth camera (`camera`)", "one depth image at the start pose", "1"),
+    "gpd": ("GPD sensor on the wrist (`gpd`), at a fixed viewpoint",
+            "one depth image, the believed camera pose", "1"),
+    "gpd-geometric": ("wrist depth camera (`camera`)",
+                      "one depth image at the start pose, the believed camera pose", "1"),
+    "scripted": ("none", "the object's true pose (privileged: a reference, not a policy)", "0"),
+    "init": ("none", "nothing (no motion)", "0"),
+}
+
+
+def _sensor_size(policy: str, scenario_yaml: str) -> str:
+    """Resolution and field of view of the sensor a policy uses, from a trial's YAML."""
+    if POLICY_SENSING.get(policy, ("none",))[0] == "none" or not scenario_yaml:
+        return "-"
+    try:
+        from pydrake.common.yaml import yaml_load_typed
+
+        from drake_grasp.scenario import Scenario
+
+        sc = yaml_load_typed(schema=Scenario, data=scenario_yaml)
+    except Exception:  # a record from an older schema: say so rather than guess
+        return "unknown (older record)"
+    cam = sc.gpd if policy == "gpd" else sc.camera
+    return f"{cam.width}x{cam.height}, {cam.fov_y_deg:g} deg vertical"
+
+
+def fairness_markdown(records) -> list[str]:
+    """The fairness table: per policy its sensor and resolution, what it knows, how many
+    images it takes, and its decision time (median over trials of the wall time of one
+    decision: image evaluation and policy computation, from `extra.decision_time_s` /
+    `extra.decisions`; "-" where older records lack it)."""
+    by_policy: dict[str, list] = {}
+    for r in records:
+        by_policy.setdefault(r.policy, []).append(r)
+    lines = ["| policy | sensor | resolution | knows | images per attempt | decision time (median) | decisions per attempt (median) |",
+             "|---|---|---|---|---|---|---|"]
+    for policy, recs in sorted(by_policy.items()):
+        sensor, knows, images = POLICY_SENSING.get(policy, ("?", "?", "?"))
+        per = [r.extra["decision_time_s"] / r.extra["decisions"] for r in recs
+               if isinstance(r.extra, dict) and r.extra.get("decisions")]
+        counts = [r.extra["decisions"] for r in recs
+                  if isinstance(r.extra, dict) and "decisions" in r.extra]
+        t = f"{1000 * statistics.median(per):.0f} ms" if per else "-"
+        n = f"{statistics.median(counts):g}" if counts else "-"
+        lines.append(f"| {policy} | {sensor} | {_sensor_size(policy, recs[0].scenario_yaml)} | "
+                     f"{knows} | {images} | {t} | {n} |")
+    lines += ["", "The paper's controller loop ran at about 5 Hz (200 ms per decision) on the UR5."]
+    return lines
+
+
 def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path, *,
                          prefix: str, level: str = "##",
                          histogram: bool = True) -> tuple[list[str], list[Path], list[dict]]:
@@ -683,6 +740,7 @@ def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path,
             figures.append(path)
             md += [f"![sweep over {param}]({_relpath(path, out_dir)})", ""]
 
+    md += [f"{level} What each policy senses (fairness)", ""] + fairness_markdown(res.records) + [""]
     md += [f"{level} Failure classes", ""] + _failure_table(policies) + [""]
     md += [f"{level} Failed trials with replays", ""] + _failed_replay_links(res, policies, out_dir) + [""]
     return md, figures, targets

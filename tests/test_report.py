@@ -287,3 +287,19 @@ def test_records_of_the_geometric_judge_stay_readable(tmp_path):
     write_record(new, make_record("isolation/ctr/0000"))
     make_report(new)
     assert "shifted-away" not in (new / "report.md").read_text()
+
+
+def test_fairness_table_names_each_policys_sensor_and_decision_time():
+    from drake_grasp.report import fairness_markdown
+
+    records = [make_record("isolation/ctr/0000", extra={"decision_time_s": 1.0, "decisions": 40}),
+               make_record("isolation/ctr/0001", extra={"decision_time_s": 3.0, "decisions": 60}),
+               make_record("isolation/gpd/0000", policy="gpd", condition="gpd",
+                           extra={"decision_time_s": 2.5, "decisions": 1}),
+               make_record("isolation/scripted/0000", policy="scripted", condition="scripted")]
+    table = "\n".join(fairness_markdown(records))
+    rows = {line.split("|")[1].strip(): line for line in table.splitlines() if line.startswith("| ")}
+    # ctr: median of 25 ms and 50 ms per decision; 50 decisions per attempt.
+    assert "64x64, 55 deg vertical" in rows["ctr"] and "38 ms" in rows["ctr"] and "| 50 |" in rows["ctr"]
+    assert "640x480, 45 deg vertical" in rows["gpd"] and "2500 ms" in rows["gpd"]
+    assert "privileged" in rows["scripted"] and rows["scripted"].count("| - |") >= 2
