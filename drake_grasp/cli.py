@@ -256,9 +256,13 @@ def build_parser() -> argparse.ArgumentParser:
                                     "replay.html and depth.png")
     _add_scenario_flags(p)
     p.add_argument("--policy", default=None,
-                   choices=["ctr", "gpd", "cnn-only", "cnn-ctr", "init", "scripted"],
-                   help="ctr: the paper's closed-loop controller (shipped CNN); gpd: one-shot "
-                        "grasp detection on the first image, open loop; cnn-only: the CNN's "
+                   choices=["ctr", "gpd", "gpd-geometric", "cnn-only", "cnn-ctr", "init",
+                            "scripted"],
+                   help="ctr: the paper's closed-loop controller (shipped CNN); gpd: the "
+                        "paper's baseline: learned GPD on one image from the Structure-IO-like "
+                        "sensor at a fixed viewpoint, a 6-DOF grasp executed open loop; "
+                        "gpd-geometric: the older hand-tuned geometric score on the 64x64 "
+                        "wrist image at the start, top-down, open loop; cnn-only: the CNN's "
                         "global best action, open loop; cnn-ctr: cnn-only then ctr; init: no "
                         "motion; scripted: grasp from above using the true object pose "
                         "(default: the scenario's policy)")

@@ -142,8 +142,9 @@ class EpisodeDiagram:
     sampler: object = None
 
 
-def _gpd_detector(scenario: Scenario):
-    """detect(depth, X_WC) -> (x, y, theta_deg, z) of the best GPD-style grasp, or None."""
+def _geometric_detector(scenario: Scenario):
+    """gpd-geometric: detect(depth, X_WC) -> (x, y, theta_deg, z) of the best grasp of the
+    hand-tuned geometric score on the wrist image, or None."""
     from drake_grasp import gpd_geometric as gpd
 
     def detect(depth, X_WC):
@@ -157,8 +158,20 @@ def _gpd_detector(scenario: Scenario):
     return detect
 
 
+def _detector(scenario: Scenario, detect_fn):
+    """The controller's detect_fn: the injected one, else gpd's learned detector
+    (`drake_grasp.gpd.make_detector`) or gpd-geometric's; None for other policies."""
+    if detect_fn is not None or scenario.policy not in ("gpd", "gpd-geometric"):
+        return detect_fn
+    if scenario.policy == "gpd-geometric":
+        return _geometric_detector(scenario)
+    from drake_grasp import gpd
+
+    return gpd.make_detector(scenario)
+
+
 def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary,
-                          *, meshcat=None, model=None) -> EpisodeDiagram:
+                          *, meshcat=None, model=None, detect_fn=None) -> EpisodeDiagram:
     """Station + policy + sheet command + grasp judge (+ Meshcat), as one Diagram.
 
     `scripted` uses the ScriptedGraspSupervisor (which plans from the object's true pose:
@@ -166,6 +179,9 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     with the ActionSampler and the DistanceEvaluator (CNN) where it needs them and the
     SheetDisturbance moving the sheet. The GraspJudge watches the station's contact
     results and body poses and reads the policy's `control_status`.
+
+    `detect_fn` replaces the gpd / gpd-geometric policy's detector (same signature as
+    the controller's `detect_fn`), e.g. a stand-in in tests.
     """
     from pydrake.math import RigidTransform
     from pydrake.systems.framework import DiagramBuilder
@@ -192,7 +208,8 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
         builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
         out.target = target
     else:
-        out.target, policy = _add_controller(builder, scenario, scene, library, station, model, out)
+        out.target, policy = _add_controller(builder, scenario, scene, library, station, model,
+                                             out, detect_fn)
     builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
     builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
     builder.Connect(policy.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
@@ -240,7 +257,7 @@ def _hold_sheet(builder, station_diagram) -> None:
     builder.Connect(hold.get_output_port(), station_diagram.GetInputPort("sheet_desired_state"))
 
 
-def _add_controller(builder, scenario, scene, library, station, model, out):
+def _add_controller(builder, scenario, scene, library, station, model, out, detect_fn=None):
     from drake_grasp.systems.controller import GraspController
     from drake_grasp.systems.disturbance import SheetDisturbance
     from drake_grasp.systems.evaluator import (
@@ -266,12 +283,14 @@ def _add_controller(builder, scenario, scene, library, station, model, out):
         target_label = int(station.object_body(target).index())
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=station.X_WG_start,
-        X_GC=station.X_GC,
+        X_GC=station.X_GC, X_GC_gpd=station.X_GC_gpd,
         score_fn=(lambda depth, actions: score_candidates(model, depth, actions)) if needs_cnn else None,
-        detect_fn=_gpd_detector(scenario) if scenario.policy == "gpd" else None,
+        detect_fn=_detector(scenario, detect_fn),
         target_label=target_label))
     builder.Connect(sd.GetOutputPort("depth_image"), controller.GetInputPort("depth_image"))
     builder.Connect(sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
+    # Connected for every policy: only gpd evaluates it (once), so nothing else renders it.
+    builder.Connect(sd.GetOutputPort("gpd_depth_image"), controller.GetInputPort("gpd_depth_image"))
     sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
         num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
         period_s=c.period_s, seed=scenario.seed))
@@ -307,7 +326,9 @@ def _add_controller(builder, scenario, scene, library, station, model, out):
 
 
 def _hand_xy_yaw(X_WG) -> np.ndarray:
-    """[x, y, yaw_deg] of a grasp-frame pose (yaw of the closing direction x_G)."""
+    """[x, y, yaw_deg] of a grasp-frame pose: the grasp centre's (x, y) and the yaw of the
+    closing direction x_G projected onto the table (so a tilted grasp, e.g. gpd's, is
+    compared with the planar ground truth by where it grasps and how it closes)."""
     R = X_WG.rotation().matrix()
     return np.array([X_WG.translation()[0], X_WG.translation()[1],
                      np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))])
@@ -344,8 +365,10 @@ def final_distance(plant, plant_context, station, scene: SceneSpec, library, see
 
 def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=None,
                      scene: SceneSpec | None = None, record_depth: bool = True,
-                     visualize: bool | None = None, model=None) -> EpisodeRun:
-    """Samples and settles the scene, builds the diagram and runs the episode to its end."""
+                     visualize: bool | None = None, model=None, detect_fn=None) -> EpisodeRun:
+    """Samples and settles the scene, builds the diagram and runs the episode to its end.
+
+    `detect_fn`: see `build_episode_diagram`."""
     wall_start = time.perf_counter()
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:
@@ -364,7 +387,8 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
         threads = torch.get_num_threads()
         torch.set_num_threads(max(1, scenario.controller.torch_threads))
     try:
-        ed = build_episode_diagram(scenario, scene, library, meshcat=meshcat, model=model)
+        ed = build_episode_diagram(scenario, scene, library, meshcat=meshcat, model=model,
+                                   detect_fn=detect_fn)
         return _run(ed, scenario, scenario_name, scene, library, meshcat, record_depth,
                     wall_start)
     finally:
@@ -476,10 +500,13 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
 
 
 def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str = "",
-                library=None, replay: bool = True, scene: SceneSpec | None = None) -> EpisodeResult:
+                library=None, replay: bool = True, scene: SceneSpec | None = None,
+                detect_fn=None) -> EpisodeResult:
     """Runs one episode and writes `episode.json`, `scenario.yaml`, `scene.json`,
     `depth.png`, `controller_steps.png` (closed-loop policies) and (with `replay`)
     `replay.html` into `out_dir`.
+
+    `detect_fn` replaces the gpd / gpd-geometric detector (see `build_episode_diagram`).
 
     Files are written to a staging folder beside `out_dir`; only when the episode has
     finished does the staging folder take the place of `out_dir`. A failure leaves
@@ -499,7 +526,7 @@ def run_episode(scenario: Scenario, *, out_dir: str | Path, scenario_name: str =
     staging.mkdir(parents=True)
     try:
         run = simulate_episode(scenario, scenario_name=scenario_name, library=library,
-                               visualize=replay, scene=scene)
+                               visualize=replay, scene=scene, detect_fn=detect_fn)
         (staging / "scenario.yaml").write_text(dump_scenario(scenario))
         run.scene.save(staging / "scene.json")
         verdict = "success" if run.result.success else "failure"

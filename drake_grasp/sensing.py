@@ -140,26 +140,30 @@ def _check_real(
         raise ValueError(message)
 
 
-def frame_rng(seed: int, frame_index: int) -> np.random.Generator:
+def frame_rng(seed: int, frame_index: int, stream: int = 0) -> np.random.Generator:
     """The noise generator for one camera frame of one trial.
 
-    A frame's noise depends only on (seed, frame_index), never on how many frames
-    were rendered before or in which order, so Drake may re-evaluate (or skip)
+    A frame's noise depends only on (seed, frame_index, stream), never on how many
+    frames were rendered before or in which order, so Drake may re-evaluate (or skip)
     frames freely and a dataset frame can be regenerated on its own.
 
     Args:
         seed: Trial seed, >= 0 (0 is a valid seed).
         frame_index: Camera frame number, >= 0.
+        stream: Which camera of the trial, >= 0: each stream draws its own noise from
+            the same trial seed (0, the wrist camera, keeps the draws it always had).
 
     Raises:
-        ValueError: If either is negative or not an integer.
+        ValueError: If any is negative or not an integer.
     """
-    for name, value in (("seed", seed), ("frame_index", frame_index)):
+    for name, value in (("seed", seed), ("frame_index", frame_index), ("stream", stream)):
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
             raise ValueError(f"{name} must be an int >= 0 (got {value!r})")
         if value < 0:
             raise ValueError(f"{name} must be an int >= 0 (got {value!r})")
-    return np.random.default_rng([int(seed), int(frame_index)])
+    if stream == 0:
+        return np.random.default_rng([int(seed), int(frame_index)])
+    return np.random.default_rng([int(seed), int(frame_index), int(stream)])
 
 
 def _as_2d(depth: np.ndarray) -> np.ndarray:

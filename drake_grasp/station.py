@@ -1,4 +1,4 @@
-"""The grasping station: UR5 + Robotiq 2F-85 + wrist depth camera + table, sheet, objects.
+"""The grasping station: UR5 + Robotiq 2F-85 + two wrist depth cameras + table, sheet, objects.
 
 `MakeGraspStation(scenario, scene, library)` returns a `GraspStation` whose `diagram`
 is a Drake Diagram with named subsystems and exported ports:
@@ -11,6 +11,13 @@ Output ports:
     depth_image: post-processed wrist depth image (ImageDepth32F, metres).
     depth_image_raw: the renderer's depth image before noise and filling.
     label_image: the wrist camera's label image (ImageLabel16I).
+    gpd_depth_image: the GPD sensor's depth image (ImageDepth32F, metres,
+        `scenario.gpd`: 640x480 by default), post-processed with `scenario.gpd.noise`.
+        With the default `fill_max_iterations` 0 no hole is filled: pixels with no
+        reading (below the near clip, or beyond the far clip) come out as
+        `gpd.depth_max_m`, like far ones.
+    gpd_depth_image_raw: the GPD sensor's depth before noise and filling (0 below the
+        near clip, +inf beyond the far clip).
     body_poses: every body's pose in the world (std::vector<RigidTransform>).
     gripper_state: [q_left, q_right, v_left, v_right]; the opening is q_left + q_right.
     arm_state: UR5 joint positions and velocities.
@@ -19,7 +26,10 @@ Output ports:
 Inside: MultibodyPlant + SceneGraph (hydroelastic with fallback, SAP-family solver),
 the UR5 held by its in-plant PD plus gravity feed-forward, a
 DifferentialInverseKinematicsIntegrator on a control plant (arm + lumped gripper), the
-force-limited gripper controller, the RGB-D sensor (VTK) and the depth post-processor.
+force-limited gripper controller, the wrist RGB-D sensor (VTK) and its depth
+post-processor, and the GPD baseline's sensor (`gpd_camera`, on the `gpd_camera_mount`
+frame) with its own post-processor. Cameras render only when their outputs are
+evaluated: nothing renders the 640x480 GPD image unless a policy asks for it.
 """
 
 from __future__ import annotations
@@ -69,6 +79,12 @@ from drake_grasp.systems.gripper import GripperController
 UR5_URI = "package://drake_grasp/ur5/ur5.urdf"
 GRIPPER_URI = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
 RENDERER_NAME = "vtk"
+GPD_CAMERA_FRAME = "gpd_camera_mount"
+# The GPD sensor's noise comes from its own random stream (`sensing.frame_rng`'s
+# `stream`), so it never repeats the wrist camera's noise of the same trial.
+GPD_NOISE_STREAM = 1
+# Frame rate of the GPD sensor (Structure IO: 30 Hz); selects its noise frame.
+GPD_CAMERA_FPS = 30.0
 # Fingertips reach this far past the grasp frame along the approach axis
 # (models/robotiq_2f85/README.md), and the start keeps this much air below them.
 FINGERTIP_BELOW_GRASP_M = 0.025
@@ -94,6 +110,7 @@ class GraspStation:
     X_WG_start: RigidTransform
     X_BG: RigidTransform  # grasp frame in the gripper base body
     X_GC: RigidTransform  # camera in the grasp frame
+    X_GC_gpd: RigidTransform  # the GPD sensor in the grasp frame
     # Helper plants must outlive the diagram (InverseDynamics does not keep them).
     _keep_alive: list = field(default_factory=list)
 
@@ -159,8 +176,25 @@ def gripper_frame_offsets() -> tuple[RigidTransform, RigidTransform, RigidTransf
     return _gripper_offsets(plant, gripper)
 
 
+def _frame_in_grasp_frame(plant: MultibodyPlant, gripper, name: str) -> RigidTransform:
+    context = plant.CreateDefaultContext()
+    return plant.GetFrameByName(name, gripper).CalcPose(
+        context, plant.GetFrameByName("grasp_frame", gripper))
+
+
+def gpd_camera_offset() -> RigidTransform:
+    """X_GC_gpd: the GPD sensor (`gpd_camera_mount`) in the grasp frame, read from the
+    gripper model alone."""
+    plant = MultibodyPlant(0.0)
+    (gripper,) = make_parser(plant).AddModels(url=GRIPPER_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("robotiq_base", gripper))
+    plant.Finalize()
+    return _frame_in_grasp_frame(plant, gripper, GPD_CAMERA_FRAME)
+
+
 def make_depth_camera(cam, renderer_name: str = RENDERER_NAME) -> DepthRenderCamera:
-    """The wrist depth camera model from a `WristCameraConfig`."""
+    """A depth camera model from a `WristCameraConfig` or a `GpdConfig` (anything with
+    width, height, fov_y_deg, depth_min_m and depth_max_m)."""
     core = RenderCameraCore(
         renderer_name,
         CameraInfo(width=cam.width, height=cam.height, fov_y=np.deg2rad(cam.fov_y_deg)),
@@ -308,6 +342,21 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     builder.ExportOutput(sensor.depth_image_32F_output_port(), "depth_image_raw")
     builder.ExportOutput(sensor.label_image_output_port(), "label_image")
 
+    # --- the GPD baseline's sensor (a Structure IO in the paper) ------------------------
+    g = scenario.gpd
+    gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
+    gpd_sensor = builder.AddNamedSystem("gpd_camera", RgbdSensor(
+        plant.GetBodyFrameIdOrThrow(gpd_frame.body().index()),
+        gpd_frame.GetFixedPoseInBodyFrame(), make_depth_camera(g)))
+    builder.Connect(scene_graph.get_query_output_port(), gpd_sensor.query_object_input_port())
+    gpd_post = builder.AddNamedSystem("gpd_depth_postprocessor", DepthPostProcessor(
+        g.noise, width=g.width, height=g.height, far_value_m=g.depth_max_m,
+        frame_period_s=1.0 / GPD_CAMERA_FPS, seed=scenario.seed, stream=GPD_NOISE_STREAM))
+    builder.Connect(gpd_sensor.depth_image_32F_output_port(),
+                    gpd_post.GetInputPort("depth_image_32f"))
+    builder.ExportOutput(gpd_post.GetOutputPort("depth_image"), "gpd_depth_image")
+    builder.ExportOutput(gpd_sensor.depth_image_32F_output_port(), "gpd_depth_image_raw")
+
     # --- measurements ----------------------------------------------------------------
     builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
     builder.ExportOutput(plant.get_state_output_port(gripper), "gripper_state")
@@ -328,5 +377,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     return GraspStation(
         diagram=diagram, plant=plant, scene_graph=scene_graph, arm=arm, gripper=gripper,
         sheet=sheet, object_instances=objects, scene=scene, q_start=q_start,
-        X_WG_start=X_WG_start, X_BG=X_BG, X_GC=X_GC, _keep_alive=[control_plant],
+        X_WG_start=X_WG_start, X_BG=X_BG, X_GC=X_GC,
+        X_GC_gpd=_frame_in_grasp_frame(plant, gripper, GPD_CAMERA_FRAME),
+        _keep_alive=[control_plant],
     )

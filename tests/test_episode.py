@@ -133,3 +133,78 @@ def test_ctr_with_the_shipped_weights_grasps_an_isolated_can(library):
     assert r.details["grasped_object_id"] == "can_000"
     assert r.control_steps > 10  # it servoed, it did not just drop straight down
     assert r.final_distance_m is not None and r.final_distance_m < 0.03
+
+
+def _count_depth_postprocessing(monkeypatch):
+    """Counts DepthPostProcessor evaluations per image width (64: wrist, 640: GPD sensor);
+    the GPD sensor renders only when its post-processor (or its raw port) is evaluated."""
+    from drake_grasp.systems.depth import DepthPostProcessor
+
+    counts = {}
+    calc = DepthPostProcessor._CalcDepthImage
+
+    def counting(self, context, output):
+        counts[self._width] = counts.get(self._width, 0) + 1
+        return calc(self, context, output)
+
+    monkeypatch.setattr(DepthPostProcessor, "_CalcDepthImage", counting)
+    return counts
+
+
+def _tilted_about_y(X_WG: np.ndarray, tilt_deg: float) -> np.ndarray:
+    a = np.deg2rad(tilt_deg)
+    out = np.array(X_WG, dtype=float)
+    out[:3, :3] = out[:3, :3] @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0],
+                                          [-np.sin(a), 0, np.cos(a)]])
+    return out
+
+
+def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeypatch):
+    """The gpd policy with a stand-in detector that returns the scripted (ground-truth)
+    grasp tilted 20 degrees about y_G: one GPD image at the viewpoint, then the
+    tilted approach, close and lift hold the can."""
+    from drake_grasp.episode import plan_scripted_grasp
+    from drake_grasp.scene import make_scene
+
+    counts = _count_depth_postprocessing(monkeypatch)
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 1, policy: gpd, scene: {object_ids: [can_000], pose: lying}}"))
+    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                       physics=scenario.physics)
+    _, _, X_WG = plan_scripted_grasp(scene, library, scenario.seed)
+    grasp = _tilted_about_y(X_WG, 20.0)
+    calls = []
+
+    def detect(depth, X_WC):
+        calls.append((depth.shape, np.array(X_WC)))
+        return grasp
+
+    run = simulate_episode(scenario, library=library, scene=scene, record_depth=False,
+                           detect_fn=detect)
+    r = run.result
+    assert r.success, r.failure_reason
+    assert r.details["grasped_object_id"] == "can_000"
+    assert len(calls) == 1 and calls[0][0] == (480, 640)
+    assert calls[0][1][2, 3] == pytest.approx(scenario.gpd.view_camera_height_m)
+    assert counts.get(640) == 1  # the GPD sensor rendered once, at the viewpoint
+    # The distance metric takes the tilted hand's centre and x_G on the table.
+    assert r.final_distance_m is not None and r.final_distance_m < 0.02
+
+
+def test_gpd_geometric_episode_grasps_an_isolated_can(library):
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 1, policy: gpd-geometric, scene: {object_ids: [can_000], pose: lying}}"))
+    run = simulate_episode(scenario, library=library, record_depth=False)
+    r = run.result
+    assert r.success, r.failure_reason
+    assert r.details["grasped_object_id"] == "can_000"
+
+
+def test_ctr_episode_never_renders_the_gpd_sensor(library, monkeypatch):
+    counts = _count_depth_postprocessing(monkeypatch)
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 1, policy: ctr, max_sim_time_s: 1.0, scene: {object_ids: [can_000], pose: lying}}"))
+    run = simulate_episode(scenario, library=library, record_depth=False)
+    assert run.result.control_steps >= 5
+    assert counts.get(64, 0) >= 5  # the wrist camera, every control step
+    assert 640 not in counts

@@ -43,12 +43,14 @@ def test_station_names_its_subsystems_and_ports(scenario, scene, library):
     station = MakeGraspStation(scenario, scene, library)
     d = station.diagram
     for name in ("plant", "scene_graph", "diff_ik", "arm_desired_state", "gravity_compensation",
-                 "gripper_controller", "wrist_camera", "depth_postprocessor"):
+                 "gripper_controller", "wrist_camera", "depth_postprocessor", "gpd_camera",
+                 "gpd_depth_postprocessor"):
         assert d.HasSubsystemNamed(name), name
     for port in ("X_WG_desired", "gripper_command", "sheet_desired_state"):
         assert d.HasInputPort(port), port
     for port in ("depth_image", "depth_image_raw", "label_image", "body_poses",
-                 "gripper_state", "arm_state", "plant_state"):
+                 "gripper_state", "arm_state", "plant_state", "gpd_depth_image",
+                 "gpd_depth_image_raw"):
         assert d.HasOutputPort(port), port
 
 
@@ -83,6 +85,35 @@ def test_wrist_camera_sees_the_object(scenario, scene, library):
     assert np.median(depth) == pytest.approx(scenario.arm.start_camera_height_m, abs=0.01)
     assert depth.min() < scenario.arm.start_camera_height_m - 0.02
     assert np.isfinite(raw).any()
+
+
+def test_gpd_camera_sees_the_table_from_the_viewpoint(scenario, scene, library):
+    """The GPD sensor (640x480) on its mount, the hand at the gpd policy's viewpoint: the
+    table fills most of the view at the viewpoint's height; the object is nearer."""
+    from drake_grasp.station import gpd_camera_offset, solve_start_configuration, topdown_pose
+
+    station = MakeGraspStation(scenario, scene, library)
+    X_GC_gpd = station.X_GC_gpd
+    assert X_GC_gpd.translation() == pytest.approx([0.0, 0.06, -0.105], abs=1e-9)
+    np.testing.assert_allclose(X_GC_gpd.GetAsMatrix4(), gpd_camera_offset().GetAsMatrix4(),
+                               atol=1e-12)
+    g = scenario.gpd
+    X_view = topdown_pose(station.X_WG_start.translation()[:2],
+                          g.view_camera_height_m + X_GC_gpd.translation()[2])
+    q_view = solve_start_configuration(station._keep_alive[0], X_view, station.q_start)
+    ctx = station.diagram.CreateDefaultContext()
+    station.set_initial_state(ctx)
+    plant = station.plant
+    plant.SetPositions(plant.GetMyMutableContextFromRoot(ctx), station.arm, q_view)
+    depth = station.diagram.GetOutputPort("gpd_depth_image").Eval(ctx).data[:, :, 0]
+    raw = station.diagram.GetOutputPort("gpd_depth_image_raw").Eval(ctx).data[:, :, 0]
+    assert depth.shape == (g.height, g.width) == (480, 640)
+    # The table top (z = 0) and the 2 mm sheet on it, 0.6 m below the sensor.
+    assert np.median(depth) == pytest.approx(g.view_camera_height_m, abs=0.01)
+    assert depth.min() < g.view_camera_height_m - 0.02
+    # No hole filling by default: pixels beyond the table (+inf raw) read the far value.
+    assert np.all(np.isfinite(depth))
+    np.testing.assert_array_equal(depth[np.isposinf(raw)], np.float32(g.depth_max_m))
 
 
 def test_start_configuration_solves_at_every_start_height_on_one_branch():

@@ -134,3 +134,199 @@ def test_action_sampler_alone_is_deterministic_per_seed_and_step():
     np.testing.assert_array_equal(port.Eval(other), second)  # same (seed, step), same draw
     system.set_seed(other, 6)
     assert not np.array_equal(port.Eval(other), second)
+
+
+def _tilted_grasp(xyz, yaw_deg: float, tilt_deg: float) -> np.ndarray:
+    """A grasp pose X_WG: top-down at `yaw_deg`, then tilted about its y_G axis."""
+    a = np.deg2rad(tilt_deg)
+    R_tilt = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    X = np.eye(4)
+    X[:3, :3] = topdown_rotation(np.deg2rad(yaw_deg)) @ R_tilt
+    X[:3, 3] = xyz
+    return X
+
+
+def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
+    """A gpd GraspController alone in a Simulator, every input fixed (the GPD image a
+    flat 0.6 m)."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
+    from drake_grasp.systems.controller import GraspController
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=scenario_text)
+    _, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], np.deg2rad(10.0))
+    ctrl = GraspController(scenario=scenario, policy="gpd", X_WG_start=start, X_GC=X_GC,
+                           X_GC_gpd=gpd_camera_offset(), detect_fn=detect_fn)
+    ctx = ctrl.CreateDefaultContext()
+    ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((0, 3)))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(0))
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    gpd_image = ImageDepth32F(640, 480)
+    gpd_image.mutable_data[:] = 0.6
+    ctrl.GetInputPort("gpd_depth_image").FixValue(ctx, gpd_image)
+    sim = Simulator(ctrl, ctx)
+    sim.Initialize()
+    return scenario, ctrl, sim, start
+
+
+def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
+    from drake_grasp.station import gpd_camera_offset
+    from drake_grasp.systems.controller import Phase
+
+    grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
+    calls = []
+
+    def detect(depth, X_WC):
+        calls.append((np.array(depth, copy=True), np.array(X_WC)))
+        return grasp
+
+    scenario, ctrl, sim, start = _gpd_controller(detect)
+    ctx = sim.get_context()
+    m = scenario.scripted
+    pose = ctrl.GetOutputPort("X_WG_desired")
+    phases = []
+
+    def run_to(t):
+        sim.AdvanceTo(t)
+        phases.append(ctrl.get_controller_state(ctx).phase)
+
+    run_to(0.05)
+    assert phases[-1] == Phase.VIEW
+    view_time = m.approach_time_s + scenario.gpd.view_settle_s
+    run_to(view_time - 0.05)  # at the viewpoint, resting, no image taken yet
+    assert phases[-1] == Phase.VIEW and not calls
+    X_view = pose.Eval(ctx)
+    X_WC_view = X_view @ gpd_camera_offset()
+    assert X_view.translation()[:2] == pytest.approx(start.translation()[:2], abs=1e-9)
+    assert X_WC_view.translation()[2] == pytest.approx(scenario.gpd.view_camera_height_m, abs=1e-9)
+    np.testing.assert_allclose(X_view.rotation().matrix(), start.rotation().matrix(), atol=1e-9)
+    run_to(view_time + 0.05)
+    assert phases[-1] == Phase.APPROACH
+    assert len(calls) == 1
+    depth, X_WC = calls[0]
+    assert depth.shape == (480, 640) and depth.dtype == np.float32
+    np.testing.assert_allclose(X_WC, X_WC_view.GetAsMatrix4(), atol=1e-12)
+    run_to(view_time + m.approach_time_s + 0.05)
+    assert phases[-1] == Phase.DESCEND
+    # The pre-grasp: the grasp moved back along its approach axis z_G.
+    X_pre = grasp.copy()
+    X_pre[:3, 3] -= m.pregrasp_height_m * grasp[:3, 2]
+    s = ctrl.get_controller_state(ctx)
+    np.testing.assert_allclose(np.reshape(s.grasp_pose, (4, 4)), grasp, atol=1e-12)
+    run_to(view_time + m.approach_time_s + m.descend_time_s + 0.05)
+    assert phases[-1] == Phase.CLOSE
+    np.testing.assert_allclose(pose.Eval(ctx).GetAsMatrix4(), grasp, atol=1e-9)
+    assert ctrl.GetOutputPort("gripper_command").Eval(ctx)[0] == 0.0
+    run_to(20.0)
+    assert phases[-1] == Phase.DONE and len(calls) == 1
+    lifted = grasp.copy()
+    lifted[2, 3] += m.lift_height_m
+    np.testing.assert_allclose(pose.Eval(ctx).GetAsMatrix4(), lifted, atol=1e-9)
+    # Reported as (x, y, z, yaw of x_G on the table).
+    x_G = grasp[:3, 0]
+    assert s.grasp == pytest.approx((0.52, 0.03, 0.04, np.rad2deg(np.arctan2(x_G[1], x_G[0]))))
+    assert s.grasp[3] == pytest.approx(30.0)
+
+
+def test_gpd_controller_without_a_detection_stays_at_the_viewpoint():
+    from drake_grasp.systems.controller import Phase
+
+    scenario, ctrl, sim, _ = _gpd_controller(lambda depth, X_WC: None)
+    sim.AdvanceTo(3.0)
+    ctx = sim.get_context()
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DONE
+    assert ctrl.outcome(ctx)["failure_reason"] == "missed: no grasp detected"
+    X = ctrl.GetOutputPort("X_WG_desired").Eval(ctx)
+    assert X.translation()[2] == pytest.approx(scenario.gpd.view_camera_height_m - 0.105, abs=1e-9)
+    assert ctrl.GetOutputPort("gripper_command").Eval(ctx)[0] == scenario.gripper.open_width_m
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gpd_kinematic_noise_moves_the_grasp_in_the_plane_and_keeps_its_tilt(seed):
+    """The commanded planar move gets the noise; the tilt and the height are kept. The
+    detection's x_G points away from the view's (yaw 10 + 160 deg): the hand takes the
+    same grasp turned half a turn about its approach, a 20 degree wrist turn."""
+    from drake_grasp.systems.controller import Phase
+
+    grasp = _tilted_grasp([0.45, -0.04, 0.05], 170.0, 25.0)
+    _, ctrl, sim, _ = _gpd_controller(
+        lambda depth, X_WC: grasp, f"{{policy: gpd, seed: {seed}, noise: {{kind: gaussian}}}}")
+    sim.AdvanceTo(2.05)
+    s = ctrl.get_controller_state(sim.get_context())
+    assert s.phase == Phase.APPROACH
+    X = np.reshape(s.grasp_pose, (4, 4))
+    assert not np.allclose(X[:2, 3], grasp[:2, 3], atol=1e-4)  # moved by the noise
+    assert X[2, 3] == pytest.approx(0.05)
+    assert X[:3, 2] @ [0, 0, -1] == pytest.approx(np.cos(np.deg2rad(25.0)))  # tilt kept
+    assert X[:3, :3] @ X[:3, :3].T == pytest.approx(np.eye(3))
+    # The approach's horizontal part turned with the noisy yaw only; x_G flipped.
+    assert X[:3, 0] @ grasp[:3, 0] < 0
+    turn = (s.grasp[3] - 10.0 + 90.0) % 180.0 - 90.0
+    assert abs(turn) < 60.0
+
+
+def test_gpd_without_noise_takes_the_detection_turned_half_a_turn_when_nearer():
+    grasp = _tilted_grasp([0.45, -0.04, 0.05], 170.0, 25.0)
+    _, ctrl, sim, _ = _gpd_controller(lambda depth, X_WC: grasp)
+    sim.AdvanceTo(2.05)
+    X = np.reshape(ctrl.get_controller_state(sim.get_context()).grasp_pose, (4, 4))
+    np.testing.assert_allclose(X, grasp @ np.diag([-1.0, -1.0, 1.0, 1.0]), atol=1e-12)
+
+
+def test_gpd_offset_noise_shifts_the_executed_grasp_and_keeps_its_tilt():
+    """The constant-offset model: the hand really goes 2 cm along the grasp's x_G (on
+    the table) from where the policy believes; the orientation is the believed one."""
+    from drake_grasp.systems.controller import Phase
+
+    grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
+    _, ctrl, sim, _ = _gpd_controller(
+        lambda depth, X_WC: grasp, "{policy: gpd, noise: {kind: offset, offset_xy_m: [0.02, 0.0]}}")
+    sim.AdvanceTo(4.55)
+    ctx = sim.get_context()
+    assert ctrl.get_controller_state(ctx).phase == Phase.CLOSE
+    X = ctrl.GetOutputPort("X_WG_desired").Eval(ctx).GetAsMatrix4()
+    x_G = grasp[:2, 0] / np.linalg.norm(grasp[:2, 0])
+    assert X[:2, 3] == pytest.approx(grasp[:2, 3] + 0.02 * x_G, abs=1e-9)
+    assert X[2, 3] == pytest.approx(grasp[2, 3])
+    np.testing.assert_allclose(X[:3, :3], grasp[:3, :3], atol=1e-9)
+
+
+def test_depth_postprocessor_streams_draw_their_own_noise_from_one_seed():
+    """The GPD sensor's post-processor (stream 1) never repeats the wrist camera's noise
+    (stream 0, the draws it always had) for the same trial seed."""
+    from pydrake.systems.sensors import ImageDepth32F
+
+    from drake_grasp.sensing import DepthNoiseConfig, frame_rng, postprocess_depth
+    from drake_grasp.systems.depth import DepthPostProcessor
+
+    config = DepthNoiseConfig(enabled=True)
+    image = ImageDepth32F(32, 24)
+    image.mutable_data[:] = 0.6
+    out = []
+    for stream in (0, 1):
+        system = DepthPostProcessor(config, width=32, height=24, far_value_m=3.5,
+                                    frame_period_s=0.1, seed=7, stream=stream)
+        ctx = system.CreateDefaultContext()
+        system.GetInputPort("depth_image_32f").FixValue(ctx, image)
+        out.append(np.array(system.GetOutputPort("depth_image").Eval(ctx).data))
+    assert not np.array_equal(out[0], out[1])
+    expected = postprocess_depth(np.array(image.data), frame_rng(7, 0), config, 3.5)
+    np.testing.assert_array_equal(out[0], expected)
+    with pytest.raises(ValueError, match="stream"):
+        DepthPostProcessor(config, width=32, height=24, far_value_m=3.5, frame_period_s=0.1,
+                           stream=-1)
+
+
+def test_gpd_controller_names_a_detection_that_is_not_a_pose():
+    bad = np.diag([1.0, 1.0, -1.0, 1.0])  # a reflection
+    bad[:3, 3] = [0.5, 0.0, 0.05]
+    _, _, sim, _ = _gpd_controller(lambda depth, X_WC: bad)
+    with pytest.raises(Exception, match="not a rotation matrix"):
+        sim.AdvanceTo(2.05)

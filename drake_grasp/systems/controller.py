@@ -11,8 +11,20 @@ Policies (`policy` argument):
         0.15 m in 75 equal steps; "robot", r = 0.5 and 1 cm steps until the stop rule.
     cnn-ctr: the CNN's global best action from the first image, then CTR.
     cnn-only: the CNN's global best action from the first image, executed open loop.
-    gpd: a GPD-style detection on the first image (`drake_grasp.gpd`), open loop.
+    gpd: the paper's GPD baseline: the hand moves to a fixed viewpoint (the start's x, y
+        and yaw, the GPD sensor `gpd.view_camera_height_m` above the table), rests
+        `gpd.view_settle_s`, takes one image with the GPD sensor (`gpd_depth_image`) and
+        asks `detect_fn` (`drake_grasp.gpd.make_detector`) for a 6-DOF grasp (its
+        approach may tilt up to `gpd.approach_max_tilt_deg` from straight down); then
+        open loop to a pre-grasp `scripted.pregrasp_height_m` back along the approach,
+        and the descent along the approach axis.
+    gpd-geometric: the hand-tuned geometric detector (`drake_grasp.gpd_geometric`) on the
+        wrist camera's first image at the start pose, top-down, open loop.
     init: no motion (the paper's INIT, for the distance experiment).
+
+Kinematic noise acts on every commanded planar displacement the same way: for gpd the
+move from the viewpoint to the grasp's (x, y, yaw of x_G on the table) is corrupted, and
+the grasp's tilt is kept.
 """
 
 from __future__ import annotations
@@ -52,11 +64,12 @@ from drake_grasp.systems.supervisor import (
 )
 
 CLOSED_LOOP = ("ctr", "cnn-ctr")
-ONE_SHOT = ("gpd", "cnn-only")
+ONE_SHOT = ("gpd", "gpd-geometric", "cnn-only")
 
 
 class Phase(enum.Enum):
     START = "start"        # before the first image
+    VIEW = "view"          # gpd: to the viewpoint, rest, take the one GPD image
     APPROACH = "approach"  # open-loop move to a one-shot target (gpd, cnn-only, cnn-ctr)
     SERVO = "servo"        # CTR iterations
     DESCEND = "descend"
@@ -67,7 +80,8 @@ class Phase(enum.Enum):
 
 
 # The shared grasp motion's phase (`supervisor.MOTION_PHASES`) of each controller phase.
-_MOTION_PHASE = {Phase.START: "approach", Phase.APPROACH: "approach", Phase.SERVO: "approach",
+_MOTION_PHASE = {Phase.START: "approach", Phase.VIEW: "approach", Phase.APPROACH: "approach",
+                 Phase.SERVO: "approach",
                  Phase.DESCEND: "descend", Phase.CLOSE: "close", Phase.LIFT: "lift",
                  Phase.HOLD: "hold", Phase.DONE: "done"}
 
@@ -95,7 +109,11 @@ class ControllerState:
     iteration: int = 0
     hand: tuple = (0.0, 0.0, 0.0, 0.0)         # believed target [x, y, z, yaw_deg]
     segment_from: tuple = (0.0, 0.0, 0.0, 0.0)  # start of the current interpolated move
-    grasp: tuple | None = None                  # final grasp pose [x, y, z, yaw_deg]
+    # Final grasp [x, y, z, yaw_deg] (yaw of x_G projected onto the table).
+    grasp: tuple | None = None
+    # gpd: the full believed grasp pose X_WG, 16 floats (a 4x4 matrix row by row); its
+    # approach may be tilted. None for the top-down policies.
+    grasp_pose: tuple | None = None
     stop_reason: str = ""
     last_step: StepRecord | None = None
     outcome: dict = field(default_factory=dict)
@@ -104,6 +122,27 @@ class ControllerState:
 def hand_to_pose(hand) -> RigidTransform:
     x, y, z, yaw = (float(v) for v in hand)
     return RigidTransform(RotationMatrix(topdown_rotation(np.deg2rad(yaw))), [x, y, z])
+
+
+def pose_to_hand(X_WG) -> tuple:
+    """[x, y, z, yaw_deg] of a grasp-frame pose (RigidTransform or 4x4), yaw that of the
+    closing direction x_G projected onto the table (a tilted grasp's too)."""
+    X = np.asarray(getattr(X_WG, "GetAsMatrix4", lambda: X_WG)(), dtype=float)
+    return (float(X[0, 3]), float(X[1, 3]), float(X[2, 3]),
+            float(np.rad2deg(np.arctan2(X[1, 0], X[0, 0]))))
+
+
+def _rot_z(yaw_rad: float) -> np.ndarray:
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pose_from_tuple(values) -> RigidTransform:
+    return RigidTransform(np.asarray(values, dtype=float).reshape(4, 4))
+
+
+def _pose_tuple(X: np.ndarray) -> tuple:
+    return tuple(float(v) for v in np.asarray(X, dtype=float).reshape(16))
 
 
 class GraspController(LeafSystem):
@@ -115,6 +154,9 @@ class GraspController(LeafSystem):
         candidate_actions: (K, 3) from the ActionSampler.
         predicted_distances: (K,) from the DistanceEvaluator.
         gripper_state: [q_left, q_right, v_left, v_right].
+        gpd_depth_image: the GPD sensor's depth (ImageDepth32F); evaluated once, at the
+            viewpoint, by the gpd policy only (the others never evaluate it, so it costs
+            them no rendering).
     Output ports:
         X_WG_desired: desired grasp-frame pose for differential IK.
         gripper_command: [width_m, grip_force_n].
@@ -126,7 +168,18 @@ class GraspController(LeafSystem):
 
     def __init__(self, *, scenario: Scenario, policy: str, X_WG_start: RigidTransform,
                  X_GC: RigidTransform, score_fn=None, detect_fn=None,
-                 target_label: int | None = None):
+                 target_label: int | None = None, X_GC_gpd: RigidTransform | None = None):
+        """Args:
+            scenario, policy: the trial's scenario and the policy to run (see the module
+                docstring).
+            X_WG_start: the grasp frame's start pose (top-down).
+            X_GC: the wrist camera in the grasp frame.
+            score_fn: ctr, cnn-ctr, cnn-only: score(depth, actions) -> distances.
+            detect_fn: gpd: detect(depth (H, W) [m], X_WC 4x4) -> X_WG 4x4 or None;
+                gpd-geometric: detect(depth, X_WC) -> (x, y, theta_deg, z) or None.
+            target_label: the target object's label (target mode), or None.
+            X_GC_gpd: the GPD sensor in the grasp frame (gpd: required).
+        """
         super().__init__()
         self._s = scenario
         self._policy = policy
@@ -148,6 +201,15 @@ class GraspController(LeafSystem):
                     max(0.0, (start_cam - c.end_camera_height_m) / c.iterations))
         cam = scenario.camera
         self._focal = 0.5 * cam.height / np.tan(np.deg2rad(cam.fov_y_deg) / 2.0)
+        # gpd: the viewpoint, the start's x, y and yaw with the GPD sensor
+        # `view_camera_height_m` above the table (top-down: the sensor sits -z_C.z above
+        # the grasp centre).
+        self._X_GC_gpd = X_GC_gpd
+        self._view = None
+        if X_GC_gpd is not None:
+            self._view = (self._start[0], self._start[1],
+                          float(scenario.gpd.view_camera_height_m + X_GC_gpd.translation()[2]),
+                          self._start[3])
 
         self._depth = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
         self._label = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(ImageLabel16I()))
@@ -156,6 +218,8 @@ class GraspController(LeafSystem):
         self._distances = self.DeclareAbstractInputPort(
             "predicted_distances", AbstractValue.Make(np.zeros(0)))
         self._gripper_state = self.DeclareVectorInputPort("gripper_state", 4)
+        self._gpd_depth = self.DeclareAbstractInputPort(
+            "gpd_depth_image", AbstractValue.Make(ImageDepth32F()))
         self._state = self.DeclareAbstractState(AbstractValue.Make(ControllerState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, 0.0, self._Update)
         self.DeclareAbstractOutputPort(
@@ -210,6 +274,45 @@ class GraspController(LeafSystem):
         out = apply_actions([hand[0], hand[1], hand[3]],
                             np.array([[f * dx, f * dy, f * noise.offset_theta_deg]]))[0]
         return (float(out[0]), float(out[1]), float(hand[2]), float(out[2]))
+
+    def _executed_pose(self, X_WG: RigidTransform) -> RigidTransform:
+        """`_executed` for a full (possibly tilted) grasp-frame pose: the offset moves
+        its (x, y) and turns it about the world vertical through its origin."""
+        if self._s.noise.kind != "offset":
+            return X_WG
+        hand = pose_to_hand(X_WG)
+        x, y, _, yaw = self._executed(hand)
+        R = _rot_z(np.deg2rad(yaw - hand[3])) @ X_WG.rotation().matrix()
+        return RigidTransform(RotationMatrix(R), [x, y, hand[2]])
+
+    def _pregrasp(self, X_WG: RigidTransform) -> RigidTransform:
+        """gpd: the pre-grasp, `pregrasp_height_m` back along the approach axis z_G."""
+        z_G = X_WG.rotation().matrix()[:, 2]
+        return RigidTransform(X_WG.rotation(),
+                              X_WG.translation() - self._s.scripted.pregrasp_height_m * z_G)
+
+    def _displaced_grasp(self, X_WG: np.ndarray, view) -> np.ndarray:
+        """The detected grasp where the hand will believe it is after the commanded move
+        from `view`: the planar displacement to the grasp's (x, y, yaw of x_G on the
+        table) gets the kinematic noise (`_noisy`, as any commanded displacement); the
+        grasp's height and tilt are kept."""
+        X = np.array(X_WG, dtype=float)
+        R, p = X[:3, :3], X[:3, 3]
+        _, _, _, yaw = pose_to_hand(X)
+        here = np.array([view[0], view[1], view[3]])
+        a = action_between(here, np.array([p[0], p[1], yaw]))
+        # The move turns the wrist at most 90 degrees (the parallel jaw is symmetric); a
+        # grasp whose x_G points the other way is the same grasp turned half a turn
+        # about its approach.
+        yaw_goal = here[2] - a[2]
+        if np.cos(np.deg2rad(yaw_goal - yaw)) < 0.0:
+            R = R @ np.diag([-1.0, -1.0, 1.0])
+        delta = self._noisy(a, 0)
+        moved = apply_actions(here, delta[None])[0]
+        out = np.eye(4)
+        out[:3, :3] = _rot_z(np.deg2rad(moved[2] - yaw_goal)) @ R
+        out[:3, 3] = [moved[0], moved[1], p[2]]
+        return out
 
     def _grasp_from_depth(self, depth: np.ndarray, seen_from, hand) -> tuple:
         """The grasp at `hand`'s (x, y, yaw), its height read from a depth image taken
@@ -315,9 +418,14 @@ class GraspController(LeafSystem):
         new = s
         if s.phase == Phase.START:
             new = self._Start(context, s, t)
+        elif s.phase == Phase.VIEW:
+            if elapsed >= m.approach_time_s + self._s.gpd.view_settle_s:
+                new = self._gpd_detect(context, s, t)
         elif s.phase == Phase.APPROACH and elapsed >= m.approach_time_s:
             if self._policy == "cnn-ctr":
                 new = replace(s, phase=Phase.SERVO, phase_start_s=t, segment_from=s.hand)
+            elif s.grasp_pose is not None:
+                new = replace(s, phase=Phase.DESCEND, phase_start_s=t)
             else:
                 new = replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=s.hand)
         elif s.phase == Phase.SERVO:
@@ -341,6 +449,11 @@ class GraspController(LeafSystem):
                 "failure_reason": "init: no grasp attempted", "iterations": 0})
         if self._policy == "ctr":
             return replace(base, phase=Phase.SERVO)
+        if self._policy == "gpd":
+            if self._view is None:
+                raise ValueError("GraspController: policy 'gpd' needs X_GC_gpd (the GPD "
+                                 "sensor in the grasp frame: GraspStation.X_GC_gpd)")
+            return replace(base, phase=Phase.VIEW, hand=self._view)
         depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
         if self._policy in ("cnn-only", "cnn-ctr"):
             best = self._global_best(context, start)
@@ -352,7 +465,7 @@ class GraspController(LeafSystem):
                      if self._policy == "cnn-only" else None)
             # The one-shot move keeps the start height; the final descent (or CTR) follows.
             return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
-        # gpd
+        # gpd-geometric
         X_WC = hand_to_pose(start) @ self._X_GC
         detection = self._detect(depth, X_WC.GetAsMatrix4())
         if detection is None:
@@ -368,6 +481,32 @@ class GraspController(LeafSystem):
         grasp = (hand[0], hand[1], float(z), hand[3])
         return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)
 
+    def _gpd_detect(self, context, s: ControllerState, t: float) -> ControllerState:
+        """gpd at the viewpoint: the one GPD image, the detection, the move's target."""
+        depth = np.array(self._gpd_depth.Eval(context).data[:, :, 0], copy=True)
+        X_WC = hand_to_pose(s.hand) @ self._X_GC_gpd  # believed: the commanded viewpoint
+        detection = self._detect(depth, X_WC.GetAsMatrix4())
+        if detection is None:
+            return replace(s, phase=Phase.DONE, phase_start_s=t, outcome={
+                "failure_reason": "missed: no grasp detected", "iterations": 0})
+        X = np.array(detection, dtype=float)
+        if X.shape != (4, 4) or not np.all(np.isfinite(X)):
+            raise ValueError(f"gpd detect_fn: expected a finite 4x4 grasp pose X_WG or None, "
+                             f"got shape {X.shape}: {X!r}")
+        # The nearest rotation (a float32 or rounded detection is not orthonormal to
+        # Drake's tolerance); anything farther than rounding is an error.
+        U, _, Vt = np.linalg.svd(X[:3, :3])
+        R = U @ Vt
+        if np.linalg.det(R) < 0.0 or np.abs(R - X[:3, :3]).max() > 1e-3:
+            raise ValueError(f"gpd detect_fn: the grasp pose's rotation is not a rotation "
+                             f"matrix: {X[:3, :3]!r}")
+        X[:3, :3] = R
+        grasp_pose = self._displaced_grasp(X, s.hand)
+        pre = self._pregrasp(RigidTransform(grasp_pose))
+        return replace(s, phase=Phase.APPROACH, phase_start_s=t, segment_from=s.hand,
+                       hand=pose_to_hand(pre), grasp=pose_to_hand(grasp_pose),
+                       grasp_pose=_pose_tuple(grasp_pose))
+
     # -- outputs ------------------------------------------------------------------------
 
     def _CalcPose(self, context, output):
@@ -378,6 +517,12 @@ class GraspController(LeafSystem):
         if s.phase in (Phase.START,):
             hand = self._start
             X = hand_to_pose(self._executed(hand))
+        elif s.phase == Phase.VIEW:
+            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
+                                 hand_to_pose(self._executed(s.hand)),
+                                 min_jerk(elapsed / m.approach_time_s))
+        elif s.grasp_pose is not None:
+            X = self._gpd_pose(s, elapsed)
         elif s.phase == Phase.APPROACH:
             X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
                                  hand_to_pose(self._executed(s.hand)),
@@ -404,6 +549,25 @@ class GraspController(LeafSystem):
         else:
             X = hand_to_pose(self._executed(s.hand))
         output.set_value(X)
+
+    def _gpd_pose(self, s: ControllerState, elapsed: float) -> RigidTransform:
+        """gpd after its detection: to the pre-grasp, along the approach axis to the
+        grasp, close there, lift straight up (orientation kept), hold."""
+        m = self._s.scripted
+        grasp = _pose_from_tuple(s.grasp_pose)
+        pre = self._pregrasp(grasp)
+        lifted = RigidTransform(grasp.rotation(), grasp.translation() + [0.0, 0.0, m.lift_height_m])
+        ex = self._executed_pose
+        if s.phase == Phase.APPROACH:
+            return interpolate_pose(hand_to_pose(self._executed(s.segment_from)), ex(pre),
+                                    min_jerk(elapsed / m.approach_time_s))
+        if s.phase == Phase.DESCEND:
+            return interpolate_pose(ex(pre), ex(grasp), min_jerk(elapsed / m.descend_time_s))
+        if s.phase == Phase.CLOSE:
+            return ex(grasp)
+        if s.phase == Phase.LIFT:
+            return interpolate_pose(ex(grasp), ex(lifted), min_jerk(elapsed / m.lift_time_s))
+        return ex(lifted)
 
     def _CalcGripper(self, context, output: BasicVector):
         s = self.get_controller_state(context)

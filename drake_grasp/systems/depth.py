@@ -25,7 +25,8 @@ class DepthPostProcessor(LeafSystem):
     ``round(t / frame_period_s)`` comes from ``frame_rng(seed, frame)``.
 
     The trial seed is a numeric parameter in the Context, so a Monte Carlo loop
-    changes it per trial with `set_seed` without rebuilding the Diagram.
+    changes it per trial with `set_seed` without rebuilding the Diagram. `stream`
+    tells the cameras of one trial apart: each draws its own noise from the seed.
 
     .. pydrake_system::
 
@@ -40,7 +41,9 @@ class DepthPostProcessor(LeafSystem):
             RgbdSensor's ``depth_image_32f`` output (0 below near clip, +inf
             beyond far clip).
         depth_image (output, abstract ImageDepth32F): noisy (if enabled), hole-
-            filled depth [m]; every pixel finite, far pixels ``far_value_m``.
+            filled depth [m]; every pixel finite, far pixels ``far_value_m``, and so
+            are pixels left unfilled (all invalid ones when
+            ``fill_max_iterations`` is 0).
     """
 
     def __init__(
@@ -52,6 +55,7 @@ class DepthPostProcessor(LeafSystem):
         far_value_m: float,
         frame_period_s: float,
         seed: int = 0,
+        stream: int = 0,
     ) -> None:
         """Builds the system.
 
@@ -62,6 +66,7 @@ class DepthPostProcessor(LeafSystem):
             far_value_m: Depth for far and unfillable pixels [m], finite > 0.
             frame_period_s: Camera frame period [s], finite > 0.
             seed: Default trial seed, 0 <= seed < 2**53.
+            stream: This camera's noise stream (`sensing.frame_rng`), an int >= 0.
 
         Raises:
             ValueError: For an invalid config or argument.
@@ -75,6 +80,9 @@ class DepthPostProcessor(LeafSystem):
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be a finite number > 0 (got {value!r})")
         _check_seed(seed)
+        if isinstance(stream, bool) or not isinstance(stream, (int, np.integer)) or stream < 0:
+            raise ValueError(f"stream must be an int >= 0 (got {stream!r})")
+        self._stream = int(stream)
         # A private copy: the caller mutating its config later must not silently
         # change an already-built system.
         self._config = copy.deepcopy(config)
@@ -131,7 +139,7 @@ class DepthPostProcessor(LeafSystem):
             )
         rng = None
         if self._config.enabled:
-            rng = frame_rng(self.get_seed(context), self.frame_index(context))
+            rng = frame_rng(self.get_seed(context), self.frame_index(context), self._stream)
         processed = postprocess_depth(image.data, rng, self._config, self._far_value_m)
         output.get_mutable_value().mutable_data[:] = processed
 
