@@ -140,6 +140,33 @@ class EpisodeDiagram:
     visualizer: object = None
     disturbance: object = None
     sampler: object = None
+    decision_timer: object = None  # DecisionTimer of the policy's computations
+
+
+class DecisionTimer:
+    """Wall time of a policy's decisions: wraps the functions its systems call (the CNN's
+    scoring, a detector), outside any system's state, so that it never changes what is
+    simulated. ``seconds`` over ``calls``: one CTR control step's scoring, or one
+    detection (cloud, candidates, images, classifier and selection for gpd). Rendering
+    is not included."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.calls = 0
+
+    def wrap(self, fn):
+        if fn is None:
+            return None
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - t0
+                self.calls += 1
+
+        return timed
 
 
 def _geometric_detector(scenario: Scenario):
@@ -281,11 +308,13 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
         target = ids.index(scenario.target)
         # MultibodyPlant labels each body's geometry with its body index.
         target_label = int(station.object_body(target).index())
+    timer = out.decision_timer = DecisionTimer()
+    score_fn = (timer.wrap(lambda depth, actions: score_candidates(model, depth, actions))
+                if needs_cnn else None)
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=station.X_WG_start,
         X_GC=station.X_GC, X_GC_gpd=station.X_GC_gpd,
-        score_fn=(lambda depth, actions: score_candidates(model, depth, actions)) if needs_cnn else None,
-        detect_fn=_detector(scenario, detect_fn),
+        score_fn=score_fn, detect_fn=timer.wrap(_detector(scenario, detect_fn)),
         target_label=target_label))
     builder.Connect(sd.GetOutputPort("depth_image"), controller.GetInputPort("depth_image"))
     builder.Connect(sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
@@ -297,7 +326,8 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
     builder.Connect(sampler.GetOutputPort("candidate_actions"),
                     controller.GetInputPort("candidate_actions"))
     if needs_cnn:
-        evaluator = builder.AddNamedSystem("distance_evaluator", DistanceEvaluator(model))
+        evaluator = builder.AddNamedSystem("distance_evaluator",
+                                           DistanceEvaluator(model, score_fn=score_fn))
         builder.Connect(sd.GetOutputPort("depth_image"), evaluator.GetInputPort("depth_image"))
         builder.Connect(sampler.GetOutputPort("candidate_actions"),
                         evaluator.GetInputPort("candidate_actions"))
@@ -491,6 +521,9 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  "num_true_grasps": distance["num_true_grasps"],
                  "simulation_wall_time_s": loop_wall_s,
                  "num_depth_frames": len(frames),
+                 "decision_time_s": (ed.decision_timer.seconds
+                                     if ed.decision_timer is not None else None),
+                 "decisions": ed.decision_timer.calls if ed.decision_timer is not None else 0,
                  "judge": verdict.details},
     )
     return EpisodeRun(result=result, depth_frames=frames, steps=steps,

@@ -339,7 +339,9 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
         sim_time_s=r.sim_time_s, wall_time_s=wall, control_steps=r.control_steps,
         object_ids=r.object_ids, grasped_object_id=r.details.get("grasped_object_id"),
         run_index=run_index, attempt_index=attempt_index,
-        extra={"stop_reason": r.details.get("stop_reason"), **(extra or {})})
+        extra={"stop_reason": r.details.get("stop_reason"),
+               "decision_time_s": r.details.get("decision_time_s"),
+               "decisions": r.details.get("decisions", 0), **(extra or {})})
 
 
 def run_task(task: TrialTask, out: str, objects_dir: str | None = None,

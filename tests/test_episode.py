@@ -187,6 +187,7 @@ def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeyp
     assert len(calls) == 1 and calls[0][0] == (480, 640)
     assert calls[0][1][2, 3] == pytest.approx(scenario.gpd.view_camera_height_m)
     assert counts.get(640) == 1  # the GPD sensor rendered once, at the viewpoint
+    assert r.details["decisions"] == 1  # one detection
     # The distance metric takes the tilted hand's centre and x_G on the table.
     assert r.final_distance_m is not None and r.final_distance_m < 0.02
 
@@ -208,3 +209,6 @@ def test_ctr_episode_never_renders_the_gpd_sensor(library, monkeypatch):
     assert run.result.control_steps >= 5
     assert counts.get(64, 0) >= 5  # the wrist camera, every control step
     assert 640 not in counts
+    # One CNN scoring per control step, timed for the fairness table.
+    assert run.result.details["decisions"] == run.result.control_steps
+    assert run.result.details["decision_time_s"] > 0.0

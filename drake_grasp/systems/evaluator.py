@@ -39,9 +39,12 @@ class DistanceEvaluator(LeafSystem):
         predicted_distances: (K,) metres.
     """
 
-    def __init__(self, model: DistanceCNN):
+    def __init__(self, model: DistanceCNN, *, score_fn=None):
+        """`score_fn(depth, actions)` replaces `score_candidates(model, ...)` (e.g. a
+        timed wrapper of it)."""
         super().__init__()
         self._model = model
+        self._score_fn = score_fn or (lambda depth, actions: score_candidates(model, depth, actions))
         self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
         self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
         self.DeclareAbstractOutputPort(
@@ -51,8 +54,7 @@ class DistanceEvaluator(LeafSystem):
     def _CalcDistances(self, context, output):
         depth = self.get_input_port(0).Eval(context).data[:, :, 0]
         actions = self.get_input_port(1).Eval(context)
-        output.set_value(score_candidates(self._model, depth, actions) if len(actions)
-                         else np.zeros(0))
+        output.set_value(self._score_fn(depth, actions) if len(actions) else np.zeros(0))
 
 
 class ActionSampler(LeafSystem):
