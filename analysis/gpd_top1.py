@@ -1,10 +1,11 @@
-"""Top-1 precision of the GPD baseline against the ground truth, without physics.
+"""Top-1 precision of the GPD baseline: against the ground truth and in the grasp lab.
 
 For seeded held-out scenes (test object instances; isolation, 1-5 objects, poured piles),
 settled as the experiments settle them, the GPD sensor's image at the experiments'
 viewpoint goes through the whole detector (`drake_grasp.gpd`, shipped or given weights);
 its selected grasp is checked with the ground truth (`grasps.check_grasp_poses`, the
-dataset's friction and torque limits). Reports the share of scenes with a detection and
+dataset's friction and torque limits) and executed in the grasp lab (`drake_grasp.lab`,
+neighbours present). Reports the share of scenes with a detection and
 the share of detections that are true grasps, per scene kind, with the detection time.
 
     python analysis/gpd_top1.py --scenes 30 --out analysis/results/gpd-top1.json
@@ -20,11 +21,12 @@ import time
 import numpy as np
 
 
-def run(num_scenes: int, seed: int, weights: str = "", selection=None) -> dict:
+def run(num_scenes: int, seed: int, weights: str = "", selection=None, physics: bool = True) -> dict:
     from drake_grasp import gpd
     from drake_grasp.dataset import scene_seed
     from drake_grasp.gpd_training import GpdDataConfig, _render_view, view_pose
     from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
+    from drake_grasp.lab import check_grasp
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario
     from drake_grasp.scene import build_scene_world, sample_scene, settle_world
@@ -64,6 +66,16 @@ def run(num_scenes: int, seed: int, weights: str = "", selection=None) -> dict:
                                       max_torque_ratio=data_cfg.max_torque_ratio)
             row.update(true_grasp=bool(check.valid[0]), probability=float(found.probabilities[0]),
                        tilt_deg=float(np.degrees(np.arccos(-found.poses[0, 2, 2]))))
+            if physics:
+                # Executed in the grasp lab with the neighbours present; pads on no single
+                # object: the grasp cannot hold anything (counted as not held).
+                obj = int(check.object_index[0])
+                if obj >= 0:
+                    res = check_grasp(None, found.poses[0], scene=settled, scenario=scenario,
+                                      library=library, object_index=obj, neighbours=True)
+                    row.update(held=bool(res.held), lab_failure=res.failure)
+                else:
+                    row.update(held=False, lab_failure="no single object between the pads")
         rows.append(row)
     summary = {}
     for kind in ("isolation", "random", "clutter", "all"):
@@ -72,7 +84,8 @@ def run(num_scenes: int, seed: int, weights: str = "", selection=None) -> dict:
         summary[kind] = dict(scenes=len(sel), detected=len(det),
                              top1_true=sum(r["true_grasp"] for r in det),
                              top1_precision=(sum(r["true_grasp"] for r in det) / len(det)) if det else None,
-                             median_detect_s=float(np.median([r["seconds"] for r in sel])) if sel else None)
+                             median_detect_s=float(np.median([r["seconds"] for r in sel])) if sel else None,
+                             lab_held=sum(r.get("held", False) for r in det))
     return dict(summary=summary, scenes=rows)
 
 

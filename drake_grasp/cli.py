@@ -364,9 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
     p.add_argument("--seed", type=int, default=0, help="data seed (default 0)")
     p.add_argument("--out", required=True, help="data folder")
-    p.add_argument("--candidates-per-scene", type=int, default=300,
-                   help="labelled candidates kept per scene: positives up to half, "
-                        "negatives fill up (default 300)")
+    p.add_argument("--candidates-per-scene", type=int, default=600,
+                   help="labelled candidates kept per scene: positives up to a quarter, "
+                        "negatives fill up (default 600)")
     p.set_defaults(func=_cmd_gpd_generate)
 
     p = sub.add_parser("gpd-train", help="train the GPD baseline's grasp classifier (Adam, "

@@ -34,13 +34,11 @@ description; it is pure numpy / scipy / torch (no Drake):
    pool, 500 inner product, ReLU, output) giving the probability that a candidate is a
    grasp; trained on candidates from simulated scenes labelled by this project's
    physics-consistent ground truth (`drake_grasp.gpd_training`).
-6. **Selection** (`select`): after Gualtieri et al. 2016: detections are the candidates
-   the classifier accepts (probability >= `threshold`); those supported by a cluster of
-   at least `min_cluster_size` aligned detections (centres within 2 cm, approach and
-   closing axes within 20 degrees) are preferred (clusters raised their precision in
-   dense clutter); among them the utility prefers confident, high (top of the pile) and
-   near-vertical grasps: ``p + height_weight * (z - z_lowest) / 0.1 m +
-   vertical_weight * cos(tilt)``.
+6. **Selection** (`select`): after Gualtieri et al. 2016, who cluster aligned detections
+   for precision in dense clutter: detections are the candidates the classifier accepts
+   (probability >= `threshold`), ranked by the mean probability of the candidates
+   aligned with each (centres within 1 cm, approach and closing axes within 15
+   degrees).
 
 Conventions (`drake_grasp.grasps`): the grasp frame G sits between the pads, z_G is the
 approach, x_G the closing direction.
@@ -447,42 +445,46 @@ def load_classifier(path: str | Path = "") -> GraspClassifier:
 
 @dataclass(frozen=True)
 class Selection:
-    """Gualtieri et al. 2016's selection among classified candidates (step 6)."""
+    """Selection among classified candidates (step 6), after Gualtieri et al. 2016."""
 
     threshold: float = 0.5
-    min_cluster_size: int = 3
-    cluster_distance_m: float = 0.02
-    cluster_angle_deg: float = 20.0
-    height_weight: float = 0.5
-    vertical_weight: float = 0.2
+    cluster_distance_m: float = 0.01
+    cluster_angle_deg: float = 15.0
 
 
-def _cluster_support(poses: np.ndarray, sel: Selection) -> np.ndarray:
-    """For each pose, how many poses (itself included) are aligned with it."""
-    p = poses[:, :3, 3]
-    z = poses[:, :3, 2]
-    x = poses[:, :3, 0]
-    close = np.linalg.norm(p[:, None] - p[None], axis=-1) <= sel.cluster_distance_m
-    c = np.cos(np.deg2rad(sel.cluster_angle_deg))
-    aligned = (z @ z.T >= c) & (np.abs(x @ x.T) >= c)  # closing axes mod 180 degrees
-    return np.sum(close & aligned, axis=1)
+def cluster_scores(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection(),
+                   chunk: int = 2048) -> np.ndarray:
+    """Each candidate's mean classifier probability over the candidates aligned with it
+    (itself included): a grasp whose slightly moved and turned neighbours are grasps too
+    is the robust one, the reason GPD clusters its detections."""
+    prob = np.asarray(probabilities, float)
+    out = np.empty(len(prob))
+    for lo in range(0, len(prob), chunk):
+        P = poses[lo:lo + chunk]
+        p, z, x = P[:, :3, 3], P[:, :3, 2], P[:, :3, 0]
+        close = np.linalg.norm(p[:, None] - poses[None, :, :3, 3], axis=-1) <= sel.cluster_distance_m
+        c = np.cos(np.deg2rad(sel.cluster_angle_deg))
+        aligned = close & (z @ poses[:, :3, 2].T >= c) & (np.abs(x @ poses[:, :3, 0].T) >= c)
+        out[lo:lo + chunk] = (aligned @ prob) / aligned.sum(axis=1)
+    return out
 
 
 def select(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection()) -> np.ndarray:
-    """Indices of the detections, best first (empty when none is accepted)."""
+    """Indices of the detections (probability >= threshold), best first: by the mean
+    probability of their cluster of aligned candidates (`cluster_scores`), then by their
+    own. Empty when none is accepted.
+
+    Measured on 30 held-out scenes against the ground truth (3 surface samplings): the
+    plain highest probability picked a true grasp in 18 of 30, the cluster mean in 19
+    (23 with 2 of 3 samplings); adding a preference for high grasps (0.1 per 10 cm of
+    height, as a "top of the pile" heuristic) cut it to 13, so there is none.
+    """
     prob = np.asarray(probabilities, float)
     accepted = np.flatnonzero(prob >= sel.threshold)
     if len(accepted) == 0:
         return accepted
-    P = poses[accepted]
-    support = _cluster_support(P, sel)
-    z = P[:, 2, 3]
-    cos_tilt = -P[:, 2, 2]
-    utility = (prob[accepted] + sel.height_weight * (z - z.min()) / 0.1
-               + sel.vertical_weight * cos_tilt)
-    clustered = support >= sel.min_cluster_size
-    # Clustered detections first, each group by utility.
-    order = np.lexsort((-utility, ~clustered))
+    score = cluster_scores(poses, prob, sel)[accepted]
+    order = np.lexsort((-prob[accepted], -score))
     return accepted[order]
 
 

@@ -121,28 +121,27 @@ def test_grasp_images_see_the_object_between_the_pads():
     assert 0.45 < (rows.max() - rows.min() + 1) / gpd.IMAGE_SIZE < 0.75
 
 
-def test_selection_prefers_confident_clustered_high_grasps():
-    def pose(x, z, tilt_deg=0.0):
+def test_selection_ranks_by_the_cluster_mean_probability():
+    def pose(x, yaw_deg=0.0):
         X = np.eye(4)
-        t = np.deg2rad(tilt_deg)
-        R_tilt = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
-        X[:3, :3] = R_tilt @ topdown_rotation(0.0)
-        X[:3, 3] = [x, 0.0, z]
+        X[:3, :3] = topdown_rotation(np.deg2rad(yaw_deg))
+        X[:3, 3] = [x, 0.0, 0.03]
         return X
 
-    poses = np.stack([pose(0.0, 0.03), pose(0.002, 0.03), pose(0.004, 0.03),  # a cluster
-                      pose(0.3, 0.03),                                       # alone, confident
-                      pose(0.6, 0.03)])                                      # rejected
-    prob = np.array([0.8, 0.8, 0.8, 0.99, 0.2])
+    poses = np.stack([pose(0.0), pose(0.003), pose(0.006),   # a cluster of good ones
+                      pose(0.3), pose(0.303, 90.0),          # confident, neighbour unlike it
+                      pose(0.6), pose(0.603)])               # confident, neighbour weak
+    prob = np.array([0.90, 0.92, 0.91, 0.99, 0.10, 0.97, 0.2])
+    scores = gpd.cluster_scores(poses, prob)
+    # The turned neighbour is not aligned with the confident one: it stands alone.
+    assert scores[3] == pytest.approx(0.99)
+    assert scores[5] == pytest.approx((0.97 + 0.2) / 2)
     order = gpd.select(poses, prob)
-    assert set(order[:3]) == {0, 1, 2}  # the cluster comes first
-    assert order[3] == 3 and 4 not in order
-    # Without clustering, the confident one wins; a high grasp beats a low one.
-    sel = gpd.Selection(min_cluster_size=1)
-    assert gpd.select(poses, prob, sel)[0] == 3
-    high = np.stack([pose(0.0, 0.03), pose(0.3, 0.13)])
-    assert gpd.select(high, np.array([0.9, 0.8]), sel)[0] == 1
-    assert len(gpd.select(poses, np.zeros(5))) == 0
+    assert order[0] == 3  # 0.99 alone
+    assert list(order[1:4]) == [1, 2, 0] or set(order[1:4]) == {0, 1, 2}
+    assert 4 not in order and 6 not in order  # below the threshold
+    assert order[-1] == 5  # confident but its aligned neighbour is not
+    assert len(gpd.select(poses, np.zeros(len(poses)))) == 0
 
 
 def test_classifier_weights_round_trip_and_bad_files(tmp_path):

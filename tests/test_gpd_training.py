@@ -29,9 +29,9 @@ def test_generate_writes_labelled_candidates(tiny_data):
     assert data["images"].shape == (n, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)
     assert data["images"].dtype == np.uint8
     assert set(np.unique(data["labels"])) <= {0, 1}
-    # Positives are at most half of each scene's kept candidates.
+    # Positives are at most a quarter of each scene's kept candidates.
     for s in (0, 1):
-        assert data["labels"][data["scene"] == s].sum() <= TINY.candidates_per_scene // 2
+        assert data["labels"][data["scene"] == s].sum() <= int(TINY.candidates_per_scene * TINY.max_positive_fraction)
     # Approaches stay in the configured cone.
     tilt = np.degrees(np.arccos(np.clip(-data["poses"][:, 2, 2], -1, 1)))
     assert tilt.max() <= Scenario().gpd.approach_max_tilt_deg + 1e-3
