@@ -678,16 +678,17 @@ def _sensor_size(policy: str, scenario_yaml: str) -> str:
 
 
 def fairness_markdown(records) -> list[str]:
-    """The fairness table: per policy its sensor and resolution, what it knows, how many
+    """The fairness table: per condition its policy's sensor and resolution, what it knows, how many
     images it takes, and its decision time (median over trials of the wall time of one
     decision: image evaluation and policy computation, from `extra.decision_time_s` /
     `extra.decisions`; "-" where older records lack it)."""
-    by_policy: dict[str, list] = {}
+    by_condition: dict[str, list] = {}
     for r in records:
-        by_policy.setdefault(r.policy, []).append(r)
-    lines = ["| policy | sensor | resolution | knows | images per attempt | decision time (median) | decisions per attempt (median) |",
+        by_condition.setdefault(r.condition, []).append(r)
+    lines = ["| condition | sensor | resolution | knows | images per attempt | decision time (median) | decisions per attempt (median) |",
              "|---|---|---|---|---|---|---|"]
-    for policy, recs in sorted(by_policy.items()):
+    for condition, recs in sorted(by_condition.items(), key=lambda kv: _condition_order(kv[0])):
+        policy = recs[0].policy
         sensor, knows, images = POLICY_SENSING.get(policy, ("?", "?", "?"))
         per = [r.extra["decision_time_s"] / r.extra["decisions"] for r in recs
                if isinstance(r.extra, dict) and r.extra.get("decisions")]
@@ -695,7 +696,8 @@ def fairness_markdown(records) -> list[str]:
                   if isinstance(r.extra, dict) and "decisions" in r.extra]
         t = f"{1000 * statistics.median(per):.0f} ms" if per else "-"
         n = f"{statistics.median(counts):g}" if counts else "-"
-        lines.append(f"| {policy} | {sensor} | {_sensor_size(policy, recs[0].scenario_yaml)} | "
+        name = condition if condition == policy else f"{condition} ({policy})"
+        lines.append(f"| {name} | {sensor} | {_sensor_size(policy, recs[0].scenario_yaml)} | "
                      f"{knows} | {images} | {t} | {n} |")
     lines += ["", "The paper's controller loop ran at about 5 Hz (200 ms per decision) on the UR5."]
     return lines

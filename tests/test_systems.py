@@ -201,6 +201,10 @@ def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
     view_time = m.approach_time_s + scenario.gpd.view_settle_s
     run_to(view_time - 0.05)  # at the viewpoint, resting, no image taken yet
     assert phases[-1] == Phase.VIEW and not calls
+    # No control step before the image: a disturbance "after the 3rd iteration" must
+    # come after GPD's decision, not while it looks.
+    status = ctrl.GetOutputPort("control_status")
+    assert status.Eval(ctx)[0] == 0.0
     X_view = pose.Eval(ctx)
     X_WC_view = X_view @ gpd_camera_offset()
     assert X_view.translation()[:2] == pytest.approx(start.translation()[:2], abs=1e-9)
@@ -212,6 +216,10 @@ def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
     depth, X_WC = calls[0]
     assert depth.shape == (480, 640) and depth.dtype == np.float32
     np.testing.assert_allclose(X_WC, X_WC_view.GetAsMatrix4(), atol=1e-12)
+    t_image = ctrl.get_controller_state(ctx).decided_s
+    assert t_image == pytest.approx(view_time, abs=scenario.controller.period_s)
+    run_to(t_image + 0.32)  # control steps count from the image
+    assert status.Eval(ctx)[0] == 3.0
     run_to(view_time + m.approach_time_s + 0.05)
     assert phases[-1] == Phase.DESCEND
     # The pre-grasp: the grasp moved back along its approach axis z_G.

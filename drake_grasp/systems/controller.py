@@ -117,6 +117,9 @@ class ControllerState:
     stop_reason: str = ""
     last_step: StepRecord | None = None
     outcome: dict = field(default_factory=dict)
+    # When a one-shot policy took the image it decided on [s]: 0 for those deciding at the
+    # start; gpd's image comes at the viewpoint. Its control steps count from here.
+    decided_s: float = 0.0
 
 
 def hand_to_pose(hand) -> RigidTransform:
@@ -161,7 +164,8 @@ class GraspController(LeafSystem):
         X_WG_desired: desired grasp-frame pose for differential IK.
         gripper_command: [width_m, grip_force_n].
         control_status: [control step, approaching, motion phase]: the CTR iteration (for
-            the other policies the number of control periods since the start), 1 until
+            the one-shot policies the number of control periods since the image they
+            decided on: the start, or gpd's viewpoint; 0 before it), 1 until
             the gripper starts closing (then 0), and the phase of the shared grasp motion
             (`supervisor.MOTION_PHASES` index), which the GraspJudge reads.
     """
@@ -505,7 +509,7 @@ class GraspController(LeafSystem):
         pre = self._pregrasp(RigidTransform(grasp_pose))
         return replace(s, phase=Phase.APPROACH, phase_start_s=t, segment_from=s.hand,
                        hand=pose_to_hand(pre), grasp=pose_to_hand(grasp_pose),
-                       grasp_pose=_pose_tuple(grasp_pose))
+                       grasp_pose=_pose_tuple(grasp_pose), decided_s=t)
 
     # -- outputs ------------------------------------------------------------------------
 
@@ -578,10 +582,13 @@ class GraspController(LeafSystem):
 
     def _CalcStatus(self, context, output: BasicVector):
         s = self.get_controller_state(context)
-        if s.phase in (Phase.START, Phase.SERVO) or self._policy in CLOSED_LOOP:
+        if s.phase in (Phase.START, Phase.VIEW, Phase.SERVO) or self._policy in CLOSED_LOOP:
             step = s.iteration
         else:
-            step = int(round(context.get_time() / self._period))
+            # Control periods since the image the policy decided on (a disturbance "after
+            # the 3rd controller iteration" comes after the one-shot decision, as on the
+            # paper's robot, where GPD executed as if the pile had not moved).
+            step = int(round((context.get_time() - s.decided_s) / self._period))
         approaching = s.phase in (Phase.START, Phase.APPROACH, Phase.SERVO, Phase.DESCEND)
         output.SetFromVector([float(step), 1.0 if approaching else 0.0,
                               motion_phase_code(_MOTION_PHASE[s.phase])])
