@@ -60,6 +60,7 @@ from drake_grasp.grasps import (
     TABLE_TOP_Z_M,
     ScenePoints,
     evaluate_hands,
+    evaluation_poses,
 )
 
 IMAGE_SIZE = 32
@@ -286,15 +287,7 @@ def sample_hands(cloud: Cloud, rng: np.random.Generator, search: HandSearch = Ha
                         table_clearance_m=search.table_clearance_m)
     keep = (ev.collision_free & (ev.num_points_between >= search.min_points_between)
             & (ev.width >= search.min_width_m) & (ev.width <= STROKE_M))
-    s, kk, d = np.nonzero(keep)
-    x_axis = ev.x_axis[s, kk]
-    z_axis = approach[s]
-    poses = np.zeros((len(s), 4, 4))
-    poses[:, :3, 0] = x_axis
-    poses[:, :3, 1] = np.cross(z_axis, x_axis)
-    poses[:, :3, 2] = z_axis
-    poses[:, :3, 3] = ev.centers[s, kk, d]
-    poses[:, 3, 3] = 1.0
+    poses, (s, kk, d) = evaluation_poses(ev, approach, keep)
     return Hands(poses, ev.width[s, kk, d].astype(float), ev.num_points_between[s, kk, d])
 
 

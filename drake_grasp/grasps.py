@@ -1239,7 +1239,9 @@ def find_grasps_in_meshes(
     return accepted, _grasp_set(ev, cands.approach, near)
 
 
-def _grasp_set(ev: _Evaluation, approach: np.ndarray, mask: np.ndarray) -> GraspSet:
+def evaluation_poses(ev, approach: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """The grasp-frame poses X_WG (N, 4, 4) of the hands of an evaluation (`evaluate_hands`)
+    where `mask` (S, K, D) is true, and their indices (s, k, d)."""
     s, k, d = np.nonzero(mask)
     x_axis = ev.x_axis[s, k]
     z_axis = approach[s]
@@ -1249,6 +1251,12 @@ def _grasp_set(ev: _Evaluation, approach: np.ndarray, mask: np.ndarray) -> Grasp
     poses[:, :3, 2] = z_axis
     poses[:, :3, 3] = ev.centers[s, k, d]
     poses[:, 3, 3] = 1.0
+    return poses, (s, k, d)
+
+
+def _grasp_set(ev: _Evaluation, approach: np.ndarray, mask: np.ndarray) -> GraspSet:
+    poses, (s, k, d) = evaluation_poses(ev, approach, mask)
+    x_axis = poses[:, :3, 0]
     xy_theta = np.column_stack([poses[:, 0, 3], poses[:, 1, 3], _yaw_deg_mod_180(x_axis)])
     widths = np.nan_to_num(ev.width[s, k, d].astype(float), nan=0.0)
     return GraspSet(poses, widths, xy_theta, ev.object_index[s, k, d])
