@@ -35,8 +35,7 @@ def _wilson(k: int, n: int) -> list:
 def run(folder: str, num_scenes: int, per_scene: int) -> dict:
     from tqdm import tqdm
 
-    from drake_grasp.gpd_training import GpdDataConfig, load_data
-    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
+    from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes, load_data
     from drake_grasp.lab import check_grasp
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import Scenario
@@ -69,25 +68,19 @@ def run(folder: str, num_scenes: int, per_scene: int) -> dict:
         world = build_scene_world(spec, library, plant_config=plant_config, physics=scenario.physics)
         settled = settle_world(world, spec, speed_tol_m_s=cfg.settle_speed_tol_m_s,
                                max_time_s=cfg.settle_max_time_s)
-        meshes = scene_meshes(settled, library)
-        r2 = np.random.default_rng(0)
-        fine = sample_scene_points(meshes, r2, spacing_m=0.003)
-        coarse = sample_scene_points(meshes, r2, spacing_m=0.005)
-        check = check_grasp_poses(poses[pick], fine, collision_points=coarse,
-                                  mu=cfg.friction_coefficient,
-                                  objects=ObjectMasses.of_scene(settled, library),
-                                  max_torque_ratio=cfg.max_torque_ratio)
+        passes, obj = ground_truth_passes(settled, library, poses[pick],
+                                          np.random.default_rng(0), cfg)
         for j, i in enumerate(pick):
             # The object between the pads (the re-check's surface samples differ from the
             # label's, so a borderline label may flip there: recorded, not filtered).
-            if check.object_index[j] < 0:
+            if obj[j] < 0:
                 rows.append(dict(scene=st["scene"], tilt_deg=float(tilt[i]), skipped=True))
                 continue
             res = check_grasp(None, poses[i], scene=settled, scenario=scenario, library=library,
-                              object_index=int(check.object_index[j]), neighbours=True)
+                              object_index=int(obj[j]), neighbours=True)
             rows.append(dict(scene=st["scene"], kind=st["kind"], tilt_deg=float(tilt[i]),
                              held=bool(res.held), failure=res.failure, skipped=False,
-                             recheck_valid=bool(check.valid[j])))
+                             recheck_valid=bool(passes[j] == 1)))
     out = {}
     for name, sel in (("vertical (< 5 deg)", lambda r: r["tilt_deg"] < 5.0),
                       ("tilted (>= 10 deg)", lambda r: r["tilt_deg"] >= 10.0),

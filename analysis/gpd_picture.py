@@ -23,11 +23,9 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     from drake_grasp import gpd
-    from drake_grasp.gpd_training import _render_view, view_pose
+    from drake_grasp.gpd_training import experiment_view
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
-    from drake_grasp.station import make_depth_camera
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed", type=int, default=3)
@@ -37,11 +35,7 @@ def main(argv=None) -> int:
     fig, axes = plt.subplots(2, 2, figsize=(11, 10))
     for row, name in enumerate(("isolation", "clutter")):
         scenario = load_scenario(scenario_name=name)
-        spec = sample_scene(dataclasses.replace(scenario.scene, split="test"), args.seed, library)
-        world = build_scene_world(spec, library, renderer_name="vtk", physics=scenario.physics)
-        settled = settle_world(world, spec)
-        X_WC = view_pose(settled.center_xy_m, scenario.gpd.view_camera_height_m)
-        depth = _render_view(world, make_depth_camera(scenario.gpd), X_WC)
+        settled, X_WC, depth = experiment_view(scenario, args.seed, library)
         detector = gpd.make_detector(dataclasses.replace(scenario, seed=args.seed)).detector
         rng = np.random.default_rng([args.seed, 59])
         cloud = gpd.cloud_from_depth(depth, fov_y_deg=scenario.gpd.fov_y_deg, X_WC=X_WC,

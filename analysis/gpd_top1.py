@@ -24,13 +24,10 @@ import numpy as np
 def run(num_scenes: int, seed: int, weights: str = "", selection=None, physics: bool = True) -> dict:
     from drake_grasp import gpd
     from drake_grasp.dataset import scene_seed
-    from drake_grasp.gpd_training import GpdDataConfig, _render_view, view_pose
-    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
+    from drake_grasp.gpd_training import GpdDataConfig, experiment_view, ground_truth_passes
     from drake_grasp.lab import check_grasp
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
-    from drake_grasp.station import make_depth_camera
 
     library = load_library(None)
     data_cfg = GpdDataConfig()
@@ -41,11 +38,7 @@ def run(num_scenes: int, seed: int, weights: str = "", selection=None, physics: 
         scenario = load_scenario(scenario_name={"isolation": "isolation", "random": "random",
                                                 "clutter": "clutter"}[kind])
         s_seed = scene_seed(seed, i)
-        spec = sample_scene(dataclasses.replace(scenario.scene, split="test"), s_seed, library)
-        world = build_scene_world(spec, library, renderer_name="vtk", physics=scenario.physics)
-        settled = settle_world(world, spec)
-        X_WC = view_pose(settled.center_xy_m, scenario.gpd.view_camera_height_m)
-        depth = _render_view(world, make_depth_camera(scenario.gpd), X_WC)
+        settled, X_WC, depth = experiment_view(scenario, s_seed, library)
         detector = gpd.make_detector(dataclasses.replace(scenario, seed=s_seed), classifier=model).detector
         if selection is not None:
             detector.selection = selection
@@ -56,23 +49,16 @@ def run(num_scenes: int, seed: int, weights: str = "", selection=None, physics: 
                    detected=len(found.poses) > 0, seconds=seconds,
                    candidates=found.num_candidates)
         if found.poses.shape[0]:
-            meshes = scene_meshes(settled, library)
-            rng = np.random.default_rng(0)
-            fine = sample_scene_points(meshes, rng, spacing_m=0.003)
-            coarse = sample_scene_points(meshes, rng, spacing_m=0.005)
-            check = check_grasp_poses(found.poses[:1], fine, collision_points=coarse,
-                                      mu=data_cfg.friction_coefficient,
-                                      objects=ObjectMasses.of_scene(settled, library),
-                                      max_torque_ratio=data_cfg.max_torque_ratio)
-            row.update(true_grasp=bool(check.valid[0]), probability=float(found.probabilities[0]),
+            passes, obj = ground_truth_passes(settled, library, found.poses[:1],
+                                              np.random.default_rng(0), data_cfg)
+            row.update(true_grasp=bool(passes[0] == 1), probability=float(found.probabilities[0]),
                        tilt_deg=float(np.degrees(np.arccos(-found.poses[0, 2, 2]))))
             if physics:
                 # Executed in the grasp lab with the neighbours present; pads on no single
                 # object: the grasp cannot hold anything (counted as not held).
-                obj = int(check.object_index[0])
-                if obj >= 0:
+                if obj[0] >= 0:
                     res = check_grasp(None, found.poses[0], scene=settled, scenario=scenario,
-                                      library=library, object_index=obj, neighbours=True)
+                                      library=library, object_index=int(obj[0]), neighbours=True)
                     row.update(held=bool(res.held), lab_failure=res.failure)
                 else:
                     row.update(held=False, lab_failure="no single object between the pads")

@@ -313,11 +313,9 @@ def bench_gpd_detect(repeats: int = 3) -> dict:
     import torch
 
     from drake_grasp import gpd
-    from drake_grasp.gpd_training import _render_view, view_pose
+    from drake_grasp.gpd_training import experiment_view
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
-    from drake_grasp.station import make_depth_camera
 
     library = load_library(None)
     threads = torch.get_num_threads()
@@ -326,11 +324,7 @@ def bench_gpd_detect(repeats: int = 3) -> dict:
     try:
         for key, name in (("isolation", "isolation"), ("clutter5", "clutter")):
             scenario = load_scenario(scenario_name=name)
-            spec = sample_scene(dataclasses.replace(scenario.scene, split="test"), BENCH_SEED, library)
-            world = build_scene_world(spec, library, renderer_name="vtk", physics=scenario.physics)
-            settled = settle_world(world, spec)
-            X_WC = view_pose(settled.center_xy_m, scenario.gpd.view_camera_height_m)
-            depth = _render_view(world, make_depth_camera(scenario.gpd), X_WC)
+            settled, X_WC, depth = experiment_view(scenario, BENCH_SEED, library)
             detect = gpd.make_detector(dataclasses.replace(scenario, seed=BENCH_SEED))
             times, runs = [], []
             for _ in range(repeats):

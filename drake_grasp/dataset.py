@@ -702,6 +702,18 @@ def _check_existing_shards(out: Path, *, chash: str, num_scenes: int, scenes_per
     return todo
 
 
+def check_generate_args(*, split: str, num_scenes: int) -> None:
+    """The split and scene count of a generator (this dataset's and GPD's).
+
+    Raises:
+        ValueError: naming the flag and what was expected.
+    """
+    if split not in ("train", "test"):
+        raise ValueError(f"--split: expected train or test, got {split!r}")
+    if num_scenes < 1:
+        raise ValueError(f"--scenes: expected >= 1, got {num_scenes}")
+
+
 def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
                      scenario, config: DatasetConfig | None = None, workers: int = 1,
                      scheduler: str | None = None, objects_dir: str | None = None,
@@ -728,10 +740,7 @@ def generate_dataset(*, out: str | Path, num_scenes: int, split: str, seed: int,
 
     config = config or DatasetConfig()
     config.validate()
-    if split not in ("train", "test"):
-        raise ValueError(f"--split: expected train or test, got {split!r}")
-    if num_scenes < 1:
-        raise ValueError(f"--scenes: expected >= 1, got {num_scenes}")
+    check_generate_args(split=split, num_scenes=num_scenes)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = _config_dict(scenario, config, split, seed)

@@ -83,13 +83,53 @@ def view_pose(center_xy, camera_height_m: float, yaw_rad: float = 0.0) -> np.nda
     return X
 
 
+def ground_truth_passes(settled, library, poses, rng: np.random.Generator,
+                        config: GpdDataConfig, *, samplings: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The labelling check of GPD candidates: on how many of `samplings` independent
+    surface samplings of the true objects each pose passes the ground truth
+    (`grasps.check_grasp_poses` with `config`'s friction and torque limits), and the
+    object between its pads (index into the scene's objects, -1: none) from the first
+    sampling that finds one. No pose: nothing is drawn from `rng`."""
+    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
+
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    passes = np.zeros(len(poses), dtype=np.int64)
+    obj = np.full(len(poses), -1, dtype=np.int64)
+    if len(poses) == 0:
+        return passes, obj
+    meshes = scene_meshes(settled, library)
+    masses = ObjectMasses.of_scene(settled, library)
+    for _ in range(samplings):
+        fine = sample_scene_points(meshes, rng, spacing_m=0.003)
+        coarse = sample_scene_points(meshes, rng, spacing_m=0.005)
+        check = check_grasp_poses(poses, fine, collision_points=coarse,
+                                  mu=config.friction_coefficient, objects=masses,
+                                  max_torque_ratio=config.max_torque_ratio)
+        passes += check.valid
+        obj = np.where(obj < 0, check.object_index, obj)
+    return passes, obj
+
+
+def experiment_view(scenario, seed: int, library, *, split: str = "test"):
+    """A scene of `scenario`'s kind (object `split`), settled as the episodes settle it,
+    and the GPD sensor's image from the experiments' viewpoint (over the scene centre,
+    `gpd.view_camera_height_m`, yaw 0): (settled spec, X_WC, depth)."""
+    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+    from drake_grasp.station import make_depth_camera
+
+    spec = sample_scene(dataclasses.replace(scenario.scene, split=split), seed, library)
+    world = build_scene_world(spec, library, renderer_name="vtk", physics=scenario.physics)
+    settled = settle_world(world, spec)
+    X_WC = view_pose(settled.center_xy_m, scenario.gpd.view_camera_height_m)
+    return settled, X_WC, _render_view(world, make_depth_camera(scenario.gpd), X_WC)
+
+
 def generate_scene(index: int, *, seed: int, split: str, scenario, config: GpdDataConfig,
                    library) -> dict:
     """One scene's labelled candidates (see the module docstring)."""
     import copy
 
     from drake_grasp.dataset import scene_seed
-    from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
     from drake_grasp.scene import build_scene_world, sample_scene, settle_world
     from drake_grasp.sensing import apply_depth_noise
     from drake_grasp.station import make_depth_camera
@@ -124,22 +164,12 @@ def generate_scene(index: int, *, seed: int, split: str, scenario, config: GpdDa
                                  depth_min_m=g.depth_min_m, depth_max_m=g.depth_max_m,
                                  center_xy=(cx, cy))
     hands = gpd.sample_hands(cloud, rng, gpd.HandSearch(approach_max_tilt_deg=g.approach_max_tilt_deg))
-    meshes = scene_meshes(settled, library)
-    masses = ObjectMasses.of_scene(settled, library)
     # The ground truth on `label_samplings` independent surface samplings: a candidate
     # near a threshold (width, friction cone, torque) can pass on one and fail on another;
     # it is a positive only when it passes on all, a negative only when it fails on all,
     # and otherwise left out (`drop_ambiguous`) or counted negative.
-    passes = np.zeros(len(hands), dtype=np.int64)
-    obj = np.full(len(hands), -1, dtype=np.int64)
-    for _ in range(config.label_samplings if len(hands) else 0):
-        fine = sample_scene_points(meshes, rng, spacing_m=0.003)
-        coarse = sample_scene_points(meshes, rng, spacing_m=0.005)
-        check = check_grasp_poses(hands.poses, fine, collision_points=coarse,
-                                  mu=config.friction_coefficient, objects=masses,
-                                  max_torque_ratio=config.max_torque_ratio)
-        passes += check.valid
-        obj = np.where(obj < 0, check.object_index, obj)
+    passes, obj = ground_truth_passes(settled, library, hands.poses, rng, config,
+                                      samplings=config.label_samplings)
     valid = passes == config.label_samplings
     ambiguous = (passes > 0) & ~valid
     usable = ~ambiguous if config.drop_ambiguous else np.ones(len(hands), dtype=bool)
@@ -214,15 +244,12 @@ def generate(*, out: str | Path, num_scenes: int, split: str, seed: int, scenari
     """
     from tqdm import tqdm
 
-    from drake_grasp.dataset import GenerateLock
+    from drake_grasp.dataset import GenerateLock, check_generate_args
     from drake_grasp.provenance import code_version
     from drake_grasp.scenario import dump_scenario
 
     config = config or GpdDataConfig()
-    if split not in ("train", "test"):
-        raise ValueError(f"--split: expected train or test, got {split!r}")
-    if num_scenes < 1:
-        raise ValueError(f"--scenes: expected >= 1, got {num_scenes}")
+    check_generate_args(split=split, num_scenes=num_scenes)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario_yaml = dump_scenario(scenario)
