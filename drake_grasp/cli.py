@@ -127,9 +127,12 @@ def _cmd_inspect_data(args) -> int:
 def _cmd_train(args) -> int:
     from drake_grasp.training import TrainConfig, train
 
-    config = TrainConfig(epochs=args.epochs, batch_instances=args.batch, learning_rate=args.lr,
-                         momentum=args.momentum, seed=args.seed, device=args.device,
-                         threads=args.threads, max_memory_gb=args.max_memory_gb)
+    config = TrainConfig.from_recipe(
+        args.recipe, epochs=args.epochs, batch_instances=args.batch, optimizer=args.optimizer,
+        learning_rate=args.lr, momentum=args.momentum, lr_decay_per_epoch=args.lr_decay,
+        seed=args.seed, device=args.device, threads=args.threads,
+        max_memory_gb=args.max_memory_gb, checkpoint_minutes=args.checkpoint_minutes,
+        ranking_images=args.ranking_images)
     metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
                       "device": metrics["device"], "out": str(args.out)}))
@@ -329,17 +332,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="which images (default 0)")
     p.set_defaults(func=_cmd_inspect_data)
 
-    p = sub.add_parser("train", help="train the distance CNN (L1, SGD); re-running resumes")
+    p = sub.add_parser("train", help="train the distance CNN (L1 loss); re-running resumes")
     p.add_argument("--data", required=True,
                    help="train-split dataset folder, or a folder holding train/ and test/")
     p.add_argument("--test-data", default=None,
                    help="test-split dataset folder (held-out object instances)")
     p.add_argument("--out", required=True, help="output folder (checkpoints, metrics, weights)")
     p.add_argument("--epochs", type=int, default=10, help="epochs (default 10)")
-    p.add_argument("--batch", type=int, default=1000,
-                   help="instances (image, offset, label) per batch (paper: 1000)")
-    p.add_argument("--lr", type=float, default=0.001, help="SGD learning rate (paper: 0.001)")
-    p.add_argument("--momentum", type=float, default=0.9, help="SGD momentum (paper: 0.9)")
+    p.add_argument("--recipe", choices=["fast", "paper"], default="fast",
+                   help="fast (default): Adam, lr 0.001 decaying x0.7 per epoch; paper: SGD "
+                        "lr 0.001, momentum 0.9, constant. The flags below override it")
+    p.add_argument("--optimizer", choices=["sgd", "adam"], default=None,
+                   help="optimizer (default: the recipe's)")
+    p.add_argument("--batch", type=int, default=None,
+                   help="instances (image, offset, label) per batch (both recipes and the "
+                        "paper: 1000)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="learning rate of the first epoch (both recipes: 0.001)")
+    p.add_argument("--lr-decay", type=float, default=None,
+                   help="learning-rate factor per epoch, in (0, 1] (fast: 0.7, paper: 1)")
+    p.add_argument("--momentum", type=float, default=None,
+                   help="SGD momentum (paper: 0.9); Adam ignores it")
+    p.add_argument("--checkpoint-minutes", type=float, default=None,
+                   help="checkpoint at least this often within an epoch (default 5); a "
+                        "killed run resumes from it with the batches still to come. May "
+                        "differ when resuming")
+    p.add_argument("--ranking-images", type=int, default=None,
+                   help="held-out images for the within-image rank correlation after each "
+                        "epoch (default 200; 0: none)")
     p.add_argument("--seed", type=int, default=0, help="initial weights and shuffling seed")
     p.add_argument("--device", default="auto",
                    help="auto (GPU when present), cpu or cuda; may differ when resuming "

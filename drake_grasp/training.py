@@ -1,5 +1,7 @@
-"""Training of the distance CNN (the paper: L1 loss, SGD lr 0.001, momentum 0.9, batches
-of 1000 instances), resumable after a kill.
+"""Training of the distance CNN with the L1 loss, resumable after a kill.
+
+Two recipes (`RECIPES`): `paper`, the paper's SGD (lr 0.001, momentum 0.9, batches of 1000
+instances, a constant rate), and `fast`, the default: Adam with a per-epoch decaying rate.
 
 An instance is one (image, offset, label) triple. A batch of 1000 instances is 100 images
 with their 10 labelled offsets each, which the factored fast path scores with one image
@@ -21,9 +23,13 @@ on a machine without one.
 
 Output folder:
 
-    checkpoint.pt        model + optimizer + epoch + RNG state after the last finished
-                         epoch (torch.save; loaded with weights_only=True)
-    metrics.json         per-epoch train/test L1 [m], timing, device, and the final test_l1_m
+    checkpoint.pt        model + optimizer + RNG state after the last finished epoch, or
+                         within an epoch (every `checkpoint_minutes`: the batches still to
+                         come are those an unbroken run would take); torch.save, loaded
+                         with weights_only=True
+    metrics.json         per-epoch train/test L1 [m], the within-image ranking metrics on
+                         the test set (`cnn_metrics`), learning rate, timing, device, and
+                         the final test_l1_m
     learning_curves.png  train and test L1 per epoch
     weights.safetensors  final weights with metadata (network.save_weights)
     train_config.json    the resolved training configuration
@@ -43,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drake_grasp.cnn_metrics import ranking_metrics
 from drake_grasp.dataset import GenerateLock, load_manifest, replace_durably
 from drake_grasp.native import load_llvm_users_first
 from drake_grasp.network import DistanceCNN, NetworkConfig, save_weights
@@ -50,31 +57,71 @@ from drake_grasp.provenance import code_version
 
 # Settings that say where and how fast a run computes, not what it computes: they may
 # change when a run is resumed (with `epochs`, which may grow).
-NOT_IDENTITY = ("epochs", "device", "threads", "max_memory_gb")
+NOT_IDENTITY = ("epochs", "device", "threads", "max_memory_gb", "checkpoint_minutes",
+                "ranking_images")
+
+OPTIMIZERS = ("sgd", "adam")
+
+# Named recipes. `paper`: the paper's SGD (lr 0.001, momentum 0.9, batches of 1000), a
+# constant rate, for its 900k iterations. `fast` (the default): Adam with a rate that
+# decays per epoch, for the few epochs a CPU affords; compared with `paper` side by side
+# on the same data in models/cnn/README.md.
+RECIPES = {
+    "paper": {"optimizer": "sgd", "learning_rate": 0.001, "momentum": 0.9,
+              "lr_decay_per_epoch": 1.0, "batch_instances": 1000},
+    "fast": {"optimizer": "adam", "learning_rate": 0.001, "momentum": 0.9,
+             "lr_decay_per_epoch": 0.7, "batch_instances": 1000},
+}
 
 
 @dataclass
 class TrainConfig:
-    """Training settings (defaults from the paper where it gives them)."""
+    """Training settings; the defaults are the `fast` recipe (`RECIPES`)."""
 
     epochs: int = 10
+    recipe: str = "fast"  # the name of the recipe these settings came from (a label)
+    optimizer: str = "adam"  # "sgd" (the paper's) or "adam"
     batch_instances: int = 1000
     learning_rate: float = 0.001
-    momentum: float = 0.9
+    momentum: float = 0.9  # SGD only
+    # The rate of epoch e is learning_rate * lr_decay_per_epoch ** (e - 1).
+    lr_decay_per_epoch: float = 0.7
     seed: int = 0
     # Most memory the data loader may hold [GB]: cached HDF5 chunks of both sets plus
     # the batch being assembled. Data beyond it is streamed from the shards.
     max_memory_gb: float = 8.0
     device: str = "auto"
     threads: int = 0  # 0 = torch default
+    # A checkpoint at least this often within an epoch (and after every epoch); a killed
+    # run resumes from the last one with the same batches still to come.
+    checkpoint_minutes: float = 5.0
+    # Test images for the within-image ranking metrics after each epoch (0: none).
+    ranking_images: int = 200
+
+    @classmethod
+    def from_recipe(cls, name: str, **overrides) -> "TrainConfig":
+        """The settings of recipe `name` (`RECIPES`), with `overrides` (None = keep)."""
+        if name not in RECIPES:
+            raise ValueError(f"recipe: expected one of {sorted(RECIPES)}, got {name!r}")
+        given = {k: v for k, v in overrides.items() if v is not None}
+        return cls(**{**RECIPES[name], "recipe": name, **given})
 
     def validate(self) -> None:
         if self.epochs < 1:
             raise ValueError(f"epochs: expected >= 1, got {self.epochs}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer: expected one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.batch_instances < 1:
             raise ValueError(f"batch_instances: expected >= 1, got {self.batch_instances}")
         if self.learning_rate <= 0:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
+        if not 0 < self.lr_decay_per_epoch <= 1:
+            raise ValueError(f"lr_decay_per_epoch: expected in (0, 1], got "
+                             f"{self.lr_decay_per_epoch}")
+        if not self.checkpoint_minutes >= 0:
+            raise ValueError(f"checkpoint_minutes: expected >= 0, got {self.checkpoint_minutes}")
+        if self.ranking_images < 0:
+            raise ValueError(f"ranking_images: expected >= 0, got {self.ranking_images}")
         if not self.max_memory_gb > 0:
             raise ValueError(f"max_memory_gb: expected > 0, got {self.max_memory_gb}")
         if self.threads < 0:
@@ -321,11 +368,15 @@ def evaluate_l1(model: DistanceCNN, data: ShardSet, *, device, batch_images: int
     return total / max(count, 1)
 
 
-def _save_checkpoint(path: Path, model, optimizer, epoch: int, generator: torch.Generator,
-                     metrics: dict, config_hash: str) -> None:
+def _save_checkpoint(path: Path, model, optimizer, epoch: int, generator_state: torch.Tensor,
+                     metrics: dict, config_hash: str, in_epoch: dict | None = None) -> None:
+    """`epoch`: the last finished epoch. `in_epoch`: where an unfinished epoch stands
+    (its number, the next batch, running sums); `generator_state` is then the shuffling
+    generator's state at that epoch's start, so its order is drawn again on resume."""
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "epoch": epoch, "generator": generator.get_state(),
+                "epoch": epoch, "generator": generator_state,
+                "in_epoch_json": json.dumps(in_epoch),
                 "metrics_json": json.dumps(metrics), "config_hash": config_hash}, tmp)
     replace_durably(tmp, path)
 
@@ -352,6 +403,14 @@ def plot_learning_curves(metrics: dict, path: Path) -> None:
     ax.set_ylabel("L1 error [mm]")
     ax.set_title("distance CNN learning curves")
     ax.grid(alpha=0.3)
+    ranked = [(e["epoch"], e["ranking"]["spearman_mean"]) for e in metrics["epochs"]
+              if e.get("ranking", {}).get("images")]
+    if ranked:
+        ax2 = ax.twinx()
+        ax2.plot(*zip(*ranked), "^--", color="tab:green", label="test within-image Spearman")
+        ax2.set_ylabel("within-image rank correlation")
+        ax2.set_ylim(0, 1)
+        ax2.legend(loc="upper center")
     ax.legend()
     fig.tight_layout()
     tmp = path.with_name(path.name + ".tmp.png")
@@ -427,12 +486,15 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     # Creating an optimizer loads triton's LLVM; keep it apart from a renderer's
     # (drake_grasp.native).
     load_llvm_users_first()
-    optimizer = torch.optim.SGD(model.parameters(), lr=config.learning_rate,
-                                momentum=config.momentum)
+    if config.optimizer == "sgd":
+        optimizer = torch.optim.SGD(model.parameters(), lr=config.learning_rate,
+                                    momentum=config.momentum)
+    else:
+        optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     metrics = {"epochs": [], "num_train_images": len(train_set),
                "num_test_images": len(test_set), "num_train_labels": train_set.num_labels,
                "num_test_labels": test_set.num_labels}
-    start_epoch = 1
+    start_epoch, in_epoch = 1, None
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
@@ -444,18 +506,38 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
         generator.set_state(ckpt["generator"])
         metrics = json.loads(ckpt["metrics_json"])
         start_epoch = int(ckpt["epoch"]) + 1
+        in_epoch = json.loads(ckpt.get("in_epoch_json", "null"))
     metrics.update(device=str(device), code_version=code_version())
     (out / "train_config.json").write_text(json.dumps(located, indent=1))
 
     for epoch in range(start_epoch, config.epochs + 1):
         model.train()
-        t0 = time.perf_counter()
+        lr = config.learning_rate * config.lr_decay_per_epoch ** (epoch - 1)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        epoch_generator_state = generator.get_state()
         order = torch.randperm(len(train_set), generator=generator).numpy()
-        total, count = 0.0, 0
+        total, count, done_seconds, first_batch = 0.0, 0, 0.0, 0
+        if in_epoch is not None:  # an unfinished epoch: its order again, the rest of it
+            total, count = in_epoch["total"], in_epoch["count"]
+            done_seconds, first_batch = in_epoch["seconds"], in_epoch["next_batch"]
+            in_epoch = None
+        t0 = time.perf_counter()
+        last_save = t0
         batches = range(0, len(order), images_per_batch)
         bar = tqdm(batches, desc=f"epoch {epoch}/{config.epochs}", disable=not progress,
-                   unit="batch", dynamic_ncols=True)
-        for start in bar:
+                   unit="batch", dynamic_ncols=True, initial=first_batch, total=len(batches))
+        for b, start in enumerate(batches):
+            if b < first_batch:
+                continue
+            if time.perf_counter() - last_save >= 60 * config.checkpoint_minutes and b > 0:
+                _save_checkpoint(ckpt_path, model, optimizer, epoch - 1, epoch_generator_state,
+                                 metrics, config_hash, in_epoch={
+                                     "epoch": epoch, "next_batch": b, "total": total,
+                                     "count": count,
+                                     "seconds": done_seconds + time.perf_counter() - t0})
+                last_save = time.perf_counter()
+            bar.update(1)
             idx = np.sort(order[start:start + images_per_batch])
             depth, offsets, labels = train_set.gather(idx)
             images = model.preprocess(depth).to(device)
@@ -470,11 +552,17 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
             count += targets.numel()
             del images, actions, targets, loss
             bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
-        train_seconds = time.perf_counter() - t0
+        bar.close()
+        train_seconds = done_seconds + time.perf_counter() - t0
         test_l1 = evaluate_l1(model, test_set, device=device, batch_images=images_per_batch)
+        ranking = {}
+        if config.ranking_images:
+            ranking = ranking_metrics(model, test_dir, images=config.ranking_images,
+                                      seed=config.seed, device=device)
         metrics["epochs"].append({"epoch": epoch, "train_l1_m": total / max(count, 1),
                                   "test_l1_m": test_l1, "seconds": train_seconds,
-                                  "samples_per_s": count / train_seconds,
+                                  "samples_per_s": count / train_seconds, "learning_rate": lr,
+                                  "iterations": epoch * len(batches), "ranking": ranking,
                                   "device": str(device), "chunk_loads": cache.loads})
         metrics["test_l1_m"] = test_l1
         # What the data loader held (bytes); depends on --max-memory-gb, not the result.
@@ -485,7 +573,8 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
                              "dataset_bytes": (len(train_set) + len(test_set))
                              * train_set.bytes_per_image,
                              "chunk_loads": cache.loads}
-        _save_checkpoint(ckpt_path, model, optimizer, epoch, generator, metrics, config_hash)
+        _save_checkpoint(ckpt_path, model, optimizer, epoch, generator.get_state(), metrics,
+                         config_hash)
         tmp = out / f"metrics.json.{os.getpid()}.tmp"
         tmp.write_text(json.dumps(metrics, indent=1))
         replace_durably(tmp, out / "metrics.json")

@@ -77,6 +77,8 @@ def test_shards_hold_the_paper_format(reference):
         assert spec["seed"] == scene_seed(5, i, attempt)
     with h5py.File(out / "shard-00000.h5") as f:
         assert f["depth"].compression == "gzip" and f["depth"].chunks is not None
+        assert f["depth"].dtype == np.float16 and f.attrs["format_version"] == 3
+    assert item["depth"].dtype == np.float32  # readers convert
     assert not (out / "generate.lock").exists()
 
 
@@ -330,3 +332,53 @@ def test_same_dataset_on_a_dask_local_cluster(reference, tmp_path):
     a, b = DepthGraspDataset(out), DepthGraspDataset(tmp_path / "dask")
     for i in range(len(a)):
         np.testing.assert_array_equal(a[i]["labels"], b[i]["labels"])
+
+
+def test_the_ranking_metrics_true_distances_are_the_datasets_own_labels(reference):
+    """cnn_metrics labels new candidates with the shard's grasps and the dataset's label
+    function: on the stored offsets that gives the stored labels back."""
+    from drake_grasp.actions import apply_actions
+    from drake_grasp.grasps import distance_to_nearest_grasp
+
+    out, manifest = reference
+    data = DepthGraspDataset(out)
+    assert len(data) == manifest["num_images"] == 9
+    for i in range(len(data)):
+        rec = data.image_record(i)
+        hand = np.asarray(rec["hand_pose"], float)[[0, 1, 3]]
+        moved = apply_actions(hand[None], rec["offsets"][None].astype(float))[0]
+        np.testing.assert_allclose(distance_to_nearest_grasp(moved, rec["grasp_xy_theta"]),
+                                   rec["labels"], rtol=1e-6, atol=1e-6)
+
+
+def test_ranking_metrics_on_a_generated_set(reference):
+    import torch
+
+    from drake_grasp.cnn_metrics import ranking_metrics
+    from drake_grasp.network import DistanceCNN, NetworkConfig
+
+    model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(0))
+    out, _ = reference
+    a = ranking_metrics(model, out, images=6, candidates=32, seed=4)
+    assert a == ranking_metrics(model, out, images=6, candidates=32, seed=4)  # seeded
+    assert a["images"] == 6 and a["candidates"] == 32
+    assert -1 <= a["spearman_mean"] <= 1 and a["regret_mean_m"] >= 0
+    assert 0 <= a["top1_within_1cm"] <= 1 and a["l1_m"] > 0
+    with pytest.raises(ValueError, match="candidates: expected >= 2"):
+        ranking_metrics(model, out, candidates=1)
+
+
+def test_spearman_matches_scipy_and_is_nan_without_an_order():
+    from scipy.stats import spearmanr
+
+    from drake_grasp.cnn_metrics import spearman
+
+    rng = np.random.default_rng(0)
+    a, b = rng.random((5, 20)), rng.random((5, 20))
+    b[0] = a[0] * 3 + 1  # same order: 1
+    b[1, :10] = b[1, 10:]  # ties
+    rho = spearman(a, b)
+    assert rho[0] == pytest.approx(1.0)
+    for k in range(5):
+        assert rho[k] == pytest.approx(spearmanr(a[k], b[k]).statistic)
+    assert np.isnan(spearman(np.ones((1, 4)), a[:1, :4]))[0]

@@ -43,8 +43,12 @@ def data(tmp_path_factory):
     return root
 
 
-def _config(epochs):
-    return TrainConfig(epochs=epochs, batch_instances=80, learning_rate=0.02, seed=3, threads=2)
+def _config(epochs, recipe="paper", **kw):
+    """The paper's SGD (or `recipe`) on the tiny synthetic task; no ranking metrics (the
+    synthetic scenes have no grasps)."""
+    return TrainConfig.from_recipe(recipe, epochs=epochs, batch_instances=80,
+                                   learning_rate=kw.pop("learning_rate", 0.02), seed=3,
+                                   threads=2, ranking_images=0, **kw)
 
 
 def test_training_reduces_the_l1_loss(data, tmp_path):
@@ -69,6 +73,57 @@ def test_resume_continues_from_the_saved_epoch(data, tmp_path):
     assert [e["epoch"] for e in resumed["epochs"]] == [1, 2, 3, 4]
     # Same seed, same batches: resuming gives the run an uninterrupted one gives.
     assert resumed["test_l1_m"] == pytest.approx(straight["test_l1_m"], rel=1e-5)
+
+
+def test_the_fast_recipe_reduces_the_l1_loss(data, tmp_path):
+    config = _config(6, recipe="fast", learning_rate=0.001)
+    assert config.optimizer == "adam" and config.lr_decay_per_epoch < 1
+    metrics = train(data=data, out=tmp_path / "run", config=config, progress=False)
+    first, last = metrics["epochs"][0], metrics["epochs"][-1]
+    assert last["train_l1_m"] < 0.6 * first["train_l1_m"], (first, last)
+    rates = [e["learning_rate"] for e in metrics["epochs"]]
+    assert rates == pytest.approx([0.001 * 0.7 ** k for k in range(6)])
+
+
+def test_a_run_killed_within_an_epoch_resumes_to_the_uninterrupted_weights(
+        data, tmp_path, monkeypatch):
+    """Checkpoints within epochs (here before every batch): a run stopped right after
+    the 3rd one of epoch 2, resumes mid-epoch and ends with the weights, bit for bit,
+    of a run that was never stopped."""
+    from safetensors.torch import load_file
+
+    from drake_grasp import training
+
+    config = _config(3, recipe="fast", learning_rate=0.001, checkpoint_minutes=0.0)
+    train(data=data, out=tmp_path / "straight", config=config, progress=False)
+
+    save = training._save_checkpoint
+    calls = []
+
+    def save_then_stop(*args, **kw):
+        save(*args, **kw)
+        if kw.get("in_epoch") is not None:
+            calls.append(kw["in_epoch"])
+            if len(calls) == 8:  # 5 mid-epoch saves in epoch 1 (6 batches), 3 in epoch 2
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(training, "_save_checkpoint", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train(data=data, out=tmp_path / "killed", config=config, progress=False)
+    monkeypatch.setattr(training, "_save_checkpoint", save)
+    assert calls[-1]["epoch"] == 2 and calls[-1]["next_batch"] == 3
+    ckpt = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
+    assert ckpt["epoch"] == 1
+    resumed = train(data=data, out=tmp_path / "killed", config=config, progress=False)
+    assert [e["epoch"] for e in resumed["epochs"]] == [1, 2, 3]
+    a = load_file(tmp_path / "straight" / "weights.safetensors")
+    b = load_file(tmp_path / "killed" / "weights.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_unknown_recipe_is_refused():
+    with pytest.raises(ValueError, match="recipe: expected one of"):
+        TrainConfig.from_recipe("papr")
 
 
 def test_other_data_in_the_same_out_is_refused(data, tmp_path):
