@@ -8,6 +8,24 @@ import sys
 from pathlib import Path
 
 
+def _policy_arg(text: str) -> str:
+    """--policy: a built-in policy name or MODULE:FACTORY (a user policy)."""
+    from drake_grasp.plugins import is_policy_spec, parse_policy_spec
+    from drake_grasp.scenario import POLICIES
+
+    if text in POLICIES:
+        return text
+    if not is_policy_spec(text):
+        raise argparse.ArgumentTypeError(
+            f"invalid choice: {text!r} (choose from {', '.join(POLICIES)}, or MODULE:FACTORY "
+            "for your own policy)")
+    try:
+        parse_policy_spec(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
 def _add_scenario_flags(p: argparse.ArgumentParser, default: str = "isolation") -> None:
     p.add_argument("--scenario-file", default=None,
                    help="a *.scenarios.yaml file (default: the shipped diagrams/default.scenarios.yaml)")
@@ -258,17 +276,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run one grasp episode and write episode.json, "
                                     "replay.html and depth.png")
     _add_scenario_flags(p)
-    p.add_argument("--policy", default=None,
-                   choices=["ctr", "gpd", "gpd-geometric", "cnn-only", "cnn-ctr", "init",
-                            "scripted"],
+    p.add_argument("--policy", default=None, type=_policy_arg,
+                   metavar="{ctr,gpd,gpd-geometric,cnn-only,cnn-ctr,init,scripted,MODULE:FACTORY}",
                    help="ctr: the paper's closed-loop controller (shipped CNN); gpd: the "
                         "paper's baseline: learned GPD on one image from the Structure-IO-like "
                         "sensor at a fixed viewpoint, a 6-DOF grasp executed open loop; "
                         "gpd-geometric: the older hand-tuned geometric score on the 64x64 "
                         "wrist image at the start, top-down, open loop; cnn-only: the CNN's "
                         "global best action, open loop; cnn-ctr: cnn-only then ctr; init: no "
-                        "motion; scripted: grasp from above using the true object pose "
-                        "(default: the scenario's policy)")
+                        "motion; scripted: grasp from above using the true object pose; "
+                        "MODULE:FACTORY: your own policy, FACTORY(scenario) -> LeafSystem "
+                        "from a module on sys.path or MODULE.py in the current folder "
+                        "(README 'Bring your own policy'; e.g. centroid_policy:make_policy "
+                        "from examples/) (default: the scenario's policy)")
     p.add_argument("--noise", default=None, choices=["none", "gaussian", "offset"],
                    help="kinematic noise on commanded displacements (default: the scenario's)")
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
@@ -340,7 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (checkpoints, metrics, weights)")
     p.add_argument("--epochs", type=int, default=10, help="epochs (default 10)")
     p.add_argument("--recipe", choices=["fast", "paper"], default="fast",
-                   help="fast (default): Adam, lr 0.001 decaying x0.7 per epoch; paper: SGD "
+                   help="fast (default): Adam, lr 0.0001 decaying x0.8 per epoch; paper: SGD "
                         "lr 0.001, momentum 0.9, constant. The flags below override it")
     p.add_argument("--optimizer", choices=["sgd", "adam"], default=None,
                    help="optimizer (default: the recipe's)")
@@ -348,9 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instances (image, offset, label) per batch (both recipes and the "
                         "paper: 1000)")
     p.add_argument("--lr", type=float, default=None,
-                   help="learning rate of the first epoch (both recipes: 0.001)")
+                   help="learning rate of the first epoch (fast: 0.0001, paper: 0.001)")
     p.add_argument("--lr-decay", type=float, default=None,
-                   help="learning-rate factor per epoch, in (0, 1] (fast: 0.7, paper: 1)")
+                   help="learning-rate factor per epoch, in (0, 1] (fast: 0.8, paper: 1)")
     p.add_argument("--momentum", type=float, default=None,
                    help="SGD momentum (paper: 0.9); Adam ignores it")
     p.add_argument("--checkpoint-minutes", type=float, default=None,
@@ -420,7 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--objects", default=None, metavar="DIR",
                    help="object library folder (default: built-in objects)")
     p.add_argument("--conditions", default="",
-                   help="comma-separated subset of the experiment's conditions (default: all)")
+                   help="comma-separated subset of the experiment's conditions (default: "
+                        "all); an entry MODULE:FACTORY adds your own policy as a condition "
+                        "on the same seeds, e.g. ctr,centroid_policy:make_policy")
     p.add_argument("--force-new", action="store_true",
                    help="when --out holds a different run (another experiment, seed, object "
                         "library, resolved scenario, CNN weights or code version: without "

@@ -14,6 +14,7 @@ import numpy as np
 
 from drake_grasp import __version__
 from drake_grasp.objects import ObjectLibrary, load_library, visual_mesh
+from drake_grasp.plugins import is_policy_spec
 from drake_grasp.results import classify_failure
 from drake_grasp.scenario import Scenario, dump_scenario
 from drake_grasp.scene import SceneSpec, make_scene
@@ -134,13 +135,19 @@ class EpisodeDiagram:
 
     diagram: object
     station: object
-    policy: object  # ScriptedGraspSupervisor or GraspController
+    # What the runner asks for the phase (`is_done`, `mode_name`, `outcome`): the
+    # ScriptedGraspSupervisor, the GraspController, or for a user policy the harness's
+    # GraspMotionMonitor watching it.
+    policy: object
     target: int | None  # scene index of the scripted/target object
     judge: object = None  # GraspJudge
     visualizer: object = None
     disturbance: object = None
     sampler: object = None
     decision_timer: object = None  # DecisionTimer of the policy's computations
+    user_policy: object = None  # a user policy's system (`drake_grasp.plugins`), else None
+    # The input ports a user policy declared (what it sees); None for built-in policies.
+    user_policy_inputs: list | None = None
 
 
 class DecisionTimer:
@@ -207,6 +214,11 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     SheetDisturbance moving the sheet. The GraspJudge watches the station's contact
     results and body poses and reads the policy's `control_status`.
 
+    A user policy (`policy: MODULE:FACTORY`, `drake_grasp.plugins`) is built by its
+    factory, named "user_policy", connected by port name to the sensors it declares, and
+    watched by the harness's GraspMotionMonitor ("motion_monitor"), which gives the judge
+    the motion phase.
+
     `detect_fn` replaces the gpd / gpd-geometric policy's detector (same signature as
     the controller's `detect_fn`), e.g. a stand-in in tests.
     """
@@ -234,12 +246,16 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
         _hold_sheet(builder, sd)
         builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
         out.target = target
+    elif is_policy_spec(scenario.policy):
+        policy = _add_user_policy(builder, scenario, station, out)
     else:
         out.target, policy = _add_controller(builder, scenario, scene, library, station, model,
                                              out, detect_fn)
-    builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
-    builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
-    builder.Connect(policy.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
+    if out.user_policy is None:
+        builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
+        builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
+        builder.Connect(policy.GetOutputPort("gripper_command"),
+                        sd.GetInputPort("gripper_command"))
     out.policy = policy
     out.judge = _add_judge(builder, scenario, scene, library, station, policy)
     if meshcat is not None:
@@ -284,9 +300,66 @@ def _hold_sheet(builder, station_diagram) -> None:
     builder.Connect(hold.get_output_port(), station_diagram.GetInputPort("sheet_desired_state"))
 
 
+def _drive_sheet(builder, scenario, station_diagram, control_status_port, period_s):
+    """The sheet's desired state: held still ("sheet_hold"), or moved by the
+    SheetDisturbance ("sheet_disturbance") that reads `control_status_port`. Returns the
+    disturbance system or None."""
+    from drake_grasp.systems.disturbance import SheetDisturbance
+
+    if scenario.disturbance.kind == "none":
+        _hold_sheet(builder, station_diagram)
+        return None
+    disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(
+        scenario.disturbance, seed=scenario.seed, period_s=period_s))
+    builder.Connect(control_status_port, disturbance.GetInputPort("control_status"))
+    builder.Connect(disturbance.GetOutputPort("sheet_desired_state"),
+                    station_diagram.GetInputPort("sheet_desired_state"))
+    return disturbance
+
+
+def _add_user_policy(builder, scenario, station, out):
+    """A user policy (`drake_grasp.plugins`): its system ("user_policy") connected by port
+    name to the sensors it declares, its commands to the station, and the harness's
+    GraspMotionMonitor ("motion_monitor") deriving the motion phase from them. Returns the
+    monitor (what the runner and the judge read)."""
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
+
+    from drake_grasp.plugins import make_policy_system
+    from drake_grasp.systems.monitor import GraspMotionMonitor
+
+    sd = station.diagram
+    user = builder.AddNamedSystem("user_policy", make_policy_system(scenario.policy, scenario))
+    monitor = builder.AddNamedSystem("motion_monitor", GraspMotionMonitor(scenario=scenario))
+    inputs = [user.get_input_port(i).get_name() for i in range(user.num_input_ports())]
+    constants = {"X_WG_start": station.X_WG_start, "X_GC": station.X_GC}
+    for name in inputs:
+        if name in ("depth_image", "gpd_depth_image", "gripper_state"):
+            builder.Connect(sd.GetOutputPort(name), user.GetInputPort(name))
+        elif name == "motion_status":
+            builder.Connect(monitor.GetOutputPort("motion_status"), user.GetInputPort(name))
+        else:  # X_WG_start, X_GC (check_policy_system allows nothing else)
+            source = builder.AddNamedSystem(f"user_policy_{name}", ConstantValueSource(
+                AbstractValue.Make(constants[name])))
+            builder.Connect(source.get_output_port(), user.GetInputPort(name))
+    builder.Connect(user.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
+    builder.Connect(user.GetOutputPort("gripper_command"), sd.GetInputPort("gripper_command"))
+    builder.Connect(user.GetOutputPort("gripper_command"), monitor.GetInputPort("gripper_command"))
+    builder.Connect(sd.GetOutputPort("gripper_state"), monitor.GetInputPort("gripper_state"))
+    if user.HasOutputPort("descending"):
+        builder.Connect(user.GetOutputPort("descending"), monitor.GetInputPort("descending"))
+    else:  # no announcement: the whole approach is judged as the descent
+        always = builder.AddNamedSystem("user_policy_descending", ConstantVectorSource([1.0]))
+        builder.Connect(always.get_output_port(), monitor.GetInputPort("descending"))
+    out.disturbance = _drive_sheet(builder, scenario, sd, monitor.GetOutputPort("control_status"),
+                                   scenario.controller.period_s)
+    out.user_policy = user
+    out.user_policy_inputs = sorted(inputs)
+    return monitor
+
+
 def _add_controller(builder, scenario, scene, library, station, model, out, detect_fn=None):
     from drake_grasp.systems.controller import GraspController
-    from drake_grasp.systems.disturbance import SheetDisturbance
     from drake_grasp.systems.evaluator import (
         ActionSampler,
         DistanceEvaluator,
@@ -340,17 +413,8 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
         none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
             AbstractValue.Make(np.zeros(0))))
         builder.Connect(none.get_output_port(), controller.GetInputPort("predicted_distances"))
-    if scenario.disturbance.kind == "none":
-        _hold_sheet(builder, sd)
-        out.disturbance = None
-    else:
-        disturbance = builder.AddNamedSystem("sheet_disturbance", SheetDisturbance(
-            scenario.disturbance, seed=scenario.seed, period_s=c.period_s))
-        builder.Connect(controller.GetOutputPort("control_status"),
-                        disturbance.GetInputPort("control_status"))
-        builder.Connect(disturbance.GetOutputPort("sheet_desired_state"),
-                        sd.GetInputPort("sheet_desired_state"))
-        out.disturbance = disturbance
+    out.disturbance = _drive_sheet(builder, scenario, sd, controller.GetOutputPort("control_status"),
+                                   c.period_s)
     out.sampler = sampler
     return target, controller
 
@@ -400,6 +464,10 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
 
     `detect_fn`: see `build_episode_diagram`."""
     wall_start = time.perf_counter()
+    if is_policy_spec(scenario.policy):
+        from drake_grasp.plugins import load_policy_factory
+
+        load_policy_factory(scenario.policy)  # a bad spec fails before the scene is settled
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:
         scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
@@ -524,6 +592,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  "decision_time_s": (ed.decision_timer.seconds
                                      if ed.decision_timer is not None else None),
                  "decisions": ed.decision_timer.calls if ed.decision_timer is not None else 0,
+                 **({"policy_inputs": ed.user_policy_inputs}
+                    if ed.user_policy_inputs is not None else {}),
                  "judge": verdict.details},
     )
     return EpisodeRun(result=result, depth_frames=frames, steps=steps,

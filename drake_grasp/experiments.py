@@ -152,6 +152,31 @@ EXPERIMENTS: dict[str, Experiment] = {
 }
 
 
+def plugin_condition(experiment: Experiment, spec: str) -> Condition:
+    """The condition a user policy (``MODULE:FACTORY``, `drake_grasp.plugins`) runs as in
+    `experiment`: named `plugins.condition_name(spec)` ("centroid_policy.make_policy"), with
+    the experiment's settings that all of its conditions share (disturbance, depth noise,
+    controller profile), and no kinematic noise (the noise models act inside the built-in
+    controller). Its trials get the same seeds, so the same scenes, as the others.
+
+    Raises:
+        ValueError: a malformed spec, or one whose name clashes with a condition of the
+            experiment.
+    """
+    from drake_grasp.plugins import condition_name
+
+    name = condition_name(spec)
+    if any(c.name == name for c in experiment.conditions):
+        raise ValueError(f"--conditions: user policy {spec!r} would be named {name!r}, which is "
+                         f"already a condition of experiment {experiment.name}")
+    shared = {}
+    for key in ("depth_noise", "disturbance", "controller_profile"):
+        values = {getattr(c, key) for c in experiment.conditions}
+        if len(values) == 1:
+            shared[key] = values.pop()
+    return Condition(name, spec, **shared)
+
+
 def get_experiment(name: str) -> Experiment:
     if name not in EXPERIMENTS:
         raise ValueError(f"--experiment: unknown {name!r}; known: {sorted(EXPERIMENTS)}")

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp.experiments import (Condition, Experiment, condition_scenario, get_experiment,
-                                     trial_scenario, trial_seed)
+                                     plugin_condition, trial_scenario, trial_seed)
 from drake_grasp.provenance import code_version, file_sha256
 
 # Policies that run the distance CNN (and so depend on its weights file).
@@ -54,6 +54,9 @@ class TrialTask:
     base_seed: int
     # A `PHYSICS_PROFILES` name the trial runs with; "" = the scenario's (the default).
     physics_profile: str = ""
+    # A user policy's ``MODULE:FACTORY`` (`drake_grasp.plugins`) when `condition` is one
+    # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
+    policy_spec: str = ""
 
     @property
     def trial_id(self) -> str:
@@ -70,18 +73,34 @@ def task_experiment(task: TrialTask) -> Experiment:
 
 def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
                conditions: list[str] | None = None) -> list[TrialTask]:
+    """The tasks of a run: trial i of every condition asked (the experiment's order, then
+    the user policies, ``MODULE:FACTORY`` entries of `conditions`, in the order given), all
+    with trial i's seed."""
+    from drake_grasp.plugins import is_policy_spec
+
     n = experiment.trials if trials is None else int(trials)
     if n < 1:
         raise ValueError(f"--trials: expected >= 1, got {n}")
     names = [c.name for c in experiment.conditions]
+    specs = []
     if conditions:
-        unknown = [c for c in conditions if c not in names]
+        specs = list(dict.fromkeys(c for c in conditions if is_policy_spec(c)))
+        unknown = [c for c in conditions if c not in names and c not in specs]
         if unknown:
             raise ValueError(f"--conditions: {unknown} not in experiment "
-                             f"{experiment.name}; its conditions: {names}")
+                             f"{experiment.name}; its conditions: {names}, or a user policy "
+                             "MODULE:FACTORY (see drake_grasp.plugins)")
         names = [c for c in names if c in conditions]
-    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile)
-            for i in range(n) for c in names]
+    asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
+    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec)
+            for i in range(n) for c, spec in asked]
+
+
+def task_condition(task: TrialTask, experiment: Experiment) -> Condition:
+    """The condition a task runs: the experiment's, or a user policy's."""
+    if task.policy_spec:
+        return plugin_condition(experiment, task.policy_spec)
+    return _condition(experiment, task.condition)
 
 
 def _condition(experiment: Experiment, name: str) -> Condition:
@@ -164,6 +183,26 @@ def run_identity(experiment: Experiment, *, seed: int, objects_dir: str | None =
     }
 
 
+def plugin_identity(experiment: Experiment, spec: str, *, objects_dir: str | None = None) -> dict:
+    """What run.json records of a user policy's condition (under "plugin_conditions", by
+    condition name): `condition_identity` plus its code (`plugins.policy_source`: module,
+    file, sha256 of the file), so a resume with an edited policy file is refused."""
+    from drake_grasp.plugins import policy_source
+
+    condition = plugin_condition(experiment, spec)
+    return {**condition_identity(experiment, condition, objects_dir=objects_dir),
+            "policy_source": policy_source(spec)}
+
+
+def check_user_policy(experiment: Experiment, spec: str, *, objects_dir: str | None = None) -> None:
+    """Builds a user policy once, with its condition's scenario, and checks its ports
+    (`plugins.make_policy_system`), so a bad spec fails before any trial runs."""
+    from drake_grasp.plugins import make_policy_system
+
+    make_policy_system(spec, condition_scenario(experiment, plugin_condition(experiment, spec),
+                                                objects_dir=objects_dir))
+
+
 _MISSING = object()
 
 
@@ -213,7 +252,14 @@ def folder_conflict(out: str | Path, identity: dict) -> str | None:
         return None
     except ValueError as e:
         return str(e)
-    diffs = list(_differences({k: old.get(k, _MISSING) for k in identity}, identity))
+    base = {k: v for k, v in identity.items() if k != "plugin_conditions"}
+    diffs = list(_differences({k: old.get(k, _MISSING) for k in base}, base))
+    # User policies: only those both runs have are compared (a resume may add or leave out
+    # user policies, as it may other conditions).
+    old_plugins = old.get("plugin_conditions") or {}
+    for name, ident in (identity.get("plugin_conditions") or {}).items():
+        if name in old_plugins:
+            diffs += list(_differences(old_plugins[name], ident, f"plugin_conditions.{name}"))
     if not diffs:
         return None
     key, was, now = diffs[0]
@@ -341,7 +387,10 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
         run_index=run_index, attempt_index=attempt_index,
         extra={"stop_reason": r.details.get("stop_reason"),
                "decision_time_s": r.details.get("decision_time_s"),
-               "decisions": r.details.get("decisions", 0), **(extra or {})})
+               "decisions": r.details.get("decisions", 0),
+               **({"policy_inputs": r.details["policy_inputs"]}
+                  if "policy_inputs" in r.details else {}),
+               **(extra or {})})
 
 
 def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
@@ -356,7 +405,7 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
     from drake_grasp.results import write_record
 
     experiment = task_experiment(task)
-    condition = _condition(experiment, task.condition)
+    condition = task_condition(task, experiment)
     library = _library(objects_dir)
     if experiment.kind == "clutter-runs":
         records = _run_clutter(task, experiment, condition, out, objects_dir, library,
@@ -566,7 +615,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         scheduler: Address of a Dask scheduler to run on instead.
         seed: Base seed.
         objects_dir: Object library folder; None for the built-in objects.
-        conditions: Subset of the experiment's conditions; None for all.
+        conditions: Subset of the experiment's conditions; None for all. An entry
+            ``MODULE:FACTORY`` adds a user policy (`drake_grasp.plugins`) as a condition
+            of its own (`experiments.plugin_condition`): same seeds and scenes, judged by
+            the same judge, in the same report. It is built and checked once before any
+            trial runs; run.json records its code's sha256 ("plugin_conditions").
         progress: Show a progress bar.
         report: Write the report of the trials this call asked for: trials 0..trials-1 of
             the conditions asked (`make_report(..., trials=...)`); other records in the
@@ -583,8 +636,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         tasks already done, "summary": the report's summary (when `report`)}.
 
     Raises:
-        ValueError: Unknown experiment/condition, --trials < 1, or `out` holds another run
-            and not `force_new` (the message names the first differing key).
+        ValueError: Unknown experiment/condition, a user policy that cannot be loaded or
+            breaks the port contract (the message names its spec), --trials < 1, or `out`
+            holds another run and not `force_new` (the message names the first differing
+            key).
     """
     from drake_grasp.results import done_trial_ids, load_records, read_run_info, write_run_info
 
@@ -593,6 +648,13 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         exp = dataclasses.replace(exp, physics_profile=physics_profile)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
+    specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))
+    for spec in specs:
+        check_user_policy(exp, spec, objects_dir=objects_dir)
+    if specs:
+        identity["plugin_conditions"] = {
+            plugin_condition(exp, spec).name: plugin_identity(exp, spec, objects_dir=objects_dir)
+            for spec in specs}
     out, replaced = choose_folder(Path(out), identity, force_new=force_new)
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -600,7 +662,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     except FileNotFoundError:
         old = {}
     n = trials or exp.trials
-    info = {**identity,
+    plugins = {**(old.get("plugin_conditions") or {}), **identity.get("plugin_conditions", {})}
+    info = {**identity, **({"plugin_conditions": plugins} if plugins else {}),
             # Informational: the most trials per condition any call asked for.
             "trials": max(n, int(old.get("trials") or 0)),
             "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S")}

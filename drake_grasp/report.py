@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from drake_grasp.plugins import is_policy_spec
 from drake_grasp.results import (FAILURE_CLASSES, LEGACY_FAILURE_CLASSES, REPLAYS_DIR,
                                  TrialRecord, atomic_write_bytes, atomic_write_text, load_records,
                                  read_run_info, replay_path, wilson_interval)
@@ -661,9 +662,29 @@ POLICY_SENSING = {
 }
 
 
-def _sensor_size(policy: str, scenario_yaml: str) -> str:
-    """Resolution and field of view of the sensor a policy uses, from a trial's YAML."""
-    if POLICY_SENSING.get(policy, ("none",))[0] == "none" or not scenario_yaml:
+def _user_policy_sensing(policy: str, recs) -> tuple[str, str, str, tuple]:
+    """A user policy's row (`drake_grasp.plugins`): the sensors it declared (the record's
+    `extra.policy_inputs`), and what it knows said as that: its images and decision time
+    are not measured by the harness."""
+    inputs = next((r.extra["policy_inputs"] for r in recs
+                   if isinstance(r.extra, dict) and "policy_inputs" in r.extra), None)
+    if inputs is None:
+        return "unknown (no record says)", f"user policy `{policy}`", "not measured", ()
+    cams = [c for c, port in (("camera", "depth_image"), ("gpd", "gpd_depth_image"))
+            if port in inputs]
+    names = {"camera": "wrist depth camera (`camera`)", "gpd": "GPD sensor on the wrist (`gpd`)"}
+    sensor = " and ".join(names[c] for c in cams) or "none"
+    return (sensor, f"user policy `{policy}`: {', '.join(inputs) or 'no inputs'}",
+            "not measured", tuple(cams))
+
+
+def _sensor_size(policy: str, scenario_yaml: str, cameras: tuple | None = None) -> str:
+    """Resolution and field of view of the sensor a policy uses, from a trial's YAML
+    (`cameras`: the scenario keys of a user policy's sensors)."""
+    if cameras is None:
+        cameras = (() if POLICY_SENSING.get(policy, ("none",))[0] == "none"
+                   else ("gpd",) if policy == "gpd" else ("camera",))
+    if not cameras or not scenario_yaml:
         return "-"
     try:
         from pydrake.common.yaml import yaml_load_typed
@@ -673,8 +694,8 @@ def _sensor_size(policy: str, scenario_yaml: str) -> str:
         sc = yaml_load_typed(schema=Scenario, data=scenario_yaml)
     except Exception:  # a record from an older schema: say so rather than guess
         return "unknown (older record)"
-    cam = sc.gpd if policy == "gpd" else sc.camera
-    return f"{cam.width}x{cam.height}, {cam.fov_y_deg:g} deg vertical"
+    return "; ".join(f"{c.width}x{c.height}, {c.fov_y_deg:g} deg vertical"
+                     for c in (getattr(sc, k) for k in cameras))
 
 
 def fairness_markdown(records) -> list[str]:
@@ -689,15 +710,21 @@ def fairness_markdown(records) -> list[str]:
              "|---|---|---|---|---|---|---|"]
     for condition, recs in sorted(by_condition.items(), key=lambda kv: _condition_order(kv[0])):
         policy = recs[0].policy
-        sensor, knows, images = POLICY_SENSING.get(policy, ("?", "?", "?"))
+        cameras = None
+        if is_policy_spec(policy):
+            sensor, knows, images, cameras = _user_policy_sensing(policy, recs)
+        else:
+            sensor, knows, images = POLICY_SENSING.get(policy, ("?", "?", "?"))
         per = [r.extra["decision_time_s"] / r.extra["decisions"] for r in recs
                if isinstance(r.extra, dict) and r.extra.get("decisions")]
         counts = [r.extra["decisions"] for r in recs
                   if isinstance(r.extra, dict) and "decisions" in r.extra]
         t = f"{1000 * statistics.median(per):.0f} ms" if per else "-"
         n = f"{statistics.median(counts):g}" if counts else "-"
+        if cameras is not None:  # a user policy: the harness cannot time its decisions
+            t = n = "not measured"
         name = condition if condition == policy else f"{condition} ({policy})"
-        lines.append(f"| {name} | {sensor} | {_sensor_size(policy, recs[0].scenario_yaml)} | "
+        lines.append(f"| {name} | {sensor} | {_sensor_size(policy, recs[0].scenario_yaml, cameras)} | "
                      f"{knows} | {images} | {t} | {n} |")
     lines += ["", "The paper's controller loop ran at about 5 Hz (200 ms per decision) on the UR5."]
     return lines

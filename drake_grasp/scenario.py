@@ -22,6 +22,7 @@ from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from drake_grasp.assets import diagrams_dir
+from drake_grasp.plugins import is_policy_spec, parse_policy_spec
 from drake_grasp.sensing import DepthNoiseConfig
 
 DEFAULT_SCENARIO_FILE = "default.scenarios.yaml"
@@ -364,7 +365,13 @@ class Scenario:
             ValueError: naming the first bad key (dotted, e.g. `gripper.grip_force_n`),
                 its value and the allowed values.
         """
-        for key, value in (("scene.kind", self.scene.kind), ("policy", self.policy),
+        if is_policy_spec(self.policy):
+            _check_user_policy(self)
+        elif self.policy not in POLICIES:
+            raise ValueError(f"policy: got {self.policy!r}, expected one of {POLICIES} or "
+                             "MODULE:FACTORY (a user policy, e.g. 'centroid_policy:make_policy'; "
+                             "see drake_grasp.plugins)")
+        for key, value in (("scene.kind", self.scene.kind),
                            ("noise.kind", self.noise.kind),
                            ("disturbance.kind", self.disturbance.kind),
                            ("scene.pose", self.scene.pose), ("scene.split", self.scene.split),
@@ -429,6 +436,20 @@ class Scenario:
             self.gpd.noise.validate()
         except ValueError as e:
             raise ValueError(f"gpd.noise: {e}") from None
+
+
+def _check_user_policy(scenario: "Scenario") -> None:
+    """A user policy (`policy: MODULE:FACTORY`): the spec's form, and no setting that only
+    the built-in controller applies (`drake_grasp.plugins`)."""
+    parse_policy_spec(scenario.policy)  # raises, naming the spec
+    if scenario.noise.kind != "none":
+        raise ValueError(f"noise.kind: got {scenario.noise.kind!r} with the user policy "
+                         f"{scenario.policy!r}; expected 'none' (the kinematic noise models act "
+                         "inside the built-in controller, a user policy gets none)")
+    if scenario.target:
+        raise ValueError(f"target: got {scenario.target!r} with the user policy "
+                         f"{scenario.policy!r}; expected '' (target-object mode uses the label "
+                         "image, which a user policy does not see)")
 
 
 # --------------------------------------------------------------------------- profiles
@@ -594,7 +615,6 @@ _INTEGER_KEYS = {"seed", "camera.width", "camera.height", "scene.num_objects_min
                  "controller.torch_threads", "disturbance.after_iterations"}
 _CHOICES: dict[str, tuple[str, ...]] = {
     "scene.kind": SCENE_KINDS,
-    "policy": POLICIES,
     "noise.kind": NOISE_KINDS,
     "disturbance.kind": DISTURBANCE_KINDS,
     "scene.pose": ("lying", "upright", "any"),

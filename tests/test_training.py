@@ -82,7 +82,7 @@ def test_the_fast_recipe_reduces_the_l1_loss(data, tmp_path):
     first, last = metrics["epochs"][0], metrics["epochs"][-1]
     assert last["train_l1_m"] < 0.6 * first["train_l1_m"], (first, last)
     rates = [e["learning_rate"] for e in metrics["epochs"]]
-    assert rates == pytest.approx([0.001 * 0.7 ** k for k in range(6)])
+    assert rates == pytest.approx([0.001 * 0.8 ** k for k in range(6)])
 
 
 def test_a_run_killed_within_an_epoch_resumes_to_the_uninterrupted_weights(
