@@ -11,6 +11,10 @@ Keys:
     gpd_detect_s_isolation / _clutter5: the GPD baseline's one decision (image -> grasp).
     cnn: cnn_infer_ms_128 / cnn_infer_direct_ms_128 (one image, 128 actions),
         train_samples_per_s / train_direct_samples_per_s (2 threads).
+    cnn_onnx: cnn_onnx_torch_ms_128 / cnn_onnx_ms_128 (`score_candidates`, one depth
+        image, 128 actions, shipped weights, 1 thread each; torch vs onnxruntime side by
+        side, interleaved), cnn_onnx_speedup = torch / onnxruntime. null without the
+        optional packages onnx + onnxruntime.
 """
 
 from __future__ import annotations
@@ -240,6 +244,52 @@ def bench_cnn(rounds: int = 8) -> dict:
     }
 
 
+def bench_cnn_onnx(rounds: int = 10, repeats: int = 10) -> dict:
+    """`score_candidates` on one depth image with 128 candidates: the torch fast path and
+    the ONNX export of the same shipped weights under onnxruntime, 1 thread each, the
+    same inputs, interleaved in `rounds` x `repeats` (median of each)."""
+    import importlib.util
+    import logging
+    import statistics
+    import tempfile
+
+    if any(importlib.util.find_spec(m) is None for m in ("onnx", "onnxruntime")):
+        logging.getLogger("drake_grasp").warning(
+            "bench cnn_onnx: onnx/onnxruntime not installed (pip install "
+            "'drake_grasp[onnx-export]'); printing null")
+        return {"cnn_onnx_torch_ms_128": None, "cnn_onnx_ms_128": None, "cnn_onnx_speedup": None}
+    import torch
+
+    from drake_grasp.onnx_export import export_onnx
+    from drake_grasp.policies import sample_candidates
+    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            onnx_path = export_onnx(out=Path(tmp) / "cnn.onnx").path
+            backends = {"torch": load_cnn(""), "onnx": load_cnn(str(onnx_path))}
+        rng = np.random.default_rng(BENCH_SEED)
+        depth = rng.uniform(0.2, 0.3, (64, 64)).astype(np.float32)
+        actions = sample_candidates(rng, 128, xy_m=0.04, theta_deg=45.0)
+        times: dict[str, list[float]] = {name: [] for name in backends}
+        for model in backends.values():
+            score_candidates(model, depth, actions)  # warm-up
+        for _ in range(rounds):
+            for name, model in backends.items():
+                for _ in range(repeats):
+                    t0 = time.perf_counter()
+                    score_candidates(model, depth, actions)
+                    times[name].append(time.perf_counter() - t0)
+        med = {name: statistics.median(v) for name, v in times.items()}
+    finally:
+        torch.set_num_threads(threads)
+    return {"cnn_onnx_torch_ms_128": round(1000 * med["torch"], 2),
+            "cnn_onnx_ms_128": round(1000 * med["onnx"], 2),
+            "cnn_onnx_speedup": round(med["torch"] / med["onnx"], 2)}
+
+
 def bench_trials_per_hour(trials: int = 6, workers: int = 2) -> dict:
     """Physical CTR trials of the isolation experiment per hour on 2 local workers
     (worker start-up included; each worker keeps the CNN and meshes across trials), with
@@ -349,6 +399,7 @@ BENCHMARKS = {
     "depth_frame_ms": bench_depth_frame_ms,
     "labels_per_s": bench_labels_per_s,
     "cnn": bench_cnn,
+    "cnn_onnx": bench_cnn_onnx,
     "controller_step_ms": bench_controller_step_ms,
     "rtf_ctr_clutter5": bench_rtf_ctr_clutter5,
     "trials_per_hour": bench_trials_per_hour,
@@ -369,6 +420,7 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
     "cnn": ("cnn_infer_ms_128", "cnn_infer_direct_ms_128", "cnn_infer_speedup",
             "train_samples_per_s", "train_direct_samples_per_s", "train_speedup",
             "cnn_ip1_gflops_infer", "cnn_ip1_gflops_train"),
+    "cnn_onnx": ("cnn_onnx_torch_ms_128", "cnn_onnx_ms_128", "cnn_onnx_speedup"),
     "controller_step_ms": ("controller_step_ms",),
     "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
     "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail", "trials_per_hour_reference",

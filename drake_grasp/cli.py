@@ -258,6 +258,21 @@ def _cmd_grasp_tolerance(args) -> int:
     return 0
 
 
+def _cmd_export_onnx(args) -> int:
+    from drake_grasp.onnx_export import export_onnx
+
+    try:
+        result = export_onnx(out=args.out, weights=args.weights, exporter=args.exporter)
+    except ImportError as e:  # onnx / onnxruntime / onnxscript not installed
+        print(f"drake-grasp export-onnx: error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps({"out": str(result.path), "head": str(result.head_path),
+                      "exporter": result.exporter,
+                      "source_tensors_sha256": result.source_tensors_sha256,
+                      "probe_max_abs_error_m": result.probe_max_abs_error_m}))
+    return 0
+
+
 def _cmd_scenarios(args) -> int:
     from drake_grasp.scenario import list_scenarios, scenario_file_path
 
@@ -313,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")
     p.add_argument("--only", default="",
                    help="comma-separated benchmark groups (rtf_isolation, rtf_clutter5, "
-                        "depth_frame_ms, labels_per_s, cnn, controller_step_ms, "
+                        "depth_frame_ms, labels_per_s, cnn, cnn_onnx, controller_step_ms, "
                         "rtf_ctr_clutter5, trials_per_hour) or any key that bench prints "
                         "(e.g. cnn_infer_ms_128, train_samples_per_s): a key runs its group "
                         "and prints only that key (default: everything)")
@@ -510,6 +525,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "comma-separated (default: 0,5,10,15,20,30,40)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
     p.set_defaults(func=_cmd_grasp_tolerance)
+
+    p = sub.add_parser("export-onnx", help="write the distance CNN as ONNX for onnxruntime: "
+                       "FILE (image part, with the metadata) and FILE's .head.onnx sibling "
+                       "(per-action head); 'controller.weights: FILE' then runs it without torch")
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="the image part, ending in .onnx; the head goes to the same name with "
+                        ".head.onnx (X.onnx -> X.head.onnx); both are replaced if present")
+    p.add_argument("--weights", default="", metavar="W",
+                   help="safetensors weights to export (default: the shipped "
+                        "models/cnn/weights.safetensors)")
+    p.add_argument("--exporter", default="auto", choices=["auto", "dynamo", "torchscript"],
+                   help="torch.onnx.export path: dynamo (needs onnxscript) or torchscript "
+                        "(dynamo=False); auto (default): dynamo when onnxscript is installed")
+    p.set_defaults(func=_cmd_export_onnx)
 
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")

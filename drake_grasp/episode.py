@@ -479,7 +479,9 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
 
         meshcat = StartMeshcat()
     threads = None
-    if scenario.policy in ("ctr", "cnn-only", "cnn-ctr"):
+    # The ONNX backend (controller.weights *.onnx) needs no torch; it runs on 1 thread.
+    if (scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
+            and not scenario.controller.weights.endswith(".onnx")):
         import torch
 
         threads = torch.get_num_threads()

@@ -334,7 +334,8 @@ def action_features(
         return a
     theta = a[..., 2]
     if config.theta_unit == "deg":
-        theta = torch.deg2rad(theta)
+        # = torch.deg2rad bit for bit; the TorchScript ONNX exporter has no deg2rad.
+        theta = theta * (math.pi / 180.0)
     s = config.action_xy_scale_m
     return torch.stack(
         (a[..., 0] / s, a[..., 1] / s, torch.cos(2.0 * theta), torch.sin(2.0 * theta)), dim=-1

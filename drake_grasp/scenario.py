@@ -227,7 +227,8 @@ class ControllerConfig:
     num_candidates: int = 128
     sample_xy_m: float = 0.04
     sample_theta_deg: float = 45.0
-    # CNN weights; "" = the shipped models/cnn/weights.safetensors.
+    # CNN weights; "" = the shipped models/cnn/weights.safetensors; an X.onnx file from
+    # `drake-grasp export-onnx` runs the CNN with onnxruntime instead of torch.
     weights: str = ""
     # Open-loop policies (cnn-only) search this many actions over the whole view.
     global_candidates: int = 2048

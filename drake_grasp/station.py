@@ -263,7 +263,19 @@ def solve_start_configuration(control_plant: MultibodyPlant, X_WG: RigidTransfor
 
 
 def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary) -> GraspStation:
-    """Builds the station Diagram for a (settled) scene. See the module docstring."""
+    """Builds the station Diagram for a (settled) scene. See the module docstring.
+
+    Args:
+        scenario: plant, camera, GPD sensor, noise, gripper and arm settings.
+        scene: the objects and where they rest (`make_scene`).
+        library: the object library the scene's ids come from.
+
+    Returns:
+        A `GraspStation`: `diagram` (inputs `X_WG_desired`, `gripper_command`,
+        `sheet_desired_state`; outputs `depth_image`, `gripper_state`, `arm_state`, ...:
+        see `drake_grasp.api`) with the plant, the start pose and the camera offsets.
+        Add `diagram` to a `DiagramBuilder`, then call `set_initial_state` on its Context.
+    """
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant, builder)
     plant.set_name("plant")

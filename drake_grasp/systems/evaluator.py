@@ -1,29 +1,53 @@
-"""The learned distance function and the candidate sampler as LeafSystems."""
+"""The learned distance function and the candidate sampler as LeafSystems.
+
+The CNN runs on one of two backends, chosen by the weights file (`load_cnn`): torch for
+a ``*.safetensors`` file (`drake_grasp.network`), onnxruntime for an ``X.onnx`` file from
+``drake-grasp export-onnx`` (`drake_grasp.onnx_runtime`). torch is imported only by the
+torch backend, so this module and the ONNX backend run where torch is not installed.
+"""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Union
+
 import numpy as np
-import torch
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem, NumericParameterIndex
 from pydrake.systems.sensors import ImageDepth32F
 
 from drake_grasp.assets import models_dir
-from drake_grasp.network import DistanceCNN, load_weights
+from drake_grasp.onnx_runtime import OnnxDistanceModel
 from drake_grasp.policies import sample_candidates
+
+if TYPE_CHECKING:
+    from drake_grasp.network import DistanceCNN
 
 DEFAULT_WEIGHTS = "cnn/weights.safetensors"
 
 
-def load_cnn(weights: str = "") -> DistanceCNN:
-    """The distance CNN from a weights file; "" -> the shipped `models/cnn/` weights."""
+def load_cnn(weights: str = "") -> Union[DistanceCNN, OnnxDistanceModel]:
+    """The distance CNN from a weights file; "" -> the shipped `models/cnn/` weights.
+
+    A path ending in ``.onnx`` (the image file of ``drake-grasp export-onnx``, its
+    ``.head.onnx`` sibling beside it) loads the onnxruntime backend
+    (`OnnxDistanceModel`, 1 thread); anything else is a safetensors file for torch.
+    """
     path = weights or str(models_dir() / DEFAULT_WEIGHTS)
+    if str(path).endswith(".onnx"):
+        return OnnxDistanceModel(path)
+    from drake_grasp.network import load_weights
+
     model, _ = load_weights(path)
     return model.eval()
 
 
-def score_candidates(model: DistanceCNN, depth: np.ndarray, actions: np.ndarray) -> np.ndarray:
+def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel], depth: np.ndarray,
+                     actions: np.ndarray) -> np.ndarray:
     """Predicted distance [m] for each candidate action on one depth image (fast path)."""
+    if isinstance(model, OnnxDistanceModel):
+        return model.score(depth, np.asarray(actions, np.float32))
+    import torch
+
     with torch.inference_mode():
         features = model.image_features(model.preprocess(np.array(depth, np.float32)))
         return model.score_actions(features[0], np.asarray(actions, np.float32)).numpy().astype(float)
@@ -39,9 +63,9 @@ class DistanceEvaluator(LeafSystem):
         predicted_distances: (K,) metres.
     """
 
-    def __init__(self, model: DistanceCNN, *, score_fn=None):
-        """`score_fn(depth, actions)` replaces `score_candidates(model, ...)` (e.g. a
-        timed wrapper of it)."""
+    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel], *, score_fn=None):
+        """`model`: from `load_cnn` (torch or onnxruntime backend). `score_fn(depth,
+        actions)` replaces `score_candidates(model, ...)` (e.g. a timed wrapper of it)."""
         super().__init__()
         self._model = model
         self._score_fn = score_fn or (lambda depth, actions: score_candidates(model, depth, actions))
