@@ -152,18 +152,28 @@ def condition_name(spec: str) -> str:
     return name
 
 
-def _import(module: str, spec: str):
+def _try_import(module: str, spec: str):
+    """The module, or None when the module itself (or its package) is not found; any other
+    error of the user's module becomes a ValueError naming the spec."""
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
-        # Only a missing MODULE itself (or its package) falls back to the current folder;
-        # a module that exists but fails to import one of its own imports is reported as is.
+        # Only a missing MODULE itself falls back to the current folder; a module that
+        # exists but fails to import one of its own imports is reported as is.
         if e.name is None or not (module == e.name or module.startswith(e.name + ".")):
             raise ValueError(f"policy {spec!r}: importing module {module!r} raised "
                              f"ModuleNotFoundError: {e}") from e
+        return None
     except Exception as e:  # noqa: BLE001 - any error in the user's module, with its spec
         raise ValueError(f"policy {spec!r}: importing module {module!r} raised "
                          f"{type(e).__name__}: {e}") from e
+
+
+def _import(module: str, spec: str):
+    """`module`, from sys.path or else from the current folder."""
+    found = _try_import(module, spec)
+    if found is not None:
+        return found
     cwd = os.getcwd()
     searched = [p for p in sys.path if p]
     if cwd not in sys.path and "" not in sys.path:
@@ -171,15 +181,9 @@ def _import(module: str, spec: str):
         # Kept there, so the module's own sibling imports (and spawned workers) find it.
         sys.path.append(cwd)
         importlib.invalidate_caches()
-        try:
-            return importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            if e.name is None or not (module == e.name or module.startswith(e.name + ".")):
-                raise ValueError(f"policy {spec!r}: importing module {module!r} raised "
-                                 f"ModuleNotFoundError: {e}") from e
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"policy {spec!r}: importing module {module!r} raised "
-                             f"{type(e).__name__}: {e}") from e
+        found = _try_import(module, spec)
+        if found is not None:
+            return found
     raise ValueError(f"policy {spec!r}: no module named {module!r} on sys.path or in the "
                      f"current folder ({cwd}; {len(searched)} sys.path entries searched); "
                      f"{_EXPECTED}")
