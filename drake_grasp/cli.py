@@ -440,7 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "write its report; re-running resumes")
     p.add_argument("--experiment", required=True,
                    help="sim-distance, perception, isolation, clutter, clutter-shift, "
-                        "sweep-noise, sweep-depth-noise or sweep-offset")
+                        "sweep-noise, sweep-depth-noise, sweep-offset, sweep-latency, "
+                        "sweep-control-period, sweep-dropped-frames, "
+                        "sweep-camera-translation or sweep-camera-rotation")
     p.add_argument("--trials", type=int, default=None,
                    help="trials per condition (clutter: runs); default: the experiment's. "
                         "The report written covers trials 0..N-1 of the conditions asked, "

@@ -317,6 +317,28 @@ def _drive_sheet(builder, scenario, station_diagram, control_status_port, period
     return disturbance
 
 
+def _sensor(builder, scenario, station_diagram, name: str):
+    """The output port a policy reads image `name` from: the station's own, or, when
+    `scenario.timing` adds latency or dropped frames, a FrameBuffer ("NAME_frames",
+    one per image stream, taking one frame per control period) in front of it."""
+    if not scenario.timing.active():
+        return station_diagram.GetOutputPort(name)
+    buffer_name = f"{name}_frames"
+    if builder.HasSubsystemNamed(buffer_name):
+        return builder.GetSubsystemByName(buffer_name).GetOutputPort("image")
+    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+    from drake_grasp.systems.frames import FrameBuffer
+
+    t = scenario.timing
+    model = ImageLabel16I() if name == "label_image" else ImageDepth32F()
+    frames = builder.AddNamedSystem(buffer_name, FrameBuffer(
+        model, period_s=scenario.controller.period_s, latency_s=t.latency_s,
+        dropped_frame_prob=t.dropped_frame_prob, seed=scenario.seed))
+    builder.Connect(station_diagram.GetOutputPort(name), frames.GetInputPort("image"))
+    return frames.GetOutputPort("image")
+
+
 def _add_user_policy(builder, scenario, station, out):
     """A user policy (`drake_grasp.plugins`): its system ("user_policy") connected by port
     name to the sensors it declares, its commands to the station, and the harness's
@@ -334,7 +356,9 @@ def _add_user_policy(builder, scenario, station, out):
     inputs = [user.get_input_port(i).get_name() for i in range(user.num_input_ports())]
     constants = {"X_WG_start": station.X_WG_start, "X_GC": station.X_GC}
     for name in inputs:
-        if name in ("depth_image", "gpd_depth_image", "gripper_state"):
+        if name in ("depth_image", "gpd_depth_image"):
+            builder.Connect(_sensor(builder, scenario, sd, name), user.GetInputPort(name))
+        elif name == "gripper_state":
             builder.Connect(sd.GetOutputPort(name), user.GetInputPort(name))
         elif name == "motion_status":
             builder.Connect(monitor.GetOutputPort("motion_status"), user.GetInputPort(name))
@@ -389,10 +413,15 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
         X_GC=station.X_GC, X_GC_gpd=station.X_GC_gpd,
         score_fn=score_fn, detect_fn=timer.wrap(_detector(scenario, detect_fn)),
         target_label=target_label))
-    builder.Connect(sd.GetOutputPort("depth_image"), controller.GetInputPort("depth_image"))
-    builder.Connect(sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
-    # Connected for every policy: only gpd evaluates it (once), so nothing else renders it.
-    builder.Connect(sd.GetOutputPort("gpd_depth_image"), controller.GetInputPort("gpd_depth_image"))
+    depth = _sensor(builder, scenario, sd, "depth_image")
+    builder.Connect(depth, controller.GetInputPort("depth_image"))
+    # Only target mode reads the label image; only gpd the GPD sensor (once): a frame
+    # buffer, which renders every period, is put in front of them only then.
+    builder.Connect(_sensor(builder, scenario, sd, "label_image") if scenario.target
+                    else sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
+    builder.Connect(_sensor(builder, scenario, sd, "gpd_depth_image") if scenario.policy == "gpd"
+                    else sd.GetOutputPort("gpd_depth_image"),
+                    controller.GetInputPort("gpd_depth_image"))
     sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
         num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
         period_s=c.period_s, seed=scenario.seed))
@@ -401,7 +430,7 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
     if needs_cnn:
         evaluator = builder.AddNamedSystem("distance_evaluator",
                                            DistanceEvaluator(model, score_fn=score_fn))
-        builder.Connect(sd.GetOutputPort("depth_image"), evaluator.GetInputPort("depth_image"))
+        builder.Connect(depth, evaluator.GetInputPort("depth_image"))
         builder.Connect(sampler.GetOutputPort("candidate_actions"),
                         evaluator.GetInputPort("candidate_actions"))
         builder.Connect(evaluator.GetOutputPort("predicted_distances"),
@@ -596,6 +625,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  "decisions": ed.decision_timer.calls if ed.decision_timer is not None else 0,
                  **({"policy_inputs": ed.user_policy_inputs}
                     if ed.user_policy_inputs is not None else {}),
+                 **({"camera_mount_error": _pose_dict(station.X_CC_actual)}
+                    if scenario.calibration.active() else {}),
                  "judge": verdict.details},
     )
     return EpisodeRun(result=result, depth_frames=frames, steps=steps,

@@ -33,6 +33,14 @@ class Condition:
     # A controller profile (scenario.CONTROLLER_PROFILES: sim | robot); "" = the
     # experiment's `controller_profile`.
     controller_profile: str = ""
+    # The loop's timing and the camera's calibration (scenario.TimingConfig,
+    # CalibrationConfig; 0 = the scenario's): control period [s], sensor-to-action
+    # latency [s], dropped-frame probability, camera-mount error [m], [deg].
+    control_period_s: float = 0.0
+    latency_s: float = 0.0
+    dropped_frame_prob: float = 0.0
+    camera_translation_error_m: float = 0.0
+    camera_rotation_error_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -148,6 +156,48 @@ EXPERIMENTS: dict[str, Experiment] = {
             conditions=_sweep("offset_m", (0.0, 0.01, 0.02, 0.04), lambda n, p, v: Condition(
                 n, p, noise="offset" if v > 0 else "none", offset_m=v)),
         ),
+        # Timing and calibration (beyond the paper): the Table 1 controller settings
+        # (robot profile), isolation scenes.
+        Experiment(
+            name="sweep-latency", scenario="isolation", trials=40, per_object_poses=True,
+            controller_profile="robot",
+            description="Success vs sensor-to-action latency: the policy deciding at t sees "
+                        "the image taken at t - latency (control period 0.1 s).",
+            conditions=_sweep("latency_s", (0.0, 0.05, 0.1, 0.2, 0.3), lambda n, p, v: Condition(
+                n, p, latency_s=v)),
+        ),
+        Experiment(
+            name="sweep-control-period", scenario="isolation", trials=40, per_object_poses=True,
+            controller_profile="robot",
+            description="Success vs the control period (the paper's robot loop: about 0.2 s); "
+                        "each CTR step moves as far, within 0.8 periods.",
+            conditions=_sweep("period_s", (0.05, 0.1, 0.2, 0.3, 0.5), lambda n, p, v: Condition(
+                n, p, control_period_s=v)),
+        ),
+        Experiment(
+            name="sweep-dropped-frames", scenario="isolation", trials=40, per_object_poses=True,
+            controller_profile="robot",
+            description="Success vs the probability that a frame is lost (the policy then "
+                        "gets the last frame that arrived, unaware that it is stale).",
+            conditions=_sweep("dropped_frame_prob", (0.0, 0.25, 0.5, 0.75),
+                              lambda n, p, v: Condition(n, p, dropped_frame_prob=v)),
+        ),
+        Experiment(
+            name="sweep-camera-translation", scenario="isolation", trials=40,
+            per_object_poses=True, controller_profile="robot",
+            description="Success vs a camera-mount translation error (a direction drawn per "
+                        "trial); the policy believes the nominal mount.",
+            conditions=_sweep("camera_translation_m", (0.0, 0.005, 0.01, 0.02),
+                              lambda n, p, v: Condition(n, p, camera_translation_error_m=v)),
+        ),
+        Experiment(
+            name="sweep-camera-rotation", scenario="isolation", trials=40,
+            per_object_poses=True, controller_profile="robot",
+            description="Success vs a camera-mount rotation error (about an axis drawn per "
+                        "trial); the policy believes the nominal mount.",
+            conditions=_sweep("camera_rotation_deg", (0.0, 2.0, 5.0, 10.0),
+                              lambda n, p, v: Condition(n, p, camera_rotation_error_deg=v)),
+        ),
     )
 }
 
@@ -170,7 +220,9 @@ def plugin_condition(experiment: Experiment, spec: str) -> Condition:
         raise ValueError(f"--conditions: user policy {spec!r} would be named {name!r}, which is "
                          f"already a condition of experiment {experiment.name}")
     shared = {}
-    for key in ("depth_noise", "disturbance", "controller_profile"):
+    for key in ("depth_noise", "disturbance", "controller_profile", "control_period_s",
+                "latency_s", "dropped_frame_prob", "camera_translation_error_m",
+                "camera_rotation_error_deg"):
         values = {getattr(c, key) for c in experiment.conditions}
         if len(values) == 1:
             shared[key] = values.pop()
@@ -218,6 +270,15 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
             edge_dropout_prob=min(1.0, k * d.edge_dropout_prob),
             random_dropout_prob=min(1.0, k * d.random_dropout_prob))
     s.disturbance = dataclasses.replace(s.disturbance, kind=condition.disturbance)
+    if condition.control_period_s > 0:
+        s.controller = dataclasses.replace(s.controller, period_s=condition.control_period_s)
+    if condition.latency_s > 0 or condition.dropped_frame_prob > 0:
+        s.timing = dataclasses.replace(s.timing, latency_s=condition.latency_s,
+                                       dropped_frame_prob=condition.dropped_frame_prob)
+    if condition.camera_translation_error_m > 0 or condition.camera_rotation_error_deg > 0:
+        s.calibration = dataclasses.replace(
+            s.calibration, camera_translation_error_m=condition.camera_translation_error_m,
+            camera_rotation_error_deg=condition.camera_rotation_error_deg)
     s.validate()
     return s
 

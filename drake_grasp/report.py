@@ -248,6 +248,9 @@ def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
         "median_final_distance_m": statistics.median(dists) if dists else None,
         "fraction_within_3cm": (sum(1 for d in dists if d < BIN_M - _TOL) / attempts
                                 if dists and attempts else None),
+        "within_3cm_ci95": (list(wilson_interval(sum(1 for d in dists if d < BIN_M - _TOL),
+                                                 attempts)) if dists and attempts else None),
+        "median_final_distance_ci95": median_interval(dists),
         "histogram": {"bin_edges_m": edges, "counts": counts,
                       "note": "last count: distances >= the last edge"},
         "failure_classes": classes,
@@ -255,6 +258,20 @@ def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
         "code_versions": sorted({r.code_version for r in records}),
     })
     return out
+
+
+def median_interval(values: Sequence[float], z: float = 1.959964) -> list[float] | None:
+    """A distribution-free 95% interval of the median: the order statistics at ranks
+    n/2 -+ z sqrt(n)/2 (the binomial(n, 1/2) normal approximation), clipped to the
+    sample. None for fewer than 3 values."""
+    xs = sorted(values)
+    n = len(xs)
+    if n < 3:
+        return None
+    half = 0.5 * z * math.sqrt(n)
+    lo = max(0, int(math.floor(n / 2 - half)))
+    hi = min(n - 1, int(math.ceil(n / 2 + half)))
+    return [xs[lo], xs[hi]]
 
 
 def _condition_order(name: str) -> tuple:
@@ -479,15 +496,18 @@ def _sweeps(policies: dict[str, dict]) -> dict[str, dict[str | None, list[tuple[
 
 
 def plot_sweep(param: str, series: dict[str | None, list[tuple[str, str, dict]]], path: Path) -> Path:
-    """Success rate vs the swept value (Wilson 95% error bars), and the fraction of trials
-    within 3 cm when distances were measured. Non-numeric values are spaced evenly."""
+    """Success rate vs the swept value (Wilson 95% error bars) and, when distances were
+    measured, the fraction of trials within 3 cm (Wilson 95%) and the median final
+    distance (distribution-free 95% interval, `median_interval`). Non-numeric values
+    are spaced evenly."""
     values = sorted({v for pts in series.values() for v, _, _ in pts},
                     key=lambda v: (_as_float(v) is None, _as_float(v) or 0.0, v))
     numeric = all(_as_float(v) is not None for v in values)
     xpos = {v: (_as_float(v) if numeric else float(i)) for i, v in enumerate(values)}
     has_success = any(s["n"] for pts in series.values() for _, _, s in pts)
     has_dist = any(s["fraction_within_3cm"] is not None for pts in series.values() for _, _, s in pts)
-    kinds = [k for k, on in (("success", has_success), ("within", has_dist)) if on] or ["success"]
+    kinds = [k for k, on in (("success", has_success), ("within", has_dist),
+                             ("median", has_dist)) if on] or ["success"]
     fig = _new_figure(5.2 * len(kinds), 3.6)
     for i, kind in enumerate(kinds):
         ax = fig.add_subplot(1, len(kinds), i + 1)
@@ -500,17 +520,34 @@ def plot_sweep(param: str, series: dict[str | None, list[tuple[str, str, dict]]]
                 hi = [p[2]["ci95"][1] - y for y, p in zip(ys, pts)]
                 ax.errorbar([xpos[p[0]] for p in pts], ys, yerr=[lo, hi], marker="o", capsize=3,
                             label=label or "all")
-            else:
+            elif kind == "within":
                 pts = [p for p in pts if p[2]["fraction_within_3cm"] is not None]
-                ax.plot([xpos[p[0]] for p in pts], [p[2]["fraction_within_3cm"] for p in pts],
-                        marker="s", label=label or "all")
+                ys = [p[2]["fraction_within_3cm"] for p in pts]
+                cis = [p[2].get("within_3cm_ci95") or [y, y] for y, p in zip(ys, pts)]
+                ax.errorbar([xpos[p[0]] for p in pts], ys,
+                            yerr=[[y - c[0] for y, c in zip(ys, cis)],
+                                  [c[1] - y for y, c in zip(ys, cis)]],
+                            marker="s", capsize=3, label=label or "all")
+            else:
+                pts = [p for p in pts if p[2]["median_final_distance_m"] is not None]
+                ys = [100 * p[2]["median_final_distance_m"] for p in pts]
+                cis = [[100 * v for v in p[2].get("median_final_distance_ci95") or []] or [y, y]
+                       for y, p in zip(ys, pts)]
+                ax.errorbar([xpos[p[0]] for p in pts], ys,
+                            yerr=[[y - c[0] for y, c in zip(ys, cis)],
+                                  [c[1] - y for y, c in zip(ys, cis)]],
+                            marker="^", capsize=3, label=label or "all")
         if not numeric:
             ax.set_xticks([xpos[v] for v in values])
             ax.set_xticklabels(values)
         ax.set_xlabel(param)
-        ax.set_ylabel("grasp success rate (Wilson 95% CI)" if kind == "success"
-                      else "fraction of trials within 3 cm")
-        ax.set_ylim(-0.02, 1.02)
+        ax.set_ylabel({"success": "grasp success rate (Wilson 95% CI)",
+                       "within": "trials within 3 cm (Wilson 95% CI)",
+                       "median": "median final distance [cm] (95% CI)"}[kind])
+        if kind != "median":
+            ax.set_ylim(-0.02, 1.02)
+        else:
+            ax.set_ylim(bottom=0.0)
         ax.grid(alpha=0.3)
         if len(series) > 1 or next(iter(series)) is not None:
             ax.legend(fontsize=8)

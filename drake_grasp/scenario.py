@@ -256,6 +256,42 @@ class NoiseConfig:
 
 
 @dataclass
+class TimingConfig:
+    """When the policy's images are taken, as a real control loop would see them (beyond
+    the paper, whose robot loop ran at about 5 Hz; the loop's rate itself is
+    `controller.period_s`). A frame is taken every control period; the policy deciding at
+    time t sees the frame taken at t - `latency_s` (`systems.frames.FrameBuffer`). The
+    hand pose the controller believes for that image is the one it last commanded, so an
+    image taken while the hand still moves misleads it, as it would on a robot.
+    """
+
+    # Sensor-to-action latency [s]: capture, transfer and computation together.
+    latency_s: float = 0.0
+    # Probability that a frame is lost; the policy then gets the last frame that arrived
+    # (without knowing it is stale). Drawn per frame from the trial's seed.
+    dropped_frame_prob: float = 0.0
+
+    def active(self) -> bool:
+        return self.latency_s > 0.0 or self.dropped_frame_prob > 0.0
+
+
+@dataclass
+class CalibrationConfig:
+    """Camera-mount extrinsic error: the wrist camera (and the GPD sensor) sits off the
+    pose the policy believes (the gripper model's `camera_mount`) by a translation of
+    `camera_translation_error_m` along, and a rotation of `camera_rotation_error_deg`
+    about, a direction drawn per trial from its seed (uniform on the sphere, both in the
+    camera frame; `station.camera_mount_error`). The policy keeps the nominal X_GC.
+    """
+
+    camera_translation_error_m: float = 0.0
+    camera_rotation_error_deg: float = 0.0
+
+    def active(self) -> bool:
+        return self.camera_translation_error_m > 0.0 or self.camera_rotation_error_deg > 0.0
+
+
+@dataclass
 class DisturbanceConfig:
     """Moving the sheet under the objects during a grasp.
 
@@ -350,6 +386,8 @@ class Scenario:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    timing: TimingConfig = field(default_factory=TimingConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     # Target-object mode: grasp this object id (restricts candidates to its pixels).
     target: str = ""
     # Object library folder made by `drake-grasp objects import`; "" = built-in.
@@ -609,6 +647,11 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "plant.sap_near_rigid_threshold": (0, _INF, False, True, ""),
     "physics.hydroelastic_margin_m": (0, 0.01, False, False, "m"),
     "physics.settle_time_step_s": (0, 0.05, False, False, "s"),
+    "timing.latency_s": (0, 2.0, False, False, "s"),
+    # 1 would mean no frame ever arrives after the first.
+    "timing.dropped_frame_prob": (0, 1, False, True, ""),
+    "calibration.camera_translation_error_m": (0, 0.05, False, False, "m"),
+    "calibration.camera_rotation_error_deg": (0, 30, False, False, "deg"),
 }
 _INTEGER_KEYS = {"seed", "camera.width", "camera.height", "scene.num_objects_min",
                  "scene.num_objects_max", "scene.clutter_objects", "controller.iterations",

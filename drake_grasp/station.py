@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.geometry import (
     ClippingRange,
     DepthRange,
@@ -111,6 +112,9 @@ class GraspStation:
     X_BG: RigidTransform  # grasp frame in the gripper base body
     X_GC: RigidTransform  # camera in the grasp frame
     X_GC_gpd: RigidTransform  # the GPD sensor in the grasp frame
+    # Where both cameras really sit in the frame the policies believe (X_GC, X_GC_gpd):
+    # identity unless `scenario.calibration` sets a mount error (`camera_mount_error`).
+    X_CC_actual: RigidTransform = field(default_factory=RigidTransform)
     # Helper plants must outlive the diagram (InverseDynamics does not keep them).
     _keep_alive: list = field(default_factory=list)
 
@@ -137,8 +141,9 @@ class GraspStation:
         nq = plant.num_positions(self.gripper)
         plant.SetPositions(plant_context, self.gripper, np.full(nq, 0.0425))
         set_object_poses(plant, plant_context, self.scene, self.object_instances)
-        ik, ik_context = sub("diff_ik")
-        ik.SetPositions(ik_context, self.q_start)
+        if self.diagram.HasSubsystemNamed("diff_ik"):  # absent with arm_position_command
+            ik, ik_context = sub("diff_ik")
+            ik.SetPositions(ik_context, self.q_start)
         interp, interp_context = sub("arm_desired_state")
         interp.set_initial_position(interp_context, self.q_start)
         grip, grip_context = sub("gripper_controller")
@@ -192,6 +197,24 @@ def gpd_camera_offset() -> RigidTransform:
     return _frame_in_grasp_frame(plant, gripper, GPD_CAMERA_FRAME)
 
 
+# Random stream of the camera-mount error's direction (`default_rng([seed, 83])`).
+MOUNT_ERROR_STREAM = 83
+
+
+def camera_mount_error(calibration, seed: int) -> RigidTransform:
+    """X_CC': where the camera really sits (C') in the frame the policy believes (C),
+    for a `scenario.CalibrationConfig`: a translation of `camera_translation_error_m`
+    along, and a rotation of `camera_rotation_error_deg` about, two directions drawn
+    uniformly on the sphere from the trial's seed. Identity when both are 0."""
+    rng = np.random.default_rng([int(seed), MOUNT_ERROR_STREAM])
+    u = rng.normal(size=3)
+    w = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    w /= np.linalg.norm(w)
+    R = RotationMatrix(AngleAxis(np.deg2rad(calibration.camera_rotation_error_deg), w))
+    return RigidTransform(R, calibration.camera_translation_error_m * u)
+
+
 def make_depth_camera(cam, renderer_name: str = RENDERER_NAME) -> DepthRenderCamera:
     """A depth camera model from a `WristCameraConfig` or a `GpdConfig` (anything with
     width, height, fov_y_deg, depth_min_m and depth_max_m)."""
@@ -219,6 +242,28 @@ def make_control_plant(gripper_spatial_inertia_T: SpatialInertia, X_TG: RigidTra
     plant.AddFrame(FixedOffsetFrame("grasp_frame", tool0, X_TG))
     plant.Finalize()
     return plant
+
+
+def make_arm_diff_ik(scenario: Scenario, control_plant: MultibodyPlant):
+    """The arm's DifferentialInverseKinematicsIntegrator: drives the control plant's
+    `grasp_frame` to `X_AE_desired` (world frame) every `arm.ik_time_step_s`, within the
+    joint position limits, `arm.joint_velocity_fraction` of the velocity limits and the
+    TCP speed limits, centred on `Q_HOME`; no measured-state feedback. The station's
+    `diff_ik`, and a controller process's (`drake_grasp.bridge`)."""
+    ik_params = DifferentialInverseKinematicsParameters(6, 6)
+    ik_params.set_nominal_joint_position(Q_HOME)
+    ik_params.set_joint_centering_gain(0.05 * np.eye(6))
+    lower = control_plant.GetPositionLowerLimits()
+    upper = control_plant.GetPositionUpperLimits()
+    ik_params.set_joint_position_limits((lower, upper))
+    v_max = scenario.arm.joint_velocity_fraction * control_plant.GetVelocityUpperLimits()
+    ik_params.set_joint_velocity_limits((-v_max, v_max))
+    v_tcp = scenario.arm.max_tcp_speed_m_s
+    ik_params.set_end_effector_translational_velocity_limits([-v_tcp] * 3, [v_tcp] * 3)
+    ik_params.set_end_effector_angular_speed_limit(scenario.arm.max_tcp_angular_speed_rad_s)
+    return DifferentialInverseKinematicsIntegrator(
+        control_plant, control_plant.world_frame(), control_plant.GetFrameByName("grasp_frame"),
+        scenario.arm.ik_time_step_s, ik_params)
 
 
 def topdown_pose(xy, height: float, yaw: float = 0.0) -> RigidTransform:
@@ -262,13 +307,18 @@ def solve_start_configuration(control_plant: MultibodyPlant, X_WG: RigidTransfor
                        f"{max(1, int(tries))} starts)")
 
 
-def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary) -> GraspStation:
+def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary, *,
+                     arm_input: str = "X_WG_desired") -> GraspStation:
     """Builds the station Diagram for a (settled) scene. See the module docstring.
 
     Args:
         scenario: plant, camera, GPD sensor, noise, gripper and arm settings.
         scene: the objects and where they rest (`make_scene`).
         library: the object library the scene's ids come from.
+        arm_input: "X_WG_desired" (the station's own differential IK takes a grasp-frame
+            pose) or "arm_position_command" (no `diff_ik`: the input port
+            `arm_position_command` takes the 6 UR5 joint positions, as a robot driver
+            does; the controller process of `drake_grasp.bridge` runs the IK).
 
     Returns:
         A `GraspStation`: `diagram` (inputs `X_WG_desired`, `gripper_command`,
@@ -276,6 +326,9 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
         see `drake_grasp.api`) with the plant, the start pose and the camera offsets.
         Add `diagram` to a `DiagramBuilder`, then call `set_initial_state` on its Context.
     """
+    if arm_input not in ("X_WG_desired", "arm_position_command"):
+        raise ValueError(f"arm_input: expected 'X_WG_desired' or 'arm_position_command', "
+                         f"got {arm_input!r}")
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant, builder)
     plant.set_name("plant")
@@ -297,30 +350,20 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     control_plant = make_control_plant(M_T, X_TG)
 
     # --- arm: differential IK -> desired state for the in-plant PD + gravity FF -----
-    ik_params = DifferentialInverseKinematicsParameters(6, 6)
-    ik_params.set_nominal_joint_position(Q_HOME)
-    ik_params.set_joint_centering_gain(0.05 * np.eye(6))
-    lower = control_plant.GetPositionLowerLimits()
-    upper = control_plant.GetPositionUpperLimits()
-    ik_params.set_joint_position_limits((lower, upper))
-    v_max = scenario.arm.joint_velocity_fraction * control_plant.GetVelocityUpperLimits()
-    ik_params.set_joint_velocity_limits((-v_max, v_max))
-    v_tcp = scenario.arm.max_tcp_speed_m_s
-    ik_params.set_end_effector_translational_velocity_limits([-v_tcp] * 3, [v_tcp] * 3)
-    ik_params.set_end_effector_angular_speed_limit(scenario.arm.max_tcp_angular_speed_rad_s)
-    diff_ik = builder.AddNamedSystem("diff_ik", DifferentialInverseKinematicsIntegrator(
-        control_plant, control_plant.world_frame(), control_plant.GetFrameByName("grasp_frame"),
-        scenario.arm.ik_time_step_s, ik_params))
     interp = builder.AddNamedSystem("arm_desired_state", StateInterpolatorWithDiscreteDerivative(
         6, scenario.arm.ik_time_step_s, suppress_initial_transient=True))
-    builder.Connect(diff_ik.GetOutputPort("joint_positions"), interp.get_input_port())
+    if arm_input == "X_WG_desired":
+        diff_ik = builder.AddNamedSystem("diff_ik", make_arm_diff_ik(scenario, control_plant))
+        builder.Connect(diff_ik.GetOutputPort("joint_positions"), interp.get_input_port())
+        builder.ExportInput(diff_ik.GetInputPort("X_AE_desired"), "X_WG_desired")
+    else:  # the joint positions come from outside (a controller process, drake_grasp.bridge)
+        builder.ExportInput(interp.get_input_port(), "arm_position_command")
     builder.Connect(interp.get_output_port(), plant.get_desired_state_input_port(arm))
     gravity = builder.AddNamedSystem("gravity_compensation", InverseDynamics(
         control_plant, InverseDynamics.InverseDynamicsMode.kGravityCompensation))
     builder.Connect(plant.get_state_output_port(arm), gravity.get_input_port_estimated_state())
     builder.Connect(gravity.get_output_port_generalized_force(),
                     plant.get_actuation_input_port(arm))
-    builder.ExportInput(diff_ik.GetInputPort("X_AE_desired"), "X_WG_desired")
 
     # --- gripper -------------------------------------------------------------------
     finger = plant.GetJointActuatorByName("left_finger_actuator", gripper)
@@ -341,7 +384,13 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     load_llvm_users_first()
     scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
     camera_frame = plant.GetFrameByName("camera_mount", gripper)
+    # The camera where it really is: the model's mount, off by the calibration error.
+    X_CC_actual = camera_mount_error(scenario.calibration, scenario.seed)
     X_PC = camera_frame.GetFixedPoseInBodyFrame()
+    X_PC_gpd = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper).GetFixedPoseInBodyFrame()
+    if scenario.calibration.active():
+        X_PC = X_PC @ X_CC_actual
+        X_PC_gpd = X_PC_gpd @ X_CC_actual
     depth_camera = make_depth_camera(cam)
     sensor = builder.AddNamedSystem("wrist_camera", RgbdSensor(
         plant.GetBodyFrameIdOrThrow(camera_frame.body().index()), X_PC, depth_camera))
@@ -359,7 +408,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
     gpd_sensor = builder.AddNamedSystem("gpd_camera", RgbdSensor(
         plant.GetBodyFrameIdOrThrow(gpd_frame.body().index()),
-        gpd_frame.GetFixedPoseInBodyFrame(), make_depth_camera(g)))
+        X_PC_gpd, make_depth_camera(g)))
     builder.Connect(scene_graph.get_query_output_port(), gpd_sensor.query_object_input_port())
     gpd_post = builder.AddNamedSystem("gpd_depth_postprocessor", DepthPostProcessor(
         g.noise, width=g.width, height=g.height, far_value_m=g.depth_max_m,
@@ -391,5 +440,5 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
         sheet=sheet, object_instances=objects, scene=scene, q_start=q_start,
         X_WG_start=X_WG_start, X_BG=X_BG, X_GC=X_GC,
         X_GC_gpd=_frame_in_grasp_frame(plant, gripper, GPD_CAMERA_FRAME),
-        _keep_alive=[control_plant],
+        X_CC_actual=X_CC_actual, _keep_alive=[control_plant],
     )
