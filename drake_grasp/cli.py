@@ -282,6 +282,30 @@ def _cmd_scenarios(args) -> int:
     return 0
 
 
+def _cmd_bridge(args) -> int:
+    from drake_grasp import bridge
+
+    if args.bridge_command == "controller":
+        bridge.run_controller(args.port, host=args.host, timeout_s=args.timeout)
+        return 0
+    overrides = {}
+    if args.policy is not None:
+        overrides["policy"] = args.policy
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    scenario = _load(args, **overrides)
+    run = bridge.simulate_split_episode(
+        scenario, scenario_name=args.scenario, timeout_s=args.timeout,
+        port=args.port if args.bridge_command == "station" else 0,
+        spawn_controller=args.bridge_command == "episode")
+    text = run.result.to_json()
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+    print(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="drake-grasp",
@@ -545,6 +569,41 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("scenarios", help="list the named scenarios of a scenarios file")
     p.add_argument("--scenario-file", default=None, help="a *.scenarios.yaml file")
     p.set_defaults(func=_cmd_scenarios)
+
+    pb = sub.add_parser("bridge", help="the controller and the simulated station in two "
+                                       "processes, talking robot-driver LCM messages over TCP "
+                                       "on 127.0.0.1 (README: Across a process boundary)")
+    bsub = pb.add_subparsers(dest="bridge_command", required=True)
+    for name, text in (("episode", "run one episode: the station here, the controller in a "
+                                   "process it starts; prints episode.json"),
+                       ("station", "run the station side of one episode and wait for a "
+                                   "controller started by hand ('bridge controller')")):
+        p = bsub.add_parser(name, help=text)
+        _add_scenario_flags(p)
+        p.add_argument("--policy", default=None, choices=["ctr", "cnn-ctr", "cnn-only", "gpd",
+                                                          "gpd-geometric", "init"],
+                       help="the controller policy (default: the scenario's)")
+        p.add_argument("--seed", type=int, default=None, help="trial seed (default: the scenario's)")
+        p.add_argument("--out", default=None, metavar="FILE",
+                       help="also write the episode's JSON (episode.json's content) here")
+        p.add_argument("--timeout", type=float, default=60.0, metavar="S",
+                       help="seconds to wait for the controller to connect and for each of "
+                            "its replies before giving up (default: 60)")
+        if name == "station":
+            p.add_argument("--port", type=int, default=0,
+                           help="TCP port on 127.0.0.1 to listen on (default 0: the OS "
+                                "chooses; the port is printed on stderr)")
+        p.set_defaults(func=_cmd_bridge)
+    p = bsub.add_parser("controller", help="the controller side: connect to a station, take "
+                                           "its task (scenario, start pose, camera extrinsics) "
+                                           "and run the policy and the arm's IK until it ends")
+    p.add_argument("--port", type=int, required=True, help="the station's TCP port")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="the station's address (default: 127.0.0.1, the loopback)")
+    p.add_argument("--timeout", type=float, default=60.0, metavar="S",
+                   help="seconds to keep trying to connect, and to wait for each message of "
+                        "the station (default: 60)")
+    p.set_defaults(func=_cmd_bridge)
 
     po = sub.add_parser("objects", help="object libraries")
     osub = po.add_subparsers(dest="objects_command", required=True)
