@@ -57,8 +57,11 @@ class Experiment:
     kind: str = "episodes"
     # Extra YAML overrides applied to the named scenario.
     scenario_text: str = ""
-    # Isolation: trial i grasps test object i // 4, lying for i % 4 < 3, else upright.
+    # Isolation: trial i grasps test object i // 4, lying for i % 4 < 3, else upright
+    # (`object_order` "blocked"); "interleaved": object i % K of the K test objects,
+    # lying for (i // K) % 4 < 3, so any K trials cover every object once.
     per_object_poses: bool = False
+    object_order: str = "blocked"
     max_consecutive_failures: int = 3
     distance_only: bool = False
     paper: dict = field(default_factory=dict)
@@ -160,23 +163,23 @@ EXPERIMENTS: dict[str, Experiment] = {
         # (robot profile), isolation scenes.
         Experiment(
             name="sweep-latency", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot",
+            controller_profile="robot", object_order="interleaved",
             description="Success vs sensor-to-action latency: the policy deciding at t sees "
                         "the image taken at t - latency (control period 0.1 s).",
-            conditions=_sweep("latency_s", (0.0, 0.05, 0.1, 0.2, 0.3), lambda n, p, v: Condition(
+            conditions=_sweep("latency_s", (0.0, 0.1, 0.2, 0.25, 0.3), lambda n, p, v: Condition(
                 n, p, latency_s=v)),
         ),
         Experiment(
             name="sweep-control-period", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot",
+            controller_profile="robot", object_order="interleaved",
             description="Success vs the control period (the paper's robot loop: about 0.2 s); "
                         "each CTR step moves as far, within 0.8 periods.",
-            conditions=_sweep("period_s", (0.05, 0.1, 0.2, 0.3, 0.5), lambda n, p, v: Condition(
+            conditions=_sweep("period_s", (0.05, 0.1, 0.2, 0.5), lambda n, p, v: Condition(
                 n, p, control_period_s=v)),
         ),
         Experiment(
             name="sweep-dropped-frames", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot",
+            controller_profile="robot", object_order="interleaved",
             description="Success vs the probability that a frame is lost (the policy then "
                         "gets the last frame that arrived, unaware that it is stale).",
             conditions=_sweep("dropped_frame_prob", (0.0, 0.25, 0.5, 0.75),
@@ -184,7 +187,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         ),
         Experiment(
             name="sweep-camera-translation", scenario="isolation", trials=40,
-            per_object_poses=True, controller_profile="robot",
+            per_object_poses=True, controller_profile="robot", object_order="interleaved",
             description="Success vs a camera-mount translation error (a direction drawn per "
                         "trial); the policy believes the nominal mount.",
             conditions=_sweep("camera_translation_m", (0.0, 0.005, 0.01, 0.02),
@@ -192,7 +195,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         ),
         Experiment(
             name="sweep-camera-rotation", scenario="isolation", trials=40,
-            per_object_poses=True, controller_profile="robot",
+            per_object_poses=True, controller_profile="robot", object_order="interleaved",
             description="Success vs a camera-mount rotation error (about an axis drawn per "
                         "trial); the policy believes the nominal mount.",
             conditions=_sweep("camera_rotation_deg", (0.0, 2.0, 5.0, 10.0),
@@ -299,8 +302,13 @@ def trial_scenario(experiment: Experiment, condition: Condition, index: int, *,
             raise ValueError(f"the object library has no {s.scene.split!r} objects")
         # 10 test objects x (3 lying + 1 upright), round-robin over the library's objects.
         per_category = _one_per_category(ids)
-        obj = per_category[(index // 4) % len(per_category)]
-        pose = "lying" if index % 4 < 3 else "upright"
+        k = len(per_category)
+        if experiment.object_order == "interleaved":
+            obj = per_category[index % k]
+            pose = "lying" if (index // k) % 4 < 3 else "upright"
+        else:
+            obj = per_category[(index // 4) % k]
+            pose = "lying" if index % 4 < 3 else "upright"
         s.scene = dataclasses.replace(s.scene, object_ids=[obj], pose=pose)
     s.validate()
     return s

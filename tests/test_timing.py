@@ -177,3 +177,22 @@ def test_latency_drops_and_mount_error_reach_the_episode(library):
     assert np.array_equal(a.final_plant_state, b.final_plant_state)
     error = a.result.details["camera_mount_error"]
     assert np.linalg.norm(error["xyz"]) == pytest.approx(0.005)
+
+
+def test_interleaved_sweeps_cover_every_test_object_in_their_first_trials(library):
+    from drake_grasp.experiments import trial_scenario
+
+    experiment = get_experiment("sweep-latency")
+    condition = experiment.conditions[0]
+    first = [trial_scenario(experiment, condition, i, base_seed=0, library=library).scene
+             for i in range(10)]
+    assert len({tuple(s.object_ids) for s in first}) == 10
+    assert {s.pose for s in first} == {"lying"}
+    later = trial_scenario(experiment, condition, 30, base_seed=0, library=library).scene
+    assert later.pose == "upright"
+    # The blocked order of the Table 1 isolation experiment is unchanged: 4 per object.
+    iso = get_experiment("isolation")
+    blocked = [trial_scenario(iso, iso.conditions[0], i, base_seed=0, library=library).scene
+               for i in range(4)]
+    assert len({tuple(s.object_ids) for s in blocked}) == 1
+    assert [s.pose for s in blocked] == ["lying"] * 3 + ["upright"]
