@@ -834,23 +834,15 @@ class ControllerSide:
     """
 
     def __init__(self, link: BridgeLink, task: dict):
-        from pydrake.common.value import AbstractValue
+        from pydrake.common.yaml import yaml_load_typed
         from pydrake.systems.analysis import Simulator
         from pydrake.systems.framework import DiagramBuilder
-        from pydrake.systems.primitives import ConstantValueSource
         from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
-        from pydrake.common.yaml import yaml_load_typed
 
-        from drake_grasp.episode import DecisionTimer, _detector
+        from drake_grasp.episode import add_policy_systems
         from drake_grasp.scenario import Scenario, dump_scenario
         from drake_grasp.station import make_arm_diff_ik
-        from drake_grasp.systems.controller import GraspController
-        from drake_grasp.systems.evaluator import (
-            ActionSampler,
-            DistanceEvaluator,
-            load_cnn,
-            score_candidates,
-        )
+        from drake_grasp.systems.evaluator import load_cnn
 
         if task.get("protocol") != PROTOCOL_VERSION:
             raise BridgeError(f"the station speaks protocol {task.get('protocol')}, this "
@@ -867,38 +859,18 @@ class ControllerSide:
         c = scenario.controller
         needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
         model = load_cnn(c.weights) if needs_cnn else None
-        self.timer = timer = DecisionTimer()
-        score_fn = (timer.wrap(lambda depth, actions: score_candidates(model, depth, actions))
-                    if needs_cnn else None)
         builder = DiagramBuilder()
-        controller = builder.AddNamedSystem("controller", GraspController(
-            scenario=scenario, policy=scenario.policy, X_WG_start=_pose(task["X_WG_start"]),
-            X_GC=_pose(task["X_GC"]), X_GC_gpd=_pose(task["X_GC_gpd"]), score_fn=score_fn,
-            detect_fn=timer.wrap(_detector(scenario, None)), target_label=task.get("target_label")))
         images = {}
         for name, model_image in (("depth_image", ImageDepth32F()), ("label_image", ImageLabel16I()),
                                   ("gpd_depth_image", ImageDepth32F())):
             images[name] = builder.AddNamedSystem(f"remote_{name}", _make_remote_image(
-                link, name, model_image, self.counts))
-            builder.Connect(images[name].get_output_port(), controller.GetInputPort(name))
-        sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
-            num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
-            period_s=c.period_s, seed=scenario.seed))
-        builder.Connect(sampler.GetOutputPort("candidate_actions"),
-                        controller.GetInputPort("candidate_actions"))
-        if needs_cnn:
-            evaluator = builder.AddNamedSystem("distance_evaluator",
-                                               DistanceEvaluator(model, score_fn=score_fn))
-            builder.Connect(images["depth_image"].get_output_port(),
-                            evaluator.GetInputPort("depth_image"))
-            builder.Connect(sampler.GetOutputPort("candidate_actions"),
-                            evaluator.GetInputPort("candidate_actions"))
-            distances = evaluator.GetOutputPort("predicted_distances")
-        else:
-            none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
-                AbstractValue.Make(np.zeros(0))))
-            distances = none.get_output_port()
-        builder.Connect(distances, controller.GetInputPort("predicted_distances"))
+                link, name, model_image, self.counts)).get_output_port()
+        controller, self.timer, _ = add_policy_systems(
+            builder, scenario, model=model, X_WG_start=_pose(task["X_WG_start"]),
+            X_GC=_pose(task["X_GC"]), X_GC_gpd=_pose(task["X_GC_gpd"]),
+            target_label=task.get("target_label"), detect_fn=None,
+            depth=images["depth_image"], label=images["label_image"],
+            gpd_depth=images["gpd_depth_image"])
         self._control_plant = _control_plant(scenario)  # the IK keeps no reference
         self.diff_ik = builder.AddNamedSystem("diff_ik", make_arm_diff_ik(scenario, self._control_plant))
         builder.Connect(controller.GetOutputPort("X_WG_desired"),

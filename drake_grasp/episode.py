@@ -382,14 +382,54 @@ def _add_user_policy(builder, scenario, station, out):
     return monitor
 
 
-def _add_controller(builder, scenario, scene, library, station, model, out, detect_fn=None):
+def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, target_label,
+                       detect_fn, depth, label, gpd_depth):
+    """The built-in policy's systems: "controller" (GraspController), "action_sampler" and
+    "distance_evaluator" (the CNN; "no_evaluator" for policies without it), connected to
+    the image output ports given (`depth`, `label`, `gpd_depth`). The in-process episode
+    and the controller side of `drake_grasp.bridge` both build the policy here.
+
+    Returns (controller, its DecisionTimer, the sampler)."""
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.primitives import ConstantValueSource
+
     from drake_grasp.systems.controller import GraspController
-    from drake_grasp.systems.evaluator import (
-        ActionSampler,
-        DistanceEvaluator,
-        load_cnn,
-        score_candidates,
-    )
+    from drake_grasp.systems.evaluator import ActionSampler, DistanceEvaluator, score_candidates
+
+    c = scenario.controller
+    needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
+    timer = DecisionTimer()
+    score_fn = (timer.wrap(lambda d, actions: score_candidates(model, d, actions))
+                if needs_cnn else None)
+    controller = builder.AddNamedSystem("controller", GraspController(
+        scenario=scenario, policy=scenario.policy, X_WG_start=X_WG_start, X_GC=X_GC,
+        X_GC_gpd=X_GC_gpd, score_fn=score_fn,
+        detect_fn=timer.wrap(_detector(scenario, detect_fn)), target_label=target_label))
+    builder.Connect(depth, controller.GetInputPort("depth_image"))
+    builder.Connect(label, controller.GetInputPort("label_image"))
+    builder.Connect(gpd_depth, controller.GetInputPort("gpd_depth_image"))
+    sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
+        num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
+        period_s=c.period_s, seed=scenario.seed))
+    builder.Connect(sampler.GetOutputPort("candidate_actions"),
+                    controller.GetInputPort("candidate_actions"))
+    if needs_cnn:
+        evaluator = builder.AddNamedSystem("distance_evaluator",
+                                           DistanceEvaluator(model, score_fn=score_fn))
+        builder.Connect(depth, evaluator.GetInputPort("depth_image"))
+        builder.Connect(sampler.GetOutputPort("candidate_actions"),
+                        evaluator.GetInputPort("candidate_actions"))
+        distances = evaluator.GetOutputPort("predicted_distances")
+    else:
+        none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
+            AbstractValue.Make(np.zeros(0))))
+        distances = none.get_output_port()
+    builder.Connect(distances, controller.GetInputPort("predicted_distances"))
+    return controller, timer, sampler
+
+
+def _add_controller(builder, scenario, scene, library, station, model, out, detect_fn=None):
+    from drake_grasp.systems.evaluator import load_cnn
 
     c = scenario.controller
     sd = station.diagram
@@ -405,43 +445,17 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
         target = ids.index(scenario.target)
         # MultibodyPlant labels each body's geometry with its body index.
         target_label = int(station.object_body(target).index())
-    timer = out.decision_timer = DecisionTimer()
-    score_fn = (timer.wrap(lambda depth, actions: score_candidates(model, depth, actions))
-                if needs_cnn else None)
-    controller = builder.AddNamedSystem("controller", GraspController(
-        scenario=scenario, policy=scenario.policy, X_WG_start=station.X_WG_start,
-        X_GC=station.X_GC, X_GC_gpd=station.X_GC_gpd,
-        score_fn=score_fn, detect_fn=timer.wrap(_detector(scenario, detect_fn)),
-        target_label=target_label))
-    depth = _sensor(builder, scenario, sd, "depth_image")
-    builder.Connect(depth, controller.GetInputPort("depth_image"))
-    # Only target mode reads the label image; only gpd the GPD sensor (once): a frame
-    # buffer, which renders every period, is put in front of them only then.
-    builder.Connect(_sensor(builder, scenario, sd, "label_image") if scenario.target
-                    else sd.GetOutputPort("label_image"), controller.GetInputPort("label_image"))
-    builder.Connect(_sensor(builder, scenario, sd, "gpd_depth_image") if scenario.policy == "gpd"
-                    else sd.GetOutputPort("gpd_depth_image"),
-                    controller.GetInputPort("gpd_depth_image"))
-    sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
-        num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,
-        period_s=c.period_s, seed=scenario.seed))
-    builder.Connect(sampler.GetOutputPort("candidate_actions"),
-                    controller.GetInputPort("candidate_actions"))
-    if needs_cnn:
-        evaluator = builder.AddNamedSystem("distance_evaluator",
-                                           DistanceEvaluator(model, score_fn=score_fn))
-        builder.Connect(depth, evaluator.GetInputPort("depth_image"))
-        builder.Connect(sampler.GetOutputPort("candidate_actions"),
-                        evaluator.GetInputPort("candidate_actions"))
-        builder.Connect(evaluator.GetOutputPort("predicted_distances"),
-                        controller.GetInputPort("predicted_distances"))
-    else:
-        from pydrake.common.value import AbstractValue
-        from pydrake.systems.primitives import ConstantValueSource
-
-        none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(
-            AbstractValue.Make(np.zeros(0))))
-        builder.Connect(none.get_output_port(), controller.GetInputPort("predicted_distances"))
+    controller, timer, sampler = add_policy_systems(
+        builder, scenario, model=model, X_WG_start=station.X_WG_start, X_GC=station.X_GC,
+        X_GC_gpd=station.X_GC_gpd, target_label=target_label, detect_fn=detect_fn,
+        depth=_sensor(builder, scenario, sd, "depth_image"),
+        # Only target mode reads the label image; only gpd the GPD sensor (once): a frame
+        # buffer, which renders every period, is put in front of them only then.
+        label=(_sensor(builder, scenario, sd, "label_image") if scenario.target
+               else sd.GetOutputPort("label_image")),
+        gpd_depth=(_sensor(builder, scenario, sd, "gpd_depth_image") if scenario.policy == "gpd"
+                   else sd.GetOutputPort("gpd_depth_image")))
+    out.decision_timer = timer
     out.disturbance = _drive_sheet(builder, scenario, sd, controller.GetOutputPort("control_status"),
                                    c.period_s)
     out.sampler = sampler
