@@ -196,3 +196,21 @@ def test_interleaved_sweeps_cover_every_test_object_in_their_first_trials(librar
                for i in range(4)]
     assert len({tuple(s.object_ids) for s in blocked}) == 1
     assert [s.pose for s in blocked] == ["lying"] * 3 + ["upright"]
+
+
+def test_latency_sweep_runs_through_evaluate_and_plots(tmp_path):
+    """The path a user takes: `evaluate --experiment sweep-latency` (two CTR points, one
+    trial each) -> records carrying the latency, a report with the sweep picture."""
+    from drake_grasp.cli import main
+    from drake_grasp.results import load_records
+
+    out = tmp_path / "sweep"
+    main(["evaluate", "--experiment", "sweep-latency", "--trials", "1", "--workers", "1",
+          "--seed", "0", "--out", str(out), "--conditions", "ctr/latency_s=0,ctr/latency_s=0.3"])
+    records = {r.condition: r for r in load_records(out)}
+    assert set(records) == {"ctr/latency_s=0", "ctr/latency_s=0.3"}
+    assert "latency_s: 0.3" in records["ctr/latency_s=0.3"].scenario_yaml
+    for r in records.values():
+        assert r.failure_class != "simulation-error", r.failure_reason
+    assert (out / "sweep_latency_s.png").stat().st_size > 1000
+    assert "sweep over latency_s" in (out / "report.md").read_text()
