@@ -744,7 +744,13 @@ def recorded_scenario(scenario_yaml: str):
 
     from drake_grasp.scenario import Scenario, apply_physics_profile
 
-    scenario = yaml_load_typed(schema=Scenario, data=scenario_yaml)
+    try:
+        scenario = yaml_load_typed(schema=Scenario, data=scenario_yaml)
+    except RuntimeError as e:
+        # e.g. "The fields ['stop_window_fraction'] were unknown to the schema": a key
+        # this version of the package no longer has.
+        raise ValueError(f"the recorded scenario does not load in drake_grasp {code_version()}: "
+                         f"{e}") from None
     if not re.search(r"^physics:", scenario_yaml, re.MULTILINE):
         scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
     return scenario
@@ -765,7 +771,11 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     if not rec.scenario_yaml:
         raise ValueError(f"{results_dir}: trial {trial_id!r} has no scenario to replay (building "
                          f"it failed: {rec.failure_reason})")
-    scenario = recorded_scenario(rec.scenario_yaml)
+    try:
+        scenario = recorded_scenario(rec.scenario_yaml)
+    except ValueError as e:
+        raise ValueError(f"{results_dir}: trial {trial_id!r} was recorded by drake_grasp "
+                         f"{rec.code_version}; {e}. Replay it with that version.") from None
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
     page = replay_path(results_dir, trial_id)
     out = Path(out) if out else page.with_suffix("")

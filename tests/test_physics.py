@@ -121,3 +121,22 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
     old = recorded_scenario(old_yaml)
     assert old.physics == ref.physics
     assert old.plant.time_step == 0.002
+
+
+def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
+    from drake_grasp.montecarlo import replay_trial
+    from drake_grasp.results import TrialRecord, write_record
+    from drake_grasp.scenario import dump_scenario
+
+    text = dump_scenario(load_scenario(scenario_name="isolation")).replace(
+        "controller:\n", "controller:\n  stop_window_fraction: 0.1\n", 1)
+    write_record(tmp_path, TrialRecord(
+        trial_id="isolation/ctr/0000", experiment="isolation", condition="ctr", policy="ctr",
+        noise="none", noise_scale=None, depth_noise=False, offset_m=None, disturbance={},
+        scenario_name="isolation", scenario_yaml=text, seed=0, config_hash="x",
+        code_version="0.0.9+git.0123456789ab", success=False, failure_class="missed",
+        failure_reason="missed", final_distance_m=None, sim_time_s=1.0, wall_time_s=1.0,
+        control_steps=0, object_ids=["can_000"], grasped_object_id=None))
+    with pytest.raises(ValueError, match=r"isolation/ctr/0000.*0\.0\.9\+git\.0123456789ab"
+                                         r".*stop_window_fraction.*Replay it with that version"):
+        replay_trial(tmp_path, trial_id="isolation/ctr/0000")
