@@ -605,32 +605,31 @@ def build_station_side(scenario, scene, library, link: BridgeLink):
     task handshake on `link`. Returns an `episode.EpisodeDiagram`."""
     from pydrake.systems.framework import DiagramBuilder
 
-    from drake_grasp.episode import EpisodeDiagram, _add_judge, _drive_sheet, _sensor
+    from drake_grasp.episode import (
+        EpisodeDiagram,
+        _add_judge,
+        _drive_sheet,
+        policy_image_ports,
+        target_object,
+    )
     from drake_grasp.station import MakeGraspStation
 
     check_bridge_scenario(scenario)
     if not scene.objects:
         raise ValueError("scene has no objects on the table (all fell off while settling?)")
     station = MakeGraspStation(scenario, scene, library, arm_input="arm_position_command")
-    target = target_label = None
-    if scenario.target:
-        ids = scene.object_ids()
-        if scenario.target not in ids:
-            raise ValueError(f"target: {scenario.target!r} is not in the scene; objects: {ids}")
-        target = ids.index(scenario.target)
-        target_label = int(station.object_body(target).index())
+    target, target_label = target_object(scenario, scene, station)
     ready = _send_task(link, scenario, station, target_label)
     builder = DiagramBuilder()
     sd = builder.AddNamedSystem("station", station.diagram)
     proxy = builder.AddNamedSystem("remote_controller", make_remote_controller(
         link, periods=ready["periods"], q_initial=station.q_start, initial=ready))
     # The policy's images as in process: through the timing's frame buffers where the
-    # scenario has them (episode._sensor).
-    builder.Connect(_sensor(builder, scenario, sd, "depth_image"), proxy.GetInputPort("depth_image"))
-    builder.Connect(_sensor(builder, scenario, sd, "label_image") if scenario.target
-                    else sd.GetOutputPort("label_image"), proxy.GetInputPort("label_image"))
-    builder.Connect(_sensor(builder, scenario, sd, "gpd_depth_image") if scenario.policy == "gpd"
-                    else sd.GetOutputPort("gpd_depth_image"), proxy.GetInputPort("gpd_depth_image"))
+    # scenario has them.
+    ports = policy_image_ports(builder, scenario, sd)
+    for name, key in (("depth_image", "depth"), ("label_image", "label"),
+                      ("gpd_depth_image", "gpd_depth")):
+        builder.Connect(ports[key], proxy.GetInputPort(name))
     for name in ("gripper_state", "arm_state"):
         builder.Connect(sd.GetOutputPort(name), proxy.GetInputPort(name))
     for name in ("arm_position_command", "gripper_command"):

@@ -382,6 +382,39 @@ def _add_user_policy(builder, scenario, station, out):
     return monitor
 
 
+def target_object(scenario, scene, station) -> tuple[int | None, int | None]:
+    """Target mode (`scenario.target`): (the target's scene index, its label in the
+    camera's label image); (None, None) without a target.
+
+    Raises:
+        ValueError: the target is not in the scene (names the objects that are).
+    """
+    if not scenario.target:
+        return None, None
+    ids = scene.object_ids()
+    if scenario.target not in ids:
+        raise ValueError(f"target: {scenario.target!r} is not in the scene; objects: {ids}")
+    target = ids.index(scenario.target)
+    # MultibodyPlant labels each body's geometry with its body index.
+    return target, int(station.object_body(target).index())
+
+
+def policy_image_ports(builder, scenario, station_diagram) -> dict:
+    """The image ports the built-in policy reads, as `add_policy_systems` takes them
+    (`depth`, `label`, `gpd_depth`): through the timing's frame buffers (`_sensor`) where
+    the policy reads them. Only target mode reads the label image and only gpd the GPD
+    sensor (once): a frame buffer, which renders every period, is put in front of them
+    only then."""
+    sd = station_diagram
+    return {
+        "depth": _sensor(builder, scenario, sd, "depth_image"),
+        "label": (_sensor(builder, scenario, sd, "label_image") if scenario.target
+                  else sd.GetOutputPort("label_image")),
+        "gpd_depth": (_sensor(builder, scenario, sd, "gpd_depth_image")
+                      if scenario.policy == "gpd" else sd.GetOutputPort("gpd_depth_image")),
+    }
+
+
 def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, target_label,
                        detect_fn, depth, label, gpd_depth):
     """The built-in policy's systems: "controller" (GraspController), "action_sampler" and
@@ -436,25 +469,11 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
     needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
     if needs_cnn and model is None:
         model = load_cnn(c.weights)
-    target = None
-    target_label = None
-    if scenario.target:
-        ids = scene.object_ids()
-        if scenario.target not in ids:
-            raise ValueError(f"target: {scenario.target!r} is not in the scene; objects: {ids}")
-        target = ids.index(scenario.target)
-        # MultibodyPlant labels each body's geometry with its body index.
-        target_label = int(station.object_body(target).index())
+    target, target_label = target_object(scenario, scene, station)
     controller, timer, sampler = add_policy_systems(
         builder, scenario, model=model, X_WG_start=station.X_WG_start, X_GC=station.X_GC,
         X_GC_gpd=station.X_GC_gpd, target_label=target_label, detect_fn=detect_fn,
-        depth=_sensor(builder, scenario, sd, "depth_image"),
-        # Only target mode reads the label image; only gpd the GPD sensor (once): a frame
-        # buffer, which renders every period, is put in front of them only then.
-        label=(_sensor(builder, scenario, sd, "label_image") if scenario.target
-               else sd.GetOutputPort("label_image")),
-        gpd_depth=(_sensor(builder, scenario, sd, "gpd_depth_image") if scenario.policy == "gpd"
-                   else sd.GetOutputPort("gpd_depth_image")))
+        **policy_image_ports(builder, scenario, sd))
     out.decision_timer = timer
     out.disturbance = _drive_sheet(builder, scenario, sd, controller.GetOutputPort("control_status"),
                                    c.period_s)

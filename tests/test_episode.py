@@ -212,3 +212,22 @@ def test_ctr_episode_never_renders_the_gpd_sensor(library, monkeypatch):
     # One CNN scoring per control step, timed for the fairness table.
     assert run.result.details["decisions"] == run.result.control_steps
     assert run.result.details["decision_time_s"] > 0.0
+
+
+def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
+    import dataclasses
+
+    from drake_grasp.scene import make_scene
+
+    scenario = load_scenario(scenario_name="random",
+                             scenario_text="{seed: 4, policy: ctr, max_sim_time_s: 1.0}")
+    scene = make_scene(scenario.scene, scenario.seed, library)
+    ids = scene.object_ids()
+    assert len(ids) >= 2
+    run = simulate_episode(dataclasses.replace(scenario, target=ids[-1]), library=library,
+                           scene=scene, record_depth=False)
+    assert run.result.target_object_id == ids[-1]
+    assert run.result.control_steps >= 5
+    with pytest.raises(ValueError, match=r"target: 'nope' is not in the scene; objects: \["):
+        simulate_episode(dataclasses.replace(scenario, target="nope"), library=library,
+                         scene=scene, record_depth=False)
