@@ -82,6 +82,16 @@ def _sweep(name: str, values, make) -> tuple[Condition, ...]:
     return tuple(out)
 
 
+def _loop_sweep(name: str, param: str, field_name: str, values, description: str) -> Experiment:
+    """A timing or calibration sweep: CTR and GPD at each value of the `Condition` field
+    `field_name` (conditions "ctr/PARAM=value"), robot profile, isolation scenes with the
+    test objects interleaved (any 10 trials cover every object)."""
+    return Experiment(
+        name=name, scenario="isolation", trials=40, per_object_poses=True,
+        controller_profile="robot", object_order="interleaved", description=description,
+        conditions=_sweep(param, values, lambda n, p, v: Condition(n, p, **{field_name: v})))
+
+
 EXPERIMENTS: dict[str, Experiment] = {
     e.name: e
     for e in (
@@ -160,47 +170,26 @@ EXPERIMENTS: dict[str, Experiment] = {
                 n, p, noise="offset" if v > 0 else "none", offset_m=v)),
         ),
         # Timing and calibration (beyond the paper): the Table 1 controller settings
-        # (robot profile), isolation scenes.
-        Experiment(
-            name="sweep-latency", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot", object_order="interleaved",
-            description="Success vs sensor-to-action latency: the policy deciding at t sees "
-                        "the image taken at t - latency (control period 0.1 s).",
-            conditions=_sweep("latency_s", (0.0, 0.1, 0.2, 0.25, 0.3), lambda n, p, v: Condition(
-                n, p, latency_s=v)),
-        ),
-        Experiment(
-            name="sweep-control-period", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot", object_order="interleaved",
-            description="Success vs the control period (the paper's robot loop: about 0.2 s); "
-                        "each CTR step moves as far, within 0.8 periods.",
-            conditions=_sweep("period_s", (0.05, 0.1, 0.2, 0.5), lambda n, p, v: Condition(
-                n, p, control_period_s=v)),
-        ),
-        Experiment(
-            name="sweep-dropped-frames", scenario="isolation", trials=40, per_object_poses=True,
-            controller_profile="robot", object_order="interleaved",
-            description="Success vs the probability that a frame is lost (the policy then "
-                        "gets the last frame that arrived, unaware that it is stale).",
-            conditions=_sweep("dropped_frame_prob", (0.0, 0.25, 0.5, 0.75),
-                              lambda n, p, v: Condition(n, p, dropped_frame_prob=v)),
-        ),
-        Experiment(
-            name="sweep-camera-translation", scenario="isolation", trials=40,
-            per_object_poses=True, controller_profile="robot", object_order="interleaved",
-            description="Success vs a camera-mount translation error (a direction drawn per "
-                        "trial); the policy believes the nominal mount.",
-            conditions=_sweep("camera_translation_m", (0.0, 0.005, 0.01, 0.02),
-                              lambda n, p, v: Condition(n, p, camera_translation_error_m=v)),
-        ),
-        Experiment(
-            name="sweep-camera-rotation", scenario="isolation", trials=40,
-            per_object_poses=True, controller_profile="robot", object_order="interleaved",
-            description="Success vs a camera-mount rotation error (about an axis drawn per "
-                        "trial); the policy believes the nominal mount.",
-            conditions=_sweep("camera_rotation_deg", (0.0, 2.0, 5.0, 10.0),
-                              lambda n, p, v: Condition(n, p, camera_rotation_error_deg=v)),
-        ),
+        # (robot profile), isolation scenes, objects interleaved.
+        _loop_sweep("sweep-latency", "latency_s", "latency_s", (0.0, 0.1, 0.2, 0.25, 0.3),
+                    "Success vs sensor-to-action latency: the policy deciding at t sees the "
+                    "image taken at t - latency (control period 0.1 s)."),
+        _loop_sweep("sweep-control-period", "period_s", "control_period_s",
+                    (0.05, 0.1, 0.2, 0.5),
+                    "Success vs the control period (the paper's robot loop: about 0.2 s); "
+                    "each CTR step moves as far, within 0.8 periods."),
+        _loop_sweep("sweep-dropped-frames", "dropped_frame_prob", "dropped_frame_prob",
+                    (0.0, 0.25, 0.5, 0.75),
+                    "Success vs the probability that a frame is lost (the policy then gets "
+                    "the last frame that arrived, unaware that it is stale)."),
+        _loop_sweep("sweep-camera-translation", "camera_translation_m",
+                    "camera_translation_error_m", (0.0, 0.005, 0.01, 0.02),
+                    "Success vs a camera-mount translation error (a direction drawn per "
+                    "trial); the policy believes the nominal mount."),
+        _loop_sweep("sweep-camera-rotation", "camera_rotation_deg", "camera_rotation_error_deg",
+                    (0.0, 2.0, 5.0, 10.0),
+                    "Success vs a camera-mount rotation error (about an axis drawn per "
+                    "trial); the policy believes the nominal mount."),
     )
 }
 
