@@ -12,6 +12,11 @@ $DG evaluate --experiment isolation --conditions ctr --trials 120 --workers 2 --
 $DG evaluate --experiment sim-distance --trials 40 --workers 2 --seed 0 --out $R/sim-distance
 $DG evaluate --experiment clutter --trials 3 --workers 2 --seed 0 --out $R/clutter
 $DG evaluate --experiment clutter-shift --trials 3 --workers 2 --seed 0 --out $R/clutter-shift
+# Timing and calibration sweeps (README: Timing and calibration), 20 trials per point.
+for e in sweep-latency sweep-control-period sweep-dropped-frames sweep-camera-translation \
+         sweep-camera-rotation; do
+    $DG evaluate --experiment $e --trials 20 --workers 2 --seed 0 --out $R/$e
+done
 python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
 python analysis/figure5.py $R/sim-distance --out $R/figure5.png
 python -c "from drake_grasp.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$R')"
