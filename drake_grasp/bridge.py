@@ -857,7 +857,7 @@ class ControllerSide:
         self.counts = {"ticks": 0, "evaluations": 0, "image_requests": 0}
         c = scenario.controller
         needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
-        model = load_cnn(c.weights) if needs_cnn else None
+        model = load_cnn(c.weights, threads=c.torch_threads) if needs_cnn else None
         builder = DiagramBuilder()
         images = {}
         for name, model_image in (("depth_image", ImageDepth32F()), ("label_image", ImageLabel16I()),

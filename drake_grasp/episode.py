@@ -468,7 +468,7 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
     sd = station.diagram
     needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
     if needs_cnn and model is None:
-        model = load_cnn(c.weights)
+        model = load_cnn(c.weights, threads=c.torch_threads)
     target, target_label = target_object(scenario, scene, station)
     controller, timer, sampler = add_policy_systems(
         builder, scenario, model=model, X_WG_start=station.X_WG_start, X_GC=station.X_GC,

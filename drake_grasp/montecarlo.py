@@ -318,10 +318,10 @@ def _library(objects_dir):
     return _cached(("library", objects_dir), lambda: load_library(objects_dir))
 
 
-def _model(weights: str):
+def _model(weights: str, threads: int = 1):
     from drake_grasp.systems.evaluator import load_cnn
 
-    return _cached(("cnn", weights), lambda: load_cnn(weights))
+    return _cached(("cnn", weights, threads), lambda: load_cnn(weights, threads=threads))
 
 
 def _condition_hash(task: TrialTask, condition: Condition, objects_dir) -> str:
@@ -420,7 +420,8 @@ def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
 def _simulate(scenario, library, *, scene=None):
     from drake_grasp.episode import simulate_episode
 
-    model = _model(scenario.controller.weights) if scenario.policy in CNN_POLICIES else None
+    model = (_model(scenario.controller.weights, scenario.controller.torch_threads)
+             if scenario.policy in CNN_POLICIES else None)
     return simulate_episode(scenario, library=library, scene=scene, record_depth=False,
                             visualize=False, model=model)
 

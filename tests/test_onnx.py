@@ -127,6 +127,13 @@ def test_evaluator_system_with_the_onnx_file_equals_torch(exported, torch_model)
     assert np.abs(out["onnx"] - out["torch"]).max() <= DISTANCE_TOL_M
 
 
+def test_onnx_backend_takes_the_scenarios_thread_count(exported):
+    for threads in (1, 2):
+        model = load_cnn(str(exported), threads=threads)
+        for session in (model._image, model._head):
+            assert session.get_session_options().intra_op_num_threads == threads
+
+
 def test_onnx_backend_runs_with_torch_not_importable(exported, torch_model):
     depth, actions = _random_inputs(4, images=1, k=16)
     want = score_candidates(torch_model, depth[0], actions)

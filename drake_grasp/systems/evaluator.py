@@ -25,16 +25,18 @@ if TYPE_CHECKING:
 DEFAULT_WEIGHTS = "cnn/weights.safetensors"
 
 
-def load_cnn(weights: str = "") -> Union[DistanceCNN, OnnxDistanceModel]:
+def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxDistanceModel]:
     """The distance CNN from a weights file; "" -> the shipped `models/cnn/` weights.
 
     A path ending in ``.onnx`` (the image file of ``drake-grasp export-onnx``, its
     ``.head.onnx`` sibling beside it) loads the onnxruntime backend
-    (`OnnxDistanceModel`, 1 thread); anything else is a safetensors file for torch.
+    (`OnnxDistanceModel` with `threads` intra-op threads: `controller.torch_threads` in an
+    episode); anything else is a safetensors file for torch (whose threads the episode
+    sets process-wide).
     """
     path = weights or str(models_dir() / DEFAULT_WEIGHTS)
     if str(path).endswith(".onnx"):
-        return OnnxDistanceModel(path)
+        return OnnxDistanceModel(path, threads=max(1, int(threads)))
     from drake_grasp.network import load_weights
 
     model, _ = load_weights(path)
