@@ -368,6 +368,32 @@ def test_ranking_metrics_on_a_generated_set(reference):
         ranking_metrics(model, out, candidates=1)
 
 
+def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path):
+    """analysis/cnn_eval.py: the shipped weights' test L1 over every label (as `train`
+    computes it) and the ranking metrics, written to JSON."""
+    import importlib.util
+
+    import torch
+
+    from drake_grasp.cnn_metrics import ranking_metrics
+    from drake_grasp.network import load_weights
+    from drake_grasp.training import ChunkCache, ShardSet, evaluate_l1
+
+    out, _ = reference
+    spec = importlib.util.spec_from_file_location("cnn_eval", ROOT / "analysis" / "cnn_eval.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    weights = ROOT / "models" / "cnn" / "weights.safetensors"
+    result = script.main(["--weights", str(weights), "--test-data", str(out),
+                          "--ranking-images", "4", "--out", str(tmp_path / "eval.json")])
+    model, _ = load_weights(weights)
+    expected = evaluate_l1(model, ShardSet(out, ChunkCache(int(1e9))), device=torch.device("cpu"))
+    assert result["test_l1_m"] == pytest.approx(expected, rel=1e-6) and expected > 0
+    assert result["ranking"] == ranking_metrics(model, out, images=4, seed=0)
+    assert json.loads((tmp_path / "eval.json").read_text())["num_test_images"] == len(
+        DepthGraspDataset(out))
+
+
 def test_spearman_matches_scipy_and_is_nan_without_an_order():
     from scipy.stats import spearmanr
 
