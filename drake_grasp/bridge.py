@@ -812,15 +812,12 @@ def _control_plant(scenario):
     from pydrake.multibody.plant import AddMultibodyPlant
     from pydrake.systems.framework import DiagramBuilder
 
-    from drake_grasp.station import _add_robot, _gripper_offsets, make_control_plant
+    from drake_grasp.station import _add_robot, arm_control_plant
 
     plant, _ = AddMultibodyPlant(scenario.plant, DiagramBuilder())
     arm, gripper = _add_robot(plant)
     plant.Finalize()
-    _, X_TG, _ = _gripper_offsets(plant, gripper)
-    M_T = plant.CalcSpatialInertia(plant.CreateDefaultContext(), plant.GetFrameByName("tool0", arm),
-                                   plant.GetBodyIndices(gripper))
-    return make_control_plant(M_T, X_TG)
+    return arm_control_plant(plant, arm, gripper)
 
 
 class ControllerSide:

@@ -242,14 +242,14 @@ def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
         out.update(success_rate=k / attempts if attempts else None, n=attempts, successes=k,
                    ci95=[lo, hi] if attempts else None)
     edges, counts = distance_histogram(dists)
+    within = sum(1 for d in dists if d < BIN_M - _TOL)
     out.update({
         "distance_n": len(dists),
         "mean_final_distance_m": statistics.fmean(dists) if dists else None,
         "median_final_distance_m": statistics.median(dists) if dists else None,
-        "fraction_within_3cm": (sum(1 for d in dists if d < BIN_M - _TOL) / attempts
-                                if dists and attempts else None),
-        "within_3cm_ci95": (list(wilson_interval(sum(1 for d in dists if d < BIN_M - _TOL),
-                                                 attempts)) if dists and attempts else None),
+        "fraction_within_3cm": within / attempts if dists and attempts else None,
+        "within_3cm_ci95": (list(wilson_interval(within, attempts))
+                            if dists and attempts else None),
         "median_final_distance_ci95": median_interval(dists),
         "histogram": {"bin_edges_m": edges, "counts": counts,
                       "note": "last count: distances >= the last edge"},

@@ -197,6 +197,16 @@ def gpd_camera_offset() -> RigidTransform:
     return _frame_in_grasp_frame(plant, gripper, GPD_CAMERA_FRAME)
 
 
+def arm_control_plant(plant: MultibodyPlant, arm, gripper) -> MultibodyPlant:
+    """The arm's control plant (`make_control_plant`) for a finalized plant holding the
+    UR5 and the 2F-85 (`_add_robot`): the gripper's bodies lumped onto tool0."""
+    _, X_TG, _ = _gripper_offsets(plant, gripper)
+    M_T = plant.CalcSpatialInertia(plant.CreateDefaultContext(),
+                                   plant.GetFrameByName("tool0", arm),
+                                   plant.GetBodyIndices(gripper))
+    return make_control_plant(M_T, X_TG)
+
+
 # Random stream of the camera-mount error's direction (`default_rng([seed, 83])`).
 MOUNT_ERROR_STREAM = 83
 
@@ -344,10 +354,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
                               [gripper])
 
     X_BG, X_TG, X_GC = _gripper_offsets(plant, gripper)
-    gripper_bodies = plant.GetBodyIndices(gripper)
-    M_T = plant.CalcSpatialInertia(plant.CreateDefaultContext(),
-                                   plant.GetFrameByName("tool0", arm), gripper_bodies)
-    control_plant = make_control_plant(M_T, X_TG)
+    control_plant = arm_control_plant(plant, arm, gripper)
 
     # --- arm: differential IK -> desired state for the in-plant PD + gravity FF -----
     interp = builder.AddNamedSystem("arm_desired_state", StateInterpolatorWithDiscreteDerivative(
@@ -387,7 +394,8 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     # The camera where it really is: the model's mount, off by the calibration error.
     X_CC_actual = camera_mount_error(scenario.calibration, scenario.seed)
     X_PC = camera_frame.GetFixedPoseInBodyFrame()
-    X_PC_gpd = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper).GetFixedPoseInBodyFrame()
+    gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
+    X_PC_gpd = gpd_frame.GetFixedPoseInBodyFrame()
     if scenario.calibration.active():
         X_PC = X_PC @ X_CC_actual
         X_PC_gpd = X_PC_gpd @ X_CC_actual
@@ -405,7 +413,6 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
 
     # --- the GPD baseline's sensor (a Structure IO in the paper) ------------------------
     g = scenario.gpd
-    gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
     gpd_sensor = builder.AddNamedSystem("gpd_camera", RgbdSensor(
         plant.GetBodyFrameIdOrThrow(gpd_frame.body().index()),
         X_PC_gpd, make_depth_camera(g)))

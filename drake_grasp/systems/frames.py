@@ -112,8 +112,6 @@ class FrameBuffer(LeafSystem):
     def _Capture(self, context, state):
         frames = context.get_abstract_state(int(self._state)).get_value().frames
         index = int(round((context.get_time() - self._offset) / self._period))
-        if frames and index <= frames[-1][0]:
-            return  # already captured (a repeated event time)
         image = self._live(context) if self._arrived(index) else frames[-1][1]
         kept = (frames + ((index, image),))[-self._keep:]
         state.get_mutable_abstract_state(int(self._state)).set_value(_Frames(kept))
