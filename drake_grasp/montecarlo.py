@@ -28,6 +28,7 @@ import re
 import time
 import traceback
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -667,7 +668,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     info = {**identity, **({"plugin_conditions": plugins} if plugins else {}),
             # Informational: the most trials per condition any call asked for.
             "trials": max(n, int(old.get("trials") or 0)),
-            "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S")}
+            "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
+            **({"created_utc": old["created_utc"]} if old.get("created_utc") else {}),
+            "sessions": list(old.get("sessions") or [])}
     write_run_info(out, info)
     records = load_records(out) if exp.kind == "clutter-runs" else []
     done_ids = done_trial_ids(out)
@@ -675,9 +678,27 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         todo = [t for t in tasks if not _clutter_run_finished(out, t, exp, records)]
     else:
         todo = [t for t in tasks if t.trial_id not in done_ids]
-    _execute(todo, out=str(out), workers=workers, scheduler=scheduler, objects_dir=objects_dir,
-             progress=progress, fail_trials=tuple(fail_trials), total=len(tasks),
-             initial=len(tasks) - len(todo))
+    n_before = len(load_records(out))
+    started = datetime.now(timezone.utc)
+    t0 = time.perf_counter()
+    completed = False
+    try:
+        _execute(todo, out=str(out), workers=workers, scheduler=scheduler,
+                 objects_dir=objects_dir, progress=progress, fail_trials=tuple(fail_trials),
+                 total=len(tasks), initial=len(tasks) - len(todo))
+        completed = True
+    finally:
+        # The wall time of this call, for the report's experiment time (a call killed
+        # outright leaves no entry; one interrupted by Ctrl-C or an error does).
+        if todo:
+            info["sessions"].append({
+                "started_utc": started.isoformat(timespec="seconds"),
+                "wall_s": round(time.perf_counter() - t0, 3),
+                "workers": 0 if scheduler else max(1, workers),
+                "scheduler": bool(scheduler),
+                "records_added": len(load_records(out)) - n_before,
+                "completed": completed})
+            write_run_info(out, info)
     result = {"out": str(out), "new_folder_because": replaced,
               "records": len(load_records(out)), "ran": len(todo),
               "skipped": len(tasks) - len(todo)}

@@ -256,8 +256,53 @@ def summarize_condition(condition: str, records: Sequence[TrialRecord]) -> dict:
         "failure_classes": classes,
         "config_hashes": sorted({r.config_hash for r in records}),
         "code_versions": sorted({r.code_version for r in records}),
+        "trial_wall_time_s": _wall_times(records),
     })
+    runs = clutter_runs(records)
+    if runs is not None:
+        out["clutter_runs"] = runs
     return out
+
+
+def _wall_times(records: Sequence[TrialRecord]) -> dict | None:
+    """Sum and median of the trials' own wall times (one worker each; a trial's seconds
+    include building its Diagram and settling its scene)."""
+    walls = [float(r.wall_time_s) for r in records if r.wall_time_s is not None]
+    if not walls:
+        return None
+    return {"sum": sum(walls), "median": statistics.median(walls), "n": len(walls)}
+
+
+def clutter_runs(records: Sequence[TrialRecord]) -> dict | None:
+    """Attempts per clutter run and why each run ended, for one condition; None when the
+    records are not clutter-run attempts.
+
+    Returns:
+        {"runs", "attempts" (simulation errors excluded, as in the success table),
+        "attempts_per_run": {"mean", "min", "max"}, "grasped_per_run_mean",
+        "run_ends": {reason: runs}} - a run without an ending record (interrupted; a
+        resume finishes it) counts as "unfinished".
+    """
+    by_run: dict[int, list[TrialRecord]] = {}
+    for r in records:
+        if r.run_index is None:
+            return None
+        by_run.setdefault(int(r.run_index), []).append(r)
+    if not by_run:
+        return None
+    attempts, grasped, ends = [], [], {}
+    for recs in by_run.values():
+        real = [r for r in recs if r.failure_class != "simulation-error"]
+        attempts.append(len(real))
+        grasped.append(sum(1 for r in real if r.success))
+        end = next((r.extra["run_end"] for r in recs if (r.extra or {}).get("run_end")),
+                   "unfinished")
+        ends[end] = ends.get(end, 0) + 1
+    return {"runs": len(by_run), "attempts": sum(attempts),
+            "attempts_per_run": {"mean": statistics.fmean(attempts), "min": min(attempts),
+                                 "max": max(attempts)},
+            "grasped_per_run_mean": statistics.fmean(grasped),
+            "run_ends": dict(sorted(ends.items(), key=lambda kv: (-kv[1], kv[0])))}
 
 
 def median_interval(values: Sequence[float], z: float = 1.959964) -> list[float] | None:
@@ -625,6 +670,55 @@ def _distance_table(policies: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _clutter_runs_table(exp: str, policies: dict[str, dict]) -> list[str]:
+    paper_row = PAPER_TABLE1.get(exp, {})
+    lines = ["| condition | runs | attempts | attempts per run (mean, min-max) | "
+             "paper: attempts per run | grasped per run (mean) | how the runs ended |",
+             "|---|---|---|---|---|---|---|"]
+    for c, st in policies.items():
+        runs = st.get("clutter_runs")
+        if runs is None:
+            continue
+        per = runs["attempts_per_run"]
+        paper = paper_row.get(canonical_condition(c)) or {}
+        paper_cell = (f"{paper['attempts'] / 10:.1f} ({paper['attempts']} in 10 runs)"
+                      if paper.get("attempts") else "—")
+        ends = "; ".join(f"{reason}: {k}" for reason, k in runs["run_ends"].items())
+        lines.append(f"| {c} | {runs['runs']} | {runs['attempts']} | {per['mean']:.1f} "
+                     f"({per['min']}-{per['max']}) | {paper_cell} | "
+                     f"{runs['grasped_per_run_mean']:.1f} | {_md_escape(ends, 400)} |")
+    lines += ["", "Attempts exclude simulation errors. A run ends by the rule in "
+                  "`montecarlo.clutter_run_status`: 3 failed grasps in a row, no object left "
+                  "(or none within +-15 cm of the pile's centre), or a cap of attempts. Paper: "
+                  "10 runs of 10 objects per policy (Table 1's attempt counts)."]
+    return lines
+
+
+def _time_table(res: Results, policies: dict[str, dict]) -> list[str]:
+    lines = ["| condition | trials | trial wall time, summed | median per trial |",
+             "|---|---|---|---|"]
+    total = 0.0
+    for c, st in policies.items():
+        w = st.get("trial_wall_time_s")
+        if not w:
+            continue
+        total += w["sum"]
+        lines.append(f"| {c} | {w['n']} | {w['sum'] / 3600:.2f} h | {w['median']:.1f} s |")
+    lines += ["", f"Summed over conditions: {total / 3600:.2f} worker-hours (each trial on one "
+                  "worker, Diagram building and scene settling included)."]
+    sessions = res.run_info.get("sessions") or []
+    if sessions:
+        wall = sum(float(s.get("wall_s", 0.0)) for s in sessions)
+        workers = sorted({s.get("workers") for s in sessions if s.get("workers")})
+        lines.append(f"Elapsed: {wall / 3600:.2f} h over {len(sessions)} `evaluate` call(s)"
+                     + (f" with {'/'.join(map(str, workers))} worker(s)" if workers else "")
+                     + " (the whole folder, on the machine that ran it).")
+    else:
+        lines.append("Elapsed: not recorded (this folder's run.json predates the record of "
+                     "`evaluate` calls' wall times).")
+    return lines
+
+
 def _failure_table(policies: dict[str, dict]) -> list[str]:
     legacy = [k for k in LEGACY_FAILURE_CLASSES
               if any(s["failure_classes"].get(k) for s in policies.values())]
@@ -806,7 +900,10 @@ def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path,
             figures.append(path)
             md += [f"![sweep over {param}]({_relpath(path, out_dir)})", ""]
 
+    if any("clutter_runs" in st for st in policies.values()):
+        md += [f"{level} Clutter runs: attempts per run", ""] + _clutter_runs_table(exp, policies) + [""]
     md += [f"{level} What each policy senses (fairness)", ""] + fairness_markdown(res.records) + [""]
+    md += [f"{level} Time", ""] + _time_table(res, policies) + [""]
     md += [f"{level} Failure classes", ""] + _failure_table(policies) + [""]
     md += [f"{level} Failed trials with replays", ""] + _failed_replay_links(res, policies, out_dir) + [""]
     return md, figures, targets

@@ -55,6 +55,13 @@ def test_rerun_skips_finished_trials(reference):
     again = evaluate(experiment="smoke", out=out, trials=2, workers=1, seed=3, progress=False,
                      report=False)
     assert again["ran"] == 0 and again["skipped"] == 4 and again["records"] == 4
+    # run.json: the first call's wall time is recorded; a call with nothing to run adds
+    # no entry, and the run keeps its creation time.
+    info = read_run_info(out)
+    assert [(s["records_added"], s["workers"], s["completed"]) for s in info["sessions"]] == \
+        [(4, 2, True)]
+    assert info["sessions"][0]["wall_s"] > 0
+    assert "Elapsed: " in (out / "report.md").read_text()
 
 
 def test_same_on_a_dask_local_cluster(reference, tmp_path):
@@ -91,10 +98,17 @@ def test_killed_run_resumes_to_the_same_records(reference, tmp_path):
     proc.wait()
     partial = load_records(killed)
     assert 1 <= len(partial) < 4, len(partial)
+    created = read_run_info(killed)["created_utc"]
     evaluate(experiment="smoke", out=killed, trials=2, workers=1, seed=3, progress=False,
              report=False)
     resumed = load_records(killed)
     assert _key(resumed) == _key(load_records(out))
+    # The killed call left no wall time; the resume records its own, and the run keeps
+    # its creation time.
+    info = read_run_info(killed)
+    assert [(s["records_added"], s["workers"]) for s in info["sessions"]] == \
+        [(4 - len(partial), 1)]
+    assert info["created_utc"] == created
     assert len({r.trial_id for r in resumed}) == len(resumed)
 
 

@@ -266,6 +266,54 @@ def test_report_of_selected_trials(tmp_path):
         make_report(d, trials=["clutter/gpd/0000"])
 
 
+def test_clutter_runs_attempts_per_run_and_how_they_ended(tmp_path):
+    """Attempts per run (simulation errors excluded), grasped per run, the recorded run
+    ends, a run without an ending record counted as unfinished, next to the paper's
+    attempts per run; and the time table from the trials' wall times and run.json's
+    `evaluate` calls."""
+    d = tmp_path / "cl"
+    write_run_info(d, {"experiment": "clutter", "sessions": [
+        {"started_utc": "2026-01-01T00:00:00+00:00", "wall_s": 1800.0, "workers": 2,
+         "records_added": 6, "completed": False},
+        {"started_utc": "2026-01-01T01:00:00+00:00", "wall_s": 1800.0, "workers": 2,
+         "records_added": 3, "completed": True}]})
+    runs = {0: [(True, None), (False, None), (False, "simulation-error"), (False, None),
+                (False, "3 consecutive failed grasps")],
+            1: [(True, None), (True, "no objects left in view")],
+            2: [(False, None), (True, None)]}  # interrupted: no ending record
+    for run, attempts in runs.items():
+        for a, (ok, end) in enumerate(attempts):
+            error = end == "simulation-error"
+            write_record(d, make_record(
+                f"clutter/ctr/{run:04d}/attempt{a:02d}", experiment="clutter", run_index=run,
+                attempt_index=a, success=ok, wall_time_s=10.0 * (a + 1),
+                final_distance_m=None if error else 0.01,
+                failure_class="simulation-error" if error else ("none" if ok else "missed"),
+                failure_reason=None if ok else "missed: nothing between the pads",
+                extra={} if end in (None, "simulation-error") else {"run_end": end}))
+    st = make_report(d)["policies"]["ctr"]
+    assert st["clutter_runs"] == {
+        "runs": 3, "attempts": 8,
+        "attempts_per_run": {"mean": 8 / 3, "min": 2, "max": 4},
+        "grasped_per_run_mean": 4 / 3,
+        "run_ends": {"3 consecutive failed grasps": 1, "no objects left in view": 1,
+                     "unfinished": 1}}
+    assert st["trial_wall_time_s"] == {"sum": 210.0, "median": 20.0, "n": 9}
+    md = (d / "report.md").read_text()
+    assert ("| ctr | 3 | 8 | 2.7 (2-4) | 7.4 (74 in 10 runs) | 1.3 | 3 consecutive failed "
+            "grasps: 1; no objects left in view: 1; unfinished: 1 |") in md
+    assert "| ctr | 9 | 0.06 h | 20.0 s |" in md
+    assert "Elapsed: 1.00 h over 2 `evaluate` call(s) with 2 worker(s)" in md
+    # Not clutter runs: no clutter section, and the elapsed time is said to be unknown.
+    iso = tmp_path / "iso"
+    write_run_info(iso, {"experiment": "isolation"})
+    write_record(iso, make_record("isolation/ctr/0000"))
+    summary = make_report(iso)
+    assert "clutter_runs" not in summary["policies"]["ctr"]
+    md = (iso / "report.md").read_text()
+    assert "Clutter runs" not in md and "Elapsed: not recorded" in md
+
+
 def test_records_of_the_geometric_judge_stay_readable(tmp_path):
     """Records written before the contact judge carry "slipped" / "shifted-away": they
     load, count, and get their own columns only where a folder holds them."""
