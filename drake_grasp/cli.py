@@ -157,6 +157,15 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _cmd_checkpoint_weights(args) -> int:
+    from drake_grasp.training import export_checkpoint_weights
+
+    meta = export_checkpoint_weights(args.run, args.out)
+    print(json.dumps({"out": str(args.out), **{k: meta[k] for k in (
+        "checkpoint_epoch", "checkpoint_next_batch", "iterations")}}))
+    return 0
+
+
 def _cmd_gpd_generate(args) -> int:
     from drake_grasp.gpd_training import GpdDataConfig, generate
 
@@ -431,6 +440,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "datasets stream from the shards (slower epochs, the same batches). "
                         "Too small for one batch is an error. May differ when resuming")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "
+                       "latest checkpoint (an unfinished run) as a weights file for the "
+                       "controller; the run may go on")
+    p.add_argument("run", help="the run's output folder (train --out)")
+    p.add_argument("--out", required=True, help="weights file to write (*.safetensors)")
+    p.set_defaults(func=_cmd_checkpoint_weights)
 
     p = sub.add_parser("gpd-generate", help="training data of the GPD baseline's grasp "
                                              "classifier (labelled candidates and grasp "

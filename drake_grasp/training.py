@@ -32,7 +32,9 @@ Output folder:
                          the test set (`cnn_metrics`), learning rate, timing, device, and
                          the final test_l1_m
     learning_curves.png  train and test L1 per epoch
-    weights.safetensors  final weights with metadata (network.save_weights)
+    weights.safetensors  final weights with metadata (network.save_weights); an
+                         unfinished run's latest checkpoint as weights:
+                         `export_checkpoint_weights` (`drake-grasp checkpoint-weights`)
     train_config.json    the resolved training configuration
 """
 
@@ -391,6 +393,56 @@ def load_checkpoint(path: str | Path) -> dict:
     `weights_only=True`: a checkpoint file cannot run code when loaded.
     """
     return torch.load(path, weights_only=True, map_location="cpu")
+
+
+def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
+    """Writes the weights of a training run's latest checkpoint (an unfinished run: after
+    its last finished epoch, or within an epoch) as a weights file, so that a long run
+    can be tried in the controller before it ends. Reads only; the run may go on.
+
+    Args:
+        run_dir: The run's output folder (`train`'s `out`): checkpoint.pt and
+            train_config.json.
+        path: The weights file to write (``*.safetensors``).
+
+    Returns:
+        The weights' user metadata: {"checkpoint_epoch": last finished epoch,
+        "checkpoint_next_batch": batches done in the unfinished epoch (0 at an epoch's
+        end), "iterations": batches done in all, "train_manifest_sha256", ...}.
+
+    Raises:
+        FileNotFoundError: No checkpoint.pt or train_config.json in `run_dir` (named).
+        ValueError: train_config.json without a valid "network" entry (named).
+    """
+    run_dir = Path(run_dir)
+    ckpt_path, config_path = run_dir / "checkpoint.pt", run_dir / "train_config.json"
+    for f in (ckpt_path, config_path):
+        if not f.is_file():
+            raise FileNotFoundError(f"{f}: not found (is {run_dir} a `drake-grasp train` "
+                                    "output folder?)")
+    try:
+        resolved = json.loads(config_path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{config_path}: not valid JSON ({e})") from None
+    if not isinstance(resolved, dict) or "network" not in resolved:
+        raise ValueError(f"{config_path}: expected a JSON object with a \"network\" entry")
+    network = NetworkConfig.from_dict(resolved["network"], source=f"{config_path}: network")
+    ckpt = load_checkpoint(ckpt_path)
+    model = DistanceCNN(network)
+    model.load_state_dict(ckpt["model"])
+    in_epoch = json.loads(ckpt.get("in_epoch_json", "null")) or {}
+    metrics = json.loads(ckpt["metrics_json"])
+    finished = metrics.get("epochs", [])
+    next_batch = int(in_epoch.get("next_batch", 0))
+    iterations = (int(finished[-1]["iterations"]) if finished else 0) + next_batch
+    metadata = {"checkpoint_epoch": int(ckpt["epoch"]), "checkpoint_next_batch": next_batch,
+                "iterations": iterations,
+                "train_manifest_sha256": resolved.get("train_manifest_sha256"),
+                "test_manifest_sha256": resolved.get("test_manifest_sha256"),
+                "test_l1_m": metrics.get("test_l1_m"),
+                "num_train_labels": metrics.get("num_train_labels")}
+    save_weights(model, path, metadata=metadata)
+    return metadata
 
 
 def plot_learning_curves(metrics: dict, path: Path) -> None:

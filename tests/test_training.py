@@ -114,11 +114,25 @@ def test_a_run_killed_within_an_epoch_resumes_to_the_uninterrupted_weights(
     assert calls[-1]["epoch"] == 2 and calls[-1]["next_batch"] == 3
     ckpt = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
     assert ckpt["epoch"] == 1
+    # The unfinished run's checkpoint as weights: the checkpoint's tensors, and where
+    # the run stood (6 batches per epoch: 6 + 3 done).
+    meta = training.export_checkpoint_weights(tmp_path / "killed", tmp_path / "mid.safetensors")
+    assert (meta["checkpoint_epoch"], meta["checkpoint_next_batch"], meta["iterations"]) == \
+        (1, 3, 9)
+    mid = load_file(tmp_path / "mid.safetensors")
+    assert mid.keys() == ckpt["model"].keys()
+    assert all(torch.equal(mid[k], ckpt["model"][k]) for k in mid)
     resumed = train(data=data, out=tmp_path / "killed", config=config, progress=False)
     assert [e["epoch"] for e in resumed["epochs"]] == [1, 2, 3]
     a = load_file(tmp_path / "straight" / "weights.safetensors")
     b = load_file(tmp_path / "killed" / "weights.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    # A finished run's checkpoint is its final weights.
+    training.export_checkpoint_weights(tmp_path / "straight", tmp_path / "end.safetensors")
+    end = load_file(tmp_path / "end.safetensors")
+    assert all(torch.equal(end[k], a[k]) for k in a)
+    with pytest.raises(FileNotFoundError, match="checkpoint.pt: not found"):
+        training.export_checkpoint_weights(tmp_path / "nothing", tmp_path / "x.safetensors")
 
 
 def test_unknown_recipe_is_refused():
