@@ -195,7 +195,8 @@ def _cmd_evaluate(args) -> int:
                       workers=args.workers, scheduler=args.scheduler, seed=args.seed,
                       objects_dir=args.objects,
                       conditions=[c for c in args.conditions.split(",") if c] or None,
-                      force_new=args.force_new, physics_profile=args.physics_profile)
+                      force_new=args.force_new, physics_profile=args.physics_profile,
+                      weights=args.weights or "")
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -510,6 +511,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="contact-simulation settings of every trial: 'fast' (the default "
                         "profile: 5 ms steps, ...) or 'reference' (2 ms, the settings of "
                         "results measured before the fast profile); default: the scenarios'")
+    p.add_argument("--weights", default=None, metavar="FILE",
+                   help="distance-CNN weights (safetensors or ONNX) for the conditions that "
+                        "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped "
+                        "models/cnn/weights.safetensors. Its sha256 is part of the run's "
+                        "identity")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

@@ -19,6 +19,10 @@ import numpy as np
 from drake_grasp.scenario import Scenario, load_scenario
 
 
+# Policies that run the distance CNN (and so depend on its weights file).
+CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
+
+
 @dataclass(frozen=True)
 class Condition:
     """One arm of an experiment."""
@@ -72,6 +76,9 @@ class Experiment:
     # The contact-simulation settings (scenario.PHYSICS_PROFILES); "" keeps the named
     # scenario's (the default profile). `evaluate --physics-profile` sets it.
     physics_profile: str = ""
+    # The distance CNN's weights file for the conditions whose policy uses it; "" keeps
+    # the scenario's (the shipped weights). `evaluate --weights` sets it.
+    cnn_weights: str = ""
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -248,6 +255,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
                       or experiment.controller_profile,
                       physics_profile=experiment.physics_profile)
     s = dataclasses.replace(s, seed=0, policy=condition.policy)
+    if experiment.cnn_weights and condition.policy in CNN_POLICIES:
+        s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,

@@ -33,12 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.experiments import (Condition, Experiment, condition_scenario, get_experiment,
-                                     plugin_condition, trial_scenario, trial_seed)
+from drake_grasp.experiments import (CNN_POLICIES, Condition, Experiment, condition_scenario,
+                                     get_experiment, plugin_condition, trial_scenario,
+                                     trial_seed)
 from drake_grasp.provenance import code_version, file_sha256
 
-# Policies that run the distance CNN (and so depend on its weights file).
-CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
 # No clutter run goes beyond this many attempts (the paper: 74 CTR attempts in 10 runs).
@@ -601,7 +600,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
-             physics_profile: str = "") -> dict:
+             physics_profile: str = "", weights: str = "") -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -631,6 +630,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             ... next to it (or the one already holding this run: see `choose_folder`).
         physics_profile: A `scenario.PHYSICS_PROFILES` name every trial runs with; ""
             keeps the scenarios' (the default profile).
+        weights: A distance-CNN weights file (safetensors or ONNX) for the conditions
+            whose policy uses the CNN; "" keeps the shipped weights. Its sha256 is part of
+            the run's identity, as the shipped file's is.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -648,6 +650,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     exp = get_experiment(experiment)
     if physics_profile:
         exp = dataclasses.replace(exp, physics_profile=physics_profile)
+    if weights:
+        if not Path(weights).is_file():
+            raise ValueError(f"--weights {weights}: no such file (expected CNN weights: "
+                             "*.safetensors from `drake-grasp train`, or *.onnx)")
+        exp = dataclasses.replace(exp, cnn_weights=str(weights))
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -374,3 +374,25 @@ def test_clutter_run_whose_successes_remove_nothing_ends(tmp_path, monkeypatch):
     assert len(records) == 1 and len(calls) == 1
     assert records[-1].extra["run_end"].startswith("a successful grasp removed no object")
     assert _clutter(tmp_path / "c", report=False)["ran"] == 0
+
+
+def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_path):
+    """`evaluate --weights FILE`: the CNN conditions load FILE and the run's identity
+    holds its sha256 (so a resume with other weights is refused); the other conditions
+    are unchanged; a missing file is refused before any folder is made."""
+    from drake_grasp.assets import models_dir
+
+    shipped = models_dir() / "cnn" / "weights.safetensors"
+    other = tmp_path / "other.safetensors"
+    shutil.copy(shipped, other)  # same tensors, another path
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=str(other))
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    assert ident["ctr"]["scenario"]["controller"]["weights"] == str(other)
+    assert ident["ctr"]["weights_sha256"] == file_sha256(other) == file_sha256(shipped)
+    assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
+    assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
+    with pytest.raises(ValueError, match="--weights .*nope.safetensors: no such file"):
+        evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
+                 weights=str(tmp_path / "nope.safetensors"), progress=False)
+    assert not (tmp_path / "run").exists()
