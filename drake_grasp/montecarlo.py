@@ -36,7 +36,7 @@ import numpy as np
 from drake_grasp.experiments import (CNN_POLICIES, Condition, Experiment, condition_scenario,
                                      get_experiment, plugin_condition, trial_scenario,
                                      trial_seed)
-from drake_grasp.provenance import code_version, file_sha256
+from drake_grasp.provenance import code_tree, code_version, file_sha256
 
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
@@ -165,8 +165,10 @@ def run_identity(experiment: Experiment, *, seed: int, objects_dir: str | None =
 
     Keys, in the order a resume compares them: experiment, seed (the base seed),
     objects_dir, object_library_hash (`ObjectLibrary.content_hash`), conditions (every
-    condition of the experiment: see `condition_identity`), code_version
-    (`provenance.code_version`).
+    condition of the experiment: see `condition_identity`), code_tree
+    (`provenance.code_tree`: the package, models and diagrams as committed, plus any
+    uncommitted change to them - commits that touch only tests, docs or analysis scripts
+    leave it, so a long run resumes across them).
     """
     if library is None:
         from drake_grasp.objects import load_library
@@ -179,7 +181,7 @@ def run_identity(experiment: Experiment, *, seed: int, objects_dir: str | None =
         "object_library_hash": library.content_hash(),
         "conditions": [condition_identity(experiment, c, objects_dir=objects_dir)
                        for c in experiment.conditions],
-        "code_version": code_version(),
+        "code_tree": code_tree(),
     }
 
 
@@ -675,6 +677,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     info = {**identity, **({"plugin_conditions": plugins} if plugins else {}),
             # Informational: the most trials per condition any call asked for.
             "trials": max(n, int(old.get("trials") or 0)),
+            # Informational: the commit of the latest call (records carry their own).
+            "code_version": code_version(),
             "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
             **({"created_utc": old["created_utc"]} if old.get("created_utc") else {}),
             "sessions": list(old.get("sessions") or [])}

@@ -17,6 +17,10 @@ from drake_grasp import __version__
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
+# What a trial's outcome can depend on in a checkout: the package, its models (weights,
+# meshes, SDFs) and its diagrams (scenarios). Tests, docs and analysis scripts cannot.
+CODE_PATHS = ("drake_grasp", "models", "diagrams")
+
 
 @functools.lru_cache(maxsize=None)
 def git_commit() -> str | None:
@@ -37,7 +41,7 @@ def git_commit() -> str | None:
         if commit.returncode != 0:
             return None
         diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--binary", "--",
-                               "drake_grasp", "models", "diagrams"],
+                               *CODE_PATHS],
                               capture_output=True, timeout=30, env=env)
     except (OSError, subprocess.SubprocessError):
         return None
@@ -48,6 +52,41 @@ def git_commit() -> str | None:
         return sha
     # Two different uncommitted edits must not share a version: name the edit by its hash.
     return f"{sha}+dirty.{hashlib.sha256(diff.stdout).hexdigest()[:8]}"
+
+
+@functools.lru_cache(maxsize=None)
+def git_code_tree() -> str | None:
+    """A hash of the committed contents of `CODE_PATHS` (their git tree ids), plus
+    "+dirty.<hash of the diff>" for uncommitted changes to them; None outside a checkout.
+
+    Unlike the commit, it stays the same across commits that change only tests, docs or
+    analysis scripts, so a long run may be resumed after such commits.
+    """
+    root = _PACKAGE_DIR.parent
+    if not (root / ".git").exists():
+        return None
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
+    try:
+        trees = subprocess.run(["git", "-C", str(root), "ls-tree", "HEAD", "--", *CODE_PATHS],
+                               capture_output=True, text=True, timeout=10, env=env)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if trees.returncode != 0 or not trees.stdout.strip():
+        return None
+    tree = hashlib.sha256(trees.stdout.encode()).hexdigest()[:12]
+    commit = git_commit()
+    dirty = commit.partition("+")[2] if commit else ""
+    return f"{tree}+{dirty}" if dirty else tree
+
+
+def code_tree() -> str:
+    """Package version plus `git_code_tree` in a checkout; `code_version()` when installed.
+
+    What a Monte Carlo run's identity compares on resume: the code that decides a trial,
+    not the commit. Examples: "0.1.0+tree.1a2b3c4d5e6f", "0.1.0+tree.1a2b3c4d5e6f+dirty.9f8e7d6c".
+    """
+    tree = git_code_tree()
+    return f"{__version__}+tree.{tree}" if tree else code_version()
 
 
 def code_version() -> str:

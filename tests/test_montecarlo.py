@@ -84,6 +84,7 @@ def test_killed_run_resumes_to_the_same_records(reference, tmp_path):
     # the resume below a different run.
     code = ("import drake_grasp.montecarlo as m\n"
             f"m.code_version = lambda: {m.code_version()!r}\n"
+            f"m.code_tree = lambda: {m.code_tree()!r}\n"
             f"m.evaluate(experiment='smoke', out={str(killed)!r}, trials=2, workers=1, seed=3,"
             " progress=False, report=False)\n")
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
@@ -233,9 +234,12 @@ def test_resume_refuses_other_weights_objects_or_code(tmp_path, monkeypatch, lib
     mesh.write_text(mesh.read_text()[:-1])
     assert evaluate(**kw)["ran"] == 0
 
+    # Another commit of the same package code (tests or docs changed): the same run.
     monkeypatch.setattr(m, "code_version", lambda: "0.1.0+git.000000000000")
-    with pytest.raises(ValueError, match=r"code_version: \"[^\"]+\" in the folder, "
-                                         r"\"0\.1\.0\+git\.000000000000\" now"):
+    assert evaluate(**kw)["ran"] == 0
+    monkeypatch.setattr(m, "code_tree", lambda: "0.1.0+tree.000000000000")
+    with pytest.raises(ValueError, match=r"code_tree: \"[^\"]+\" in the folder, "
+                                         r"\"0\.1\.0\+tree\.000000000000\" now"):
         evaluate(**kw)
     assert len(load_records(out)) == 1
 

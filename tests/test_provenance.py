@@ -20,8 +20,10 @@ def fake_checkout(tmp_path, monkeypatch):
     subprocess.run(git + ["commit", "-qm", "c"], check=True)
     monkeypatch.setattr(provenance, "_PACKAGE_DIR", pkg)
     provenance.git_commit.cache_clear()
+    provenance.git_code_tree.cache_clear()
     yield pkg
     provenance.git_commit.cache_clear()
+    provenance.git_code_tree.cache_clear()
 
 
 def test_a_checkout_gives_the_commit(fake_checkout):
@@ -42,12 +44,44 @@ def test_two_different_uncommitted_edits_get_two_versions(fake_checkout):
     assert first != second and second.startswith(clean + "+dirty.")
 
 
+def test_the_code_tree_ignores_commits_outside_the_package(fake_checkout):
+    """A commit that changes only tests keeps the code tree (a run resumes across it);
+    one that changes the package, or an uncommitted edit, changes it."""
+    repo = fake_checkout.parent
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+
+    def commit(path, text):
+        path.parent.mkdir(exist_ok=True)
+        path.write_text(text)
+        subprocess.run(git + ["add", "."], check=True)
+        subprocess.run(git + ["commit", "-qm", "c"], check=True)
+        provenance.git_commit.cache_clear()
+        provenance.git_code_tree.cache_clear()
+        return provenance.code_tree(), provenance.code_version()
+
+    provenance.git_code_tree.cache_clear()
+    tree0, version0 = provenance.code_tree(), provenance.code_version()
+    assert re.fullmatch(re.escape(__version__) + r"\+tree\.[0-9a-f]{12}", tree0)
+    tree1, version1 = commit(repo / "tests" / "test_x.py", "def test(): pass\n")
+    assert tree1 == tree0 and version1 != version0
+    tree2, _ = commit(fake_checkout / "x.py", "A = 2\n")
+    assert tree2 != tree0
+    (fake_checkout / "x.py").write_text("A = 3\n")
+    provenance.git_commit.cache_clear()
+    provenance.git_code_tree.cache_clear()
+    assert re.fullmatch(re.escape(tree2) + r"\+dirty\.[0-9a-f]{8}", provenance.code_tree())
+    provenance.git_code_tree.cache_clear()
+
+
 def test_an_installed_package_says_unknown(tmp_path, monkeypatch):
     monkeypatch.setattr(provenance, "_PACKAGE_DIR", tmp_path / "site-packages" / "drake_grasp")
     provenance.git_commit.cache_clear()
     try:
         assert provenance.code_version() == f"{__version__}+unknown"
+        provenance.git_code_tree.cache_clear()
+        assert provenance.code_tree() == f"{__version__}+unknown"
     finally:
+        provenance.git_code_tree.cache_clear()
         provenance.git_commit.cache_clear()
 
 
