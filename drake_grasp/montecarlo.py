@@ -57,6 +57,8 @@ class TrialTask:
     # A user policy's ``MODULE:FACTORY`` (`drake_grasp.plugins`) when `condition` is one
     # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
     policy_spec: str = ""
+    # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
+    cnn_weights: str = ""
 
     @property
     def trial_id(self) -> str:
@@ -64,10 +66,12 @@ class TrialTask:
 
 
 def task_experiment(task: TrialTask) -> Experiment:
-    """The experiment a task belongs to, with the task's physics profile."""
+    """The experiment a task belongs to, with the task's physics profile and CNN weights."""
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
+    if task.cnn_weights:
+        experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
     return experiment
 
 
@@ -92,7 +96,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
                              "MODULE:FACTORY (see drake_grasp.plugins)")
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
-    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec)
+    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
+                      experiment.cnn_weights)
             for i in range(n) for c, spec in asked]
 
 

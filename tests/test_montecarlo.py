@@ -396,6 +396,14 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     assert ident["ctr"]["weights_sha256"] == file_sha256(other) == file_sha256(shipped)
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
+    # What the workers run: each task carries the weights into its trial's scenario.
+    from drake_grasp.experiments import trial_scenario
+
+    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.controller.weights == (str(other) if task.condition == "ctr" else "")
+        assert m.weights_path(s) == (str(other) if task.condition == "ctr" else None)
     with pytest.raises(ValueError, match="--weights .*nope.safetensors: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
                  weights=str(tmp_path / "nope.safetensors"), progress=False)
