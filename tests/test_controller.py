@@ -262,3 +262,23 @@ def test_target_mode_keeps_candidates_on_the_target(scenario):
     sim2.AdvanceTo(1.5 * c.period_s)
     u2 = (ctrl2.get_controller_state(ctx2).last_step.chosen[0] - X_GC.translation()[0]) * focal / 0.25 + 31.5
     assert u2 < 39.5, u2
+
+
+def test_oracle_analysis_scores_every_step_with_the_true_distance():
+    """analysis/oracle_ctr.py (CTR with the true distance function, a diagnostic): every
+    control decision of the trial went through the oracle, the controller class is put
+    back afterwards, and with perfect scores the hand ends on a true grasp."""
+    import importlib.util
+    from pathlib import Path
+
+    import drake_grasp.systems.controller as controller_module
+
+    path = Path(__file__).resolve().parents[1] / "analysis" / "oracle_ctr.py"
+    spec = importlib.util.spec_from_file_location("oracle_ctr", path)
+    oracle = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(oracle)
+    trial = oracle.run_trial(0, 0)  # isolation trial 0: a lying apple
+    assert controller_module.GraspController is GraspController
+    assert trial["num_true_grasps"] > 0
+    assert trial["oracle_steps"] == trial["control_steps"] > 0
+    assert trial["success"] and trial["final_distance_m"] < 0.01

@@ -1,0 +1,140 @@
+"""CTR with a perfect distance function: is the CNN or the execution the bottleneck?
+
+Runs the `isolation` experiment's CTR trials (the same scenarios, seeds and objects as
+`drake-grasp evaluate --experiment isolation --conditions ctr`) with the CNN's predicted
+distances replaced by the true ones: at every control step, each candidate's distance to
+the nearest ground-truth grasp of the settled scene (the dataset's label function, the
+grasps the judge's final distance uses). Everything else - sampler, r, z steps, the 14 cm
+stop rule, the grasp height from the depth image, the grasp motion, the contact judge - is
+the policy's own. The truth is privileged (a diagnostic, like the `scripted` reference):
+its success rate is what a perfect CNN would give this controller and grasp execution.
+The grasps are those of the scene as settled at the start; an object pushed during the
+approach is not followed.
+
+    python analysis/oracle_ctr.py --trials 120 --workers 2 --out analysis/results/oracle-ctr
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _oracle_controller(truth_xy_theta: np.ndarray):
+    """A GraspController subclass whose candidates are scored by the true distance."""
+    from drake_grasp.actions import apply_actions
+    from drake_grasp.grasps import distance_to_nearest_grasp
+    from drake_grasp.systems.controller import GraspController
+
+    class OracleController(GraspController):
+        oracle_steps = 0  # decisions scored by the truth (a check that it was used)
+
+        def _ctr_step(self, context, s, t):
+            hand = s.hand
+            port = self._distances
+
+            class _Truth:  # stands in for the evaluator's port during this step
+                @staticmethod
+                def Eval(ctx):
+                    OracleController.oracle_steps += 1
+                    actions = np.asarray(self._actions.Eval(ctx), float)
+                    poses = apply_actions([hand[0], hand[1], hand[3]], actions)
+                    if len(truth_xy_theta) == 0:
+                        return np.full(len(actions), np.inf)
+                    return distance_to_nearest_grasp(poses, truth_xy_theta)
+
+            self._distances = _Truth
+            try:
+                return super()._ctr_step(context, s, t)
+            finally:
+                self._distances = port
+
+    return OracleController
+
+
+def run_trial(index: int, seed: int) -> dict:
+    import drake_grasp.systems.controller as controller_module
+    from drake_grasp.episode import simulate_episode
+    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
+    from drake_grasp.grasps import find_grasps
+    from drake_grasp.objects import load_library
+    from drake_grasp.scene import make_scene
+
+    library = load_library(None)
+    exp = EXPERIMENTS["isolation"]
+    cond = next(c for c in exp.conditions if c.name == "ctr")
+    scenario = trial_scenario(exp, cond, index, base_seed=seed, library=library)
+    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                       physics=scenario.physics)
+    truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
+    original = controller_module.GraspController
+    t0 = time.perf_counter()
+    oracle = _oracle_controller(np.asarray(truth, float))
+    # add_policy_systems imports GraspController from its module at call time.
+    controller_module.GraspController = oracle
+    try:
+        ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False)
+    finally:
+        controller_module.GraspController = original
+    r = ep.result
+    return {"index": index, "object": scenario.scene.object_ids[0], "pose": scenario.scene.pose,
+            "success": bool(r.success), "failure_class": r.details.get("failure_class"),
+            "failure_reason": r.failure_reason, "final_distance_m": r.final_distance_m,
+            "control_steps": r.control_steps, "stop_reason": r.details.get("stop_reason"),
+            "num_true_grasps": int(len(truth)), "oracle_steps": oracle.oracle_steps,
+            "wall_s": time.perf_counter() - t0}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--trials", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    from drake_grasp.results import wilson_interval
+
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(run_trial, i, args.seed) for i in range(args.trials)]
+        trials = [f.result() for f in tqdm(futures, desc="oracle ctr")]
+    k = sum(t["success"] for t in trials)
+    lo, hi = wilson_interval(k, len(trials))
+    classes: dict = {}
+    for t in trials:
+        classes[t["failure_class"]] = classes.get(t["failure_class"], 0) + 1
+    from drake_grasp.provenance import code_version
+
+    covered = [t for t in trials if t["num_true_grasps"] > 0]
+    k_cov = sum(t["success"] for t in covered)
+    summary = {"trials": len(trials), "successes": k, "success_rate": k / len(trials),
+               "ci95": [lo, hi], "failure_classes": classes, "seed": args.seed,
+               # Scenes where the ground truth has a grasp (the oracle's scores mean
+               # something there; elsewhere every candidate scores inf and the first
+               # sampled one is taken).
+               "with_true_grasps": {"trials": len(covered), "successes": k_cov,
+                                    "ci95": list(wilson_interval(k_cov, len(covered)))
+                                    if covered else None},
+               "without_true_grasps": {
+                   "trials": len(trials) - len(covered), "successes": k - k_cov,
+                   "objects": sorted({f"{t['object']} {t['pose']}" for t in trials
+                                      if t["num_true_grasps"] == 0})},
+               "code_version": code_version()}
+    (out / "oracle_ctr.json").write_text(json.dumps({"summary": summary, "trials": trials},
+                                                    indent=1))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
