@@ -18,8 +18,10 @@ from drake_grasp import __version__
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
 # What a trial's outcome can depend on in a checkout: the package, its models (weights,
-# meshes, SDFs) and its diagrams (scenarios). Tests, docs and analysis scripts cannot.
+# meshes, SDFs) and its diagrams (scenarios), less their Markdown (model cards, notes).
+# Tests, docs and analysis scripts cannot.
 CODE_PATHS = ("drake_grasp", "models", "diagrams")
+_NOT_CODE = ":(exclude,glob)**/*.md"
 
 
 @functools.lru_cache(maxsize=None)
@@ -29,7 +31,8 @@ def git_commit() -> str | None:
     None when the package is installed (site-packages) rather than run from a git
     checkout, or when git is unavailable. A checkout with uncommitted changes to the
     package, its models or diagrams gets "+dirty.<hash of the diff>" appended, because
-    the commit alone would not say which code ran.
+    the commit alone would not say which code ran (Markdown there, e.g. a model card, is
+    not code and leaves the version clean).
     """
     root = _PACKAGE_DIR.parent
     if not (root / ".git").exists():
@@ -41,7 +44,7 @@ def git_commit() -> str | None:
         if commit.returncode != 0:
             return None
         diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--binary", "--",
-                               *CODE_PATHS],
+                               *CODE_PATHS, _NOT_CODE],
                               capture_output=True, timeout=30, env=env)
     except (OSError, subprocess.SubprocessError):
         return None
@@ -56,8 +59,9 @@ def git_commit() -> str | None:
 
 @functools.lru_cache(maxsize=None)
 def git_code_tree() -> str | None:
-    """A hash of the committed contents of `CODE_PATHS` (their git tree ids), plus
-    "+dirty.<hash of the diff>" for uncommitted changes to them; None outside a checkout.
+    """A hash of the committed contents of `CODE_PATHS` (their files' git blob ids, Markdown
+    left out), plus "+dirty.<hash of the diff>" for uncommitted changes to them; None
+    outside a checkout.
 
     Unlike the commit, it stays the same across commits that change only tests, docs or
     analysis scripts, so a long run may be resumed after such commits.
@@ -67,13 +71,15 @@ def git_code_tree() -> str | None:
         return None
     env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
     try:
-        trees = subprocess.run(["git", "-C", str(root), "ls-tree", "HEAD", "--", *CODE_PATHS],
-                               capture_output=True, text=True, timeout=10, env=env)
+        trees = subprocess.run(["git", "-C", str(root), "ls-tree", "-r", "HEAD", "--",
+                                *CODE_PATHS], capture_output=True, text=True, timeout=10,
+                               env=env)
     except (OSError, subprocess.SubprocessError):
         return None
     if trees.returncode != 0 or not trees.stdout.strip():
         return None
-    tree = hashlib.sha256(trees.stdout.encode()).hexdigest()[:12]
+    blobs = [line for line in trees.stdout.splitlines() if not line.endswith(".md")]
+    tree = hashlib.sha256("\n".join(blobs).encode()).hexdigest()[:12]
     commit = git_commit()
     dirty = commit.partition("+")[2] if commit else ""
     return f"{tree}+{dirty}" if dirty else tree

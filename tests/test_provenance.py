@@ -64,6 +64,15 @@ def test_the_code_tree_ignores_commits_outside_the_package(fake_checkout):
     assert re.fullmatch(re.escape(__version__) + r"\+tree\.[0-9a-f]{12}", tree0)
     tree1, version1 = commit(repo / "tests" / "test_x.py", "def test(): pass\n")
     assert tree1 == tree0 and version1 != version0
+    # Markdown inside the package or models (a model card) is not code either,
+    # committed or not.
+    card = repo / "models" / "README.md"
+    tree_md, _ = commit(card, "# card\n")
+    assert tree_md == tree0
+    card.write_text("# card, edited\n")
+    provenance.git_commit.cache_clear()
+    provenance.git_code_tree.cache_clear()
+    assert provenance.code_tree() == tree0 and "dirty" not in provenance.code_version()
     tree2, _ = commit(fake_checkout / "x.py", "A = 2\n")
     assert tree2 != tree0
     (fake_checkout / "x.py").write_text("A = 3\n")
