@@ -78,20 +78,14 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm import tqdm
-
+    from drake_grasp.montecarlo import parallel_map
     from drake_grasp.provenance import code_version
     from drake_grasp.results import wilson_interval
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_scene, i, args.seed, args.per_scene)
-                   for i in range(args.trials)]
-        scenes = [f.result() for f in tqdm(futures, desc="label load case")]
+    scenes = parallel_map(run_scene, [(i, args.seed, args.per_scene) for i in range(args.trials)],
+                          workers=args.workers, desc="label load case")
 
     def rate(checks, key):
         k, n = sum(c[key] for c in checks), len(checks)

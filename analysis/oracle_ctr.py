@@ -98,16 +98,11 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm import tqdm
-
+    from drake_grasp.montecarlo import parallel_map
     from drake_grasp.results import wilson_interval
 
-    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_trial, i, args.seed) for i in range(args.trials)]
-        trials = [f.result() for f in tqdm(futures, desc="oracle ctr")]
+    trials = parallel_map(run_trial, [(i, args.seed) for i in range(args.trials)],
+                          workers=args.workers, desc="oracle ctr")
     k = sum(t["success"] for t in trials)
     lo, hi = wilson_interval(k, len(trials))
     classes: dict = {}

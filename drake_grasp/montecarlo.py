@@ -774,6 +774,24 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
         bar.close()
 
 
+def parallel_map(fn, arg_tuples, *, workers: int = 2, desc: str = "") -> list:
+    """`fn(*args)` for each of `arg_tuples`, in order, on `workers` spawned processes
+    (in this process when `workers` <= 1), with a progress bar: for analysis scripts
+    that run their own kind of trial. `fn` must be importable by the workers (a
+    module-level function)."""
+    from tqdm import tqdm
+
+    arg_tuples = list(arg_tuples)
+    if workers <= 1:
+        return [fn(*a) for a in tqdm(arg_tuples, desc=desc)]
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(fn, *a) for a in arg_tuples]
+        return [f.result() for f in tqdm(futures, desc=desc)]
+
+
 def recorded_scenario(scenario_yaml: str):
     """The `Scenario` a trial record's YAML describes. A record written before physics
     profiles existed has no `physics:` entry: it ran the reference settings (its

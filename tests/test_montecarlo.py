@@ -408,3 +408,11 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
                  weights=str(tmp_path / "nope.safetensors"), progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_parallel_map_keeps_the_order_in_and_out_of_process():
+    import operator
+
+    args = [(2, 5), (3, 2), (10, 0), (7, 1)]
+    assert m.parallel_map(operator.pow, args, workers=2) == [32, 9, 1, 7]
+    assert m.parallel_map(operator.pow, args, workers=1) == [32, 9, 1, 7]
