@@ -694,7 +694,6 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         todo = [t for t in tasks if not _clutter_run_finished(out, t, exp, records)]
     else:
         todo = [t for t in tasks if t.trial_id not in done_ids]
-    n_before = len(load_records(out))
     started = datetime.now(timezone.utc)
     t0 = time.perf_counter()
     completed = False
@@ -712,7 +711,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
                 "wall_s": round(time.perf_counter() - t0, 3),
                 "workers": 0 if scheduler else max(1, workers),
                 "scheduler": bool(scheduler),
-                "records_added": len(load_records(out)) - n_before,
+                # Trial files that parse, as `done_trial_ids` counts them: a corrupt
+                # file left by a killed run is re-run, not an error here.
+                "records_added": len(done_trial_ids(out)) - len(done_ids),
                 "completed": completed})
             write_run_info(out, info)
     result = {"out": str(out), "new_folder_because": replaced,
