@@ -2,8 +2,9 @@
 offset and the within-image ranking metrics (`drake_grasp.cnn_metrics`), as `train`
 reports them after each epoch. Puts weights trained on different sets on one test set.
 
-    python analysis/cnn_eval.py --weights models/cnn/weights.safetensors \
-        --test-data data/paper_test --out analysis/results/cnn-paper-scale/shipped_on_paper_test.json
+    git show a027dc1:models/cnn/weights.safetensors > w400.safetensors   # the 400-scene weights
+    python analysis/cnn_eval.py --weights w400.safetensors \
+        --test-data data/paper_test --out analysis/results/cnn-paper-scale/400-scene-weights_on_paper_test.json
 """
 
 from __future__ import annotations
