@@ -1,0 +1,41 @@
+"""The shipped CNN's files describe the same training run: the weights' metadata, the
+model card's `metrics.json` and `train_config.json` (so a weights file shipped without its
+metrics, or metrics copied from another run, is caught)."""
+
+import json
+
+import pytest
+
+from drake_grasp.assets import models_dir
+from drake_grasp.network import load_weights
+
+CNN = models_dir() / "cnn"
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    _, meta = load_weights(CNN / "weights.safetensors")
+    metrics = json.loads((CNN / "metrics.json").read_text())
+    config = json.loads((CNN / "train_config.json").read_text())
+    return meta, metrics, config
+
+
+def test_weights_metrics_and_config_are_one_run(shipped):
+    meta, metrics, config = shipped
+    assert meta["train_manifest_sha256"] == config["train_manifest_sha256"]
+    assert meta["test_manifest_sha256"] == config["test_manifest_sha256"]
+    assert meta["num_train_labels"] == metrics["num_train_labels"]
+    assert meta["config"] == config["network"]
+
+
+def test_weights_are_the_last_epoch_in_the_metrics(shipped):
+    meta, metrics, config = shipped
+    epochs = metrics["epochs"]
+    # A finished run's weights carry `epochs`, a checkpoint's `checkpoint_epoch`.
+    epoch = meta.get("checkpoint_epoch", meta.get("epochs"))
+    assert epoch == len(epochs) == epochs[-1]["epoch"]
+    assert meta.get("checkpoint_next_batch", 0) == 0, "weights from the middle of an epoch"
+    assert meta["test_l1_m"] == pytest.approx(epochs[-1]["test_l1_m"], abs=0)
+    assert metrics["test_l1_m"] == pytest.approx(epochs[-1]["test_l1_m"], abs=0)
+    stopped = config["train"].get("stopped_after_epoch", config["train"]["epochs"])
+    assert stopped == epoch
