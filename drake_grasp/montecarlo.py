@@ -685,7 +685,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             # Informational: the commit of the latest call (records carry their own).
             "code_version": code_version(),
             "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
-            **({"created_utc": old["created_utc"]} if old.get("created_utc") else {}),
+            # Set here, not by write_run_info, so that the rewrite at the end of the call
+            # keeps the time the folder was created.
+            "created_utc": old.get("created_utc")
+            or datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "sessions": list(old.get("sessions") or [])}
     write_run_info(out, info)
     records = load_records(out) if exp.kind == "clutter-runs" else []

@@ -61,6 +61,7 @@ def test_rerun_skips_finished_trials(reference):
     assert [(s["records_added"], s["workers"], s["completed"]) for s in info["sessions"]] == \
         [(4, 2, True)]
     assert info["sessions"][0]["wall_s"] > 0
+    assert info["created_utc"] <= info["sessions"][0]["started_utc"]
     assert "Elapsed: " in (out / "report.md").read_text()
 
 
