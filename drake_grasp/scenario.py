@@ -136,8 +136,11 @@ class SceneConfig:
     # Random scenes: number of objects drawn uniformly in [min, max].
     num_objects_min: int = 1
     num_objects_max: int = 5
-    # Clutter: number of objects poured into a pile.
+    # Clutter: number of objects poured into a pile, and how: "column" drops them from a
+    # column (each above the last), "sequential" releases them one at a time just above
+    # the pile (`scene.pour_scene`).
     clutter_objects: int = 5
+    pour: str = "column"
     # Centre of the workspace on the table [m] and half size of the placement square.
     center_xy_m: list[float] = field(default_factory=lambda: [0.5, 0.0])
     region_half_extent_m: float = 0.08
@@ -414,6 +417,7 @@ class Scenario:
                            ("noise.kind", self.noise.kind),
                            ("disturbance.kind", self.disturbance.kind),
                            ("scene.pose", self.scene.pose), ("scene.split", self.scene.split),
+                           ("scene.pour", self.scene.pour),
                            ("plant.contact_model", self.plant.contact_model),
                            ("plant.discrete_contact_approximation",
                             self.plant.discrete_contact_approximation),
@@ -663,6 +667,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "disturbance.kind": DISTURBANCE_KINDS,
     "scene.pose": ("lying", "upright", "any"),
     "scene.split": ("train", "test", ""),
+    "scene.pour": ("column", "sequential"),
     "plant.contact_model": ("hydroelastic_with_fallback", "hydroelastic", "point"),
     "plant.discrete_contact_approximation": ("lagged", "sap", "similar"),
     "plant.contact_surface_representation": ("polygon", "triangle"),

@@ -461,10 +461,46 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
+def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, physics=None,
+               drop_gap_m: float = 0.02, step_s: float = 0.5, speed_tol_m_s: float = 0.005,
+               max_time_s: float = 4.0) -> SceneSpec:
+    """Pours a clutter spec's objects one at a time, then settles the pile.
+
+    Object k keeps its sampled x, y and orientation and is released with its lowest point
+    `drop_gap_m` above the highest point of the pile poured before it, which has had
+    `step_s` to come down (a pile poured from low height, as objects emptied from a box
+    land; the column of `sample_scene` drops the last objects from over a metre, and the
+    impacts scatter the pile). The whole pile then settles as in `settle_scene`.
+    """
+    if physics is not None and physics.settle_time_step_s > 0:
+        plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
+        plant_config.time_step = float(physics.settle_time_step_s)
+    poured: list[ObjectPlacement] = []
+    for placement in spec.objects:
+        V = _object_vertices(library, placement.object_id)
+        R = placement.pose().rotation().matrix()
+        top = scene_top_z(dataclasses.replace(spec, objects=poured), library) if poured else 0.0
+        z_bottom = max(top, SHEET_THICKNESS_M) + drop_gap_m
+        xyz = list(placement.xyz)
+        xyz[2] = float(z_bottom - (V @ R.T)[:, 2].min())
+        step = dataclasses.replace(spec, objects=poured + [ObjectPlacement(
+            placement.object_id, xyz, list(placement.quat_wxyz))])
+        world = build_scene_world(step, library, plant_config=plant_config, physics=physics)
+        poured = settle_world(world, step, speed_tol_m_s=speed_tol_m_s, max_time_s=step_s).objects
+    pile = dataclasses.replace(spec, objects=poured)
+    world = build_scene_world(pile, library, plant_config=plant_config, physics=physics)
+    return settle_world(world, pile, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
+
+
 def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None,
                physics=None) -> SceneSpec:
-    """`sample_scene` then `settle_scene` with the config's settling tolerances."""
+    """`sample_scene` then `settle_scene` (a clutter pile with `pour: sequential`:
+    `pour_scene`) with the config's settling tolerances."""
     spec = sample_scene(config, seed, library)
+    if config.kind == "clutter" and config.pour == "sequential":
+        return pour_scene(spec, library, plant_config=plant_config, physics=physics,
+                          speed_tol_m_s=config.settle_speed_tol_m_s,
+                          max_time_s=config.settle_max_time_s)
     return settle_scene(spec, library, plant_config=plant_config, physics=physics,
                         speed_tol_m_s=config.settle_speed_tol_m_s,
                         max_time_s=config.settle_max_time_s)
