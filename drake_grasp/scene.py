@@ -461,6 +461,18 @@ def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
+def release_above(pile: SceneSpec, placement: ObjectPlacement, library: ObjectLibrary,
+                  gap_m: float) -> ObjectPlacement:
+    """`placement` (its x, y and orientation) moved up or down so that its lowest point is
+    `gap_m` above the highest point of `pile` (or of the sheet, for an empty pile)."""
+    V = _object_vertices(library, placement.object_id)
+    R = placement.pose().rotation().matrix()
+    z_bottom = max(scene_top_z(pile, library), SHEET_THICKNESS_M) + gap_m
+    xyz = list(placement.xyz)
+    xyz[2] = float(z_bottom - (V @ R.T)[:, 2].min())
+    return ObjectPlacement(placement.object_id, xyz, list(placement.quat_wxyz))
+
+
 def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, physics=None,
                drop_gap_m: float = 0.02, step_s: float = 0.5, speed_tol_m_s: float = 0.005,
                max_time_s: float = 4.0) -> SceneSpec:
@@ -477,14 +489,8 @@ def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, ph
         plant_config.time_step = float(physics.settle_time_step_s)
     poured: list[ObjectPlacement] = []
     for placement in spec.objects:
-        V = _object_vertices(library, placement.object_id)
-        R = placement.pose().rotation().matrix()
-        top = scene_top_z(dataclasses.replace(spec, objects=poured), library) if poured else 0.0
-        z_bottom = max(top, SHEET_THICKNESS_M) + drop_gap_m
-        xyz = list(placement.xyz)
-        xyz[2] = float(z_bottom - (V @ R.T)[:, 2].min())
-        step = dataclasses.replace(spec, objects=poured + [ObjectPlacement(
-            placement.object_id, xyz, list(placement.quat_wxyz))])
+        step = dataclasses.replace(spec, objects=poured + [release_above(
+            dataclasses.replace(spec, objects=poured), placement, library, drop_gap_m)])
         world = build_scene_world(step, library, plant_config=plant_config, physics=physics)
         poured = settle_world(world, step, speed_tol_m_s=speed_tol_m_s, max_time_s=step_s).objects
     pile = dataclasses.replace(spec, objects=poured)
