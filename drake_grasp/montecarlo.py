@@ -552,7 +552,8 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
             scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
         else:
             scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                               physics=scenario.physics)
+                               physics=scenario.physics,
+                               sheet_moves=scenario.sheet_moves)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
         finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
                            run_index=task.index, attempt_index=attempt,
@@ -576,7 +577,8 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
             _forced(fail_trials, trial_id, "settle")
             next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
                                       plant_config=scenario.plant,
-                                      physics=scenario.physics) if objects else \
+                                      physics=scenario.physics,
+                                      sheet_moves=scenario.sheet_moves) if objects else \
                 dataclasses.replace(remaining, objects=[], settled=True)
             rec = _record_for(task, condition, attempt_scenario, run.result,
                               wall=time.perf_counter() - t0, run_index=task.index,

@@ -400,6 +400,13 @@ class Scenario:
     # Record a Meshcat replay.
     visualize: bool = False
 
+    @property
+    def sheet_moves(self) -> bool:
+        """Whether the episode moves the sheet (any disturbance): the sheet then keeps its
+        box collision (`physics.sheet_collision`), in the station and where the scene is
+        settled (`scene.make_scene`)."""
+        return self.disturbance.kind != "none"
+
     def validate(self) -> None:
         """Checks every field: its type and its allowed range.
 
@@ -463,7 +470,7 @@ class Scenario:
         d = self.disturbance
         from drake_grasp.physics import sheet_collision
 
-        sheet_collision(self.physics, sheet_moves=d.kind != "none")  # raises for 'halfspace'
+        sheet_collision(self.physics, sheet_moves=self.sheet_moves)  # raises for 'halfspace'
         if not d.shift_min_m <= d.shift_max_m:
             raise ValueError(f"disturbance.shift_min_m/shift_max_m: expected min <= max, got "
                              f"{d.shift_min_m}, {d.shift_max_m}")
