@@ -48,7 +48,8 @@ def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation"
     runs = []
     for seed in seeds:
         scenario = dataclasses.replace(base, seed=seed)
-        scene = make_scene(scenario.scene, seed, library, scenario.plant, physics=scenario.physics)
+        scene = make_scene(scenario.scene, seed, library, scenario.plant, physics=scenario.physics,
+                           sheet_moves=scenario.sheet_moves)
         truth = find_grasps(scene, library, np.random.default_rng([seed, 61])).xy_theta
         t0 = time.perf_counter()
         ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False,

@@ -47,7 +47,8 @@ def run_scene(index: int, seed: int, per_scene: int) -> dict:
     exp = EXPERIMENTS["isolation"]
     scenario = trial_scenario(exp, exp.conditions[0], index, base_seed=seed, library=library)
     scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics)
+                       physics=scenario.physics,
+                       sheet_moves=scenario.sheet_moves)
     with_shake = _grasps(scene, library, scenario.seed, shake=True)
     static = _grasps(scene, library, scenario.seed, shake=False)
     # The same candidates are drawn either way (same rng); the static set is a superset.

@@ -69,7 +69,8 @@ def run_trial(index: int, seed: int) -> dict:
     cond = next(c for c in exp.conditions if c.name == "ctr")
     scenario = trial_scenario(exp, cond, index, base_seed=seed, library=library)
     scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics)
+                       physics=scenario.physics,
+                       sheet_moves=scenario.sheet_moves)
     truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
     original = controller_module.GraspController
     t0 = time.perf_counter()

@@ -727,7 +727,8 @@ def simulate_split_episode(scenario, *, scenario_name: str = "", library=None, s
         library = library if library is not None else load_library(scenario.objects_dir or None)
         if scene is None:
             scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                               physics=scenario.physics)
+                               physics=scenario.physics,
+                               sheet_moves=scenario.sheet_moves)
         link = BridgeLink(_accept(server, timeout_s, child, log_path),
                           peer="the controller process", timeout_s=timeout_s)
         try:

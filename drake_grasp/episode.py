@@ -533,7 +533,8 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:
         scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                           physics=scenario.physics)
+                           physics=scenario.physics,
+                           sheet_moves=scenario.sheet_moves)
     visualize = scenario.visualize if visualize is None else visualize
     meshcat = None
     if visualize:

@@ -19,7 +19,8 @@ def diagram_dot(scenario: Scenario, *, depth: int = 2) -> str:
     # Settled: the start pose is raised above standing objects, and an unsettled pile
     # stacked in the air would put it out of reach.
     scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics)
+                       physics=scenario.physics,
+                       sheet_moves=scenario.sheet_moves)
     diagram = build_episode_diagram(scenario, scene, library).diagram
     return diagram.GetGraphvizString(max_depth=depth)
 

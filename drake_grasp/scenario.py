@@ -136,8 +136,11 @@ class SceneConfig:
     # Random scenes: number of objects drawn uniformly in [min, max].
     num_objects_min: int = 1
     num_objects_max: int = 5
-    # Clutter: number of objects poured into a pile.
+    # Clutter: number of objects poured into a pile, and how: "column" drops them from a
+    # column (each above the last), "sequential" releases them one at a time just above
+    # the pile (`scene.pour_scene`).
     clutter_objects: int = 5
+    pour: str = "column"
     # Centre of the workspace on the table [m] and half size of the placement square.
     center_xy_m: list[float] = field(default_factory=lambda: [0.5, 0.0])
     region_half_extent_m: float = 0.08
@@ -397,6 +400,13 @@ class Scenario:
     # Record a Meshcat replay.
     visualize: bool = False
 
+    @property
+    def sheet_moves(self) -> bool:
+        """Whether the episode moves the sheet (any disturbance): the sheet then keeps its
+        box collision (`physics.sheet_collision`), in the station and where the scene is
+        settled (`scene.make_scene`)."""
+        return self.disturbance.kind != "none"
+
     def validate(self) -> None:
         """Checks every field: its type and its allowed range.
 
@@ -414,6 +424,7 @@ class Scenario:
                            ("noise.kind", self.noise.kind),
                            ("disturbance.kind", self.disturbance.kind),
                            ("scene.pose", self.scene.pose), ("scene.split", self.scene.split),
+                           ("scene.pour", self.scene.pour),
                            ("plant.contact_model", self.plant.contact_model),
                            ("plant.discrete_contact_approximation",
                             self.plant.discrete_contact_approximation),
@@ -459,7 +470,7 @@ class Scenario:
         d = self.disturbance
         from drake_grasp.physics import sheet_collision
 
-        sheet_collision(self.physics, sheet_moves=d.kind != "none")  # raises for 'halfspace'
+        sheet_collision(self.physics, sheet_moves=self.sheet_moves)  # raises for 'halfspace'
         if not d.shift_min_m <= d.shift_max_m:
             raise ValueError(f"disturbance.shift_min_m/shift_max_m: expected min <= max, got "
                              f"{d.shift_min_m}, {d.shift_max_m}")
@@ -663,6 +674,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "disturbance.kind": DISTURBANCE_KINDS,
     "scene.pose": ("lying", "upright", "any"),
     "scene.split": ("train", "test", ""),
+    "scene.pour": ("column", "sequential"),
     "plant.contact_model": ("hydroelastic_with_fallback", "hydroelastic", "point"),
     "plant.discrete_contact_approximation": ("lagged", "sap", "similar"),
     "plant.contact_surface_representation": ("polygon", "triangle"),

@@ -27,6 +27,12 @@ from drake_grasp.scenario import SceneConfig
 TABLE_URI = "package://drake_grasp/scene/table.urdf"
 SHEET_URI = "package://drake_grasp/scene/sheet.urdf"
 SHEET_THICKNESS_M = 0.002
+# The table top's extent in the world, (x_min, x_max), (y_min, y_max) [m] (table.urdf's
+# top box; tests/test_table.py checks the two agree). An object whose centre of mass
+# rests beyond it has fallen off, even where the sheet's half-space collision, which
+# has no edge, still holds it up.
+TABLE_TOP_X_M = (-0.7, 1.3)
+TABLE_TOP_Y_M = (-0.7, 0.7)
 SHEET_CENTER_IN_MODEL_M = (0.5, 0.0)
 OBJECT_BODY_NAME = "body"
 
@@ -356,13 +362,17 @@ def default_scene_plant_config():
 
 
 def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
-                      renderer_name: str | None = None, physics=None) -> SceneWorld:
+                      renderer_name: str | None = None, physics=None,
+                      sheet_moves: bool = False) -> SceneWorld:
     """Table, sheet (held still) and the spec's objects at their poses, no robot.
 
     Args:
         renderer_name: also add a VTK renderer of this name (for depth images).
         physics: a `scenario.PhysicsConfig` (its sheet collision; a scene world has no
             gripper to take the margin); None: the reference settings.
+        sheet_moves: the episode that will use the scene moves the sheet
+            (`Scenario.sheet_moves`): the sheet then keeps its box collision, as in that
+            episode, so that what rests beyond the sheet's edge here rests there too.
     """
     from pydrake.multibody.plant import AddMultibodyPlant
     from pydrake.systems.analysis import Simulator
@@ -373,7 +383,8 @@ def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=N
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(plant_config, builder)
     _, sheet = add_table_and_sheet(plant, scene_graph, spec.center_xy_m,
-                                   sheet_collision=sheet_collision(physics, sheet_moves=False))
+                                   sheet_collision=sheet_collision(physics,
+                                                                   sheet_moves=sheet_moves))
     instances = add_scene_objects(plant, spec, library)
     plant.Finalize()
     connect_sheet_hold(builder, plant, sheet)
@@ -392,10 +403,24 @@ def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=N
     return world
 
 
+def on_table_top(p_W) -> bool:
+    """Whether a point's (x, y) lies over the table top (`TABLE_TOP_X_M`, `TABLE_TOP_Y_M`)."""
+    return bool(TABLE_TOP_X_M[0] <= p_W[0] <= TABLE_TOP_X_M[1]
+                and TABLE_TOP_Y_M[0] <= p_W[1] <= TABLE_TOP_Y_M[1])
+
+
+def _on_table(plant, plant_context, body) -> bool:
+    """Not fallen off: above z = -5 cm, with its centre of mass over the table top."""
+    X = plant.EvalBodyPoseInWorld(plant_context, body)
+    p_com = X.multiply(body.CalcCenterOfMassInBodyFrame(plant_context))
+    return bool(X.translation()[2] >= -0.05 and on_table_top(p_com))
+
+
 def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0.005,
                  max_time_s: float = 4.0) -> SceneSpec:
     """Simulates `world` until every object is slower than `speed_tol_m_s` (or the time
-    is up) and returns the resting spec; objects that fell off the table are dropped.
+    is up) and returns the resting spec; objects that fell off the table (below it, or
+    with their centre of mass beyond its edge: `on_table_top`) are dropped.
 
     The returned spec has `settled=True` only when the objects that stay on the table
     came to rest: when `max_time_s` runs out with one of them still faster than
@@ -425,13 +450,13 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
         # falling off the table never comes to rest, and is dropped below).
         on_table = [
             np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
-            for b in bodies if plant.EvalBodyPoseInWorld(plant_context, b).translation()[2] >= -0.05
+            for b in bodies if _on_table(plant, plant_context, b)
         ]
         converged = bool(not on_table or max(on_table) < speed_tol_m_s)
     settled = []
     for placement, body in zip(spec.objects, bodies):
         X = plant.EvalBodyPoseInWorld(plant_context, body)
-        if X.translation()[2] < -0.05:
+        if not _on_table(plant, plant_context, body):
             continue  # fell off the table
         q = X.rotation().ToQuaternion()
         settled.append(ObjectPlacement(
@@ -445,26 +470,73 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
 
 def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
                  speed_tol_m_s: float = 0.005, max_time_s: float = 4.0,
-                 physics=None) -> SceneSpec:
+                 physics=None, sheet_moves: bool = False) -> SceneSpec:
     """Drops the objects onto the sheet and simulates until all are at rest.
 
-    Objects that end below the table top (fell off) are removed. Returns a new spec
+    Objects that fell off the table (below it or beyond its edge) are removed. Returns a new spec
     with the final poses; `settled` says whether every remaining object came to rest
     within `max_time_s` (see `settle_world`). `physics` (a `scenario.PhysicsConfig`)
-    sets the margin, the sheet's collision and the settling time step.
+    sets the margin, the sheet's collision and the settling time step; `sheet_moves`: see
+    `build_scene_world`.
     """
     if physics is not None and physics.settle_time_step_s > 0:
         # A Drake config: no dataclasses.replace.
         plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
         plant_config.time_step = float(physics.settle_time_step_s)
-    world = build_scene_world(spec, library, plant_config=plant_config, physics=physics)
+    world = build_scene_world(spec, library, plant_config=plant_config, physics=physics,
+                              sheet_moves=sheet_moves)
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
+def release_above(pile: SceneSpec, placement: ObjectPlacement, library: ObjectLibrary,
+                  gap_m: float) -> ObjectPlacement:
+    """`placement` (its x, y and orientation) moved up or down so that its lowest point is
+    `gap_m` above the highest point of `pile` (or of the sheet, for an empty pile)."""
+    V = _object_vertices(library, placement.object_id)
+    R = placement.pose().rotation().matrix()
+    z_bottom = max(scene_top_z(pile, library), SHEET_THICKNESS_M) + gap_m
+    xyz = list(placement.xyz)
+    xyz[2] = float(z_bottom - (V @ R.T)[:, 2].min())
+    return ObjectPlacement(placement.object_id, xyz, list(placement.quat_wxyz))
+
+
+def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, physics=None,
+               drop_gap_m: float = 0.02, step_s: float = 0.5, speed_tol_m_s: float = 0.005,
+               max_time_s: float = 4.0, sheet_moves: bool = False) -> SceneSpec:
+    """Pours a clutter spec's objects one at a time, then settles the pile.
+
+    Object k keeps its sampled x, y and orientation and is released with its lowest point
+    `drop_gap_m` above the highest point of the pile poured before it, which has had
+    `step_s` to come down (a pile poured from low height, as objects emptied from a box
+    land; the column of `sample_scene` drops the last objects from over a metre, and the
+    impacts scatter the pile). The whole pile then settles as in `settle_scene`.
+    """
+    if physics is not None and physics.settle_time_step_s > 0:
+        plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
+        plant_config.time_step = float(physics.settle_time_step_s)
+    poured: list[ObjectPlacement] = []
+    for placement in spec.objects:
+        step = dataclasses.replace(spec, objects=poured + [release_above(
+            dataclasses.replace(spec, objects=poured), placement, library, drop_gap_m)])
+        world = build_scene_world(step, library, plant_config=plant_config, physics=physics,
+                                  sheet_moves=sheet_moves)
+        poured = settle_world(world, step, speed_tol_m_s=speed_tol_m_s, max_time_s=step_s).objects
+    pile = dataclasses.replace(spec, objects=poured)
+    world = build_scene_world(pile, library, plant_config=plant_config, physics=physics,
+                              sheet_moves=sheet_moves)
+    return settle_world(world, pile, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
+
+
 def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None,
-               physics=None) -> SceneSpec:
-    """`sample_scene` then `settle_scene` with the config's settling tolerances."""
+               physics=None, sheet_moves: bool = False) -> SceneSpec:
+    """`sample_scene` then `settle_scene` (a clutter pile with `pour: sequential`:
+    `pour_scene`) with the config's settling tolerances. `sheet_moves`: pass
+    `Scenario.sheet_moves` of the episode that will use the scene (`build_scene_world`)."""
     spec = sample_scene(config, seed, library)
+    if config.kind == "clutter" and config.pour == "sequential":
+        return pour_scene(spec, library, plant_config=plant_config, physics=physics,
+                          speed_tol_m_s=config.settle_speed_tol_m_s,
+                          max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves)
     return settle_scene(spec, library, plant_config=plant_config, physics=physics,
                         speed_tol_m_s=config.settle_speed_tol_m_s,
-                        max_time_s=config.settle_max_time_s)
+                        max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves)

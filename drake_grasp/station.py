@@ -347,7 +347,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     _, sheet = add_table_and_sheet(plant, scene_graph, scene.center_xy_m,
                                    sheet_collision=sheet_collision(
                                        scenario.physics,
-                                       sheet_moves=scenario.disturbance.kind != "none"))
+                                       sheet_moves=scenario.sheet_moves))
     objects = add_scene_objects(plant, scene, library)
     plant.Finalize()
     apply_hydroelastic_margin(plant, scene_graph, scenario.physics.hydroelastic_margin_m,

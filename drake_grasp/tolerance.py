@@ -67,7 +67,8 @@ def tolerance_scene(scene_index: int, *, seed: int, scenario, library, offsets_m
     s_seed = int(np.random.default_rng([int(seed), int(scene_index), 71]).integers(2**31 - 1))
     config = dataclasses.replace(scenario.scene, kind="isolation", split="test", object_ids=[])
     spec = make_scene(config, s_seed, library, plant_config=scenario.plant,
-                      physics=scenario.physics)
+                      physics=scenario.physics,
+                      sheet_moves=scenario.sheet_moves)
     rng = np.random.default_rng([s_seed, 1])
     grasps = find_grasps(spec, library, rng)
     record = {"format": FORMAT, "scene_index": int(scene_index), "seed": s_seed,

@@ -61,6 +61,7 @@ def test_rerun_skips_finished_trials(reference):
     assert [(s["records_added"], s["workers"], s["completed"]) for s in info["sessions"]] == \
         [(4, 2, True)]
     assert info["sessions"][0]["wall_s"] > 0
+    assert info["created_utc"] <= info["sessions"][0]["started_utc"]
     assert "Elapsed: " in (out / "report.md").read_text()
 
 
@@ -416,3 +417,16 @@ def test_parallel_map_keeps_the_order_in_and_out_of_process():
     args = [(2, 5), (3, 2), (10, 0), (7, 1)]
     assert m.parallel_map(operator.pow, args, workers=2) == [32, 9, 1, 7]
     assert m.parallel_map(operator.pow, args, workers=1) == [32, 9, 1, 7]
+
+
+def test_pool_workers_are_recycled():
+    """Workers are replaced after WORKER_MAX_TRIALS trials (their memory grew per trial)."""
+    import sys
+
+    from drake_grasp import montecarlo
+
+    kwargs = montecarlo._worker_recycling()
+    if sys.version_info >= (3, 11):
+        assert kwargs == {"max_tasks_per_child": montecarlo.WORKER_MAX_TRIALS}
+    else:
+        assert kwargs == {}
