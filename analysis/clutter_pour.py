@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-VIEW_HALF_M = 0.15  # montecarlo's "in view": within +-15 cm of the pile's centre
+from drake_grasp.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M  # the run end rule's "in view"
 
 
 def out_of_view(objects: list[dict], center) -> list[str]:

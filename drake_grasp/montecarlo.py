@@ -785,9 +785,11 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
         bar.close()
 
 
-# A worker's memory grew by about 15 MB per trial (2,000 sim-distance trials on 2 workers:
-# one worker reached 12 GB and was killed by the kernel), so workers are replaced after
-# this many trials; a fresh one reloads the CNN and meshes in a few seconds.
+# A worker's memory grows by about 15 MB per trial (2,000 sim-distance trials on 2 workers:
+# one worker reached 12 GB and was killed by the kernel): with drake 1.51 a Python
+# LeafSystem that declares a port is never freed, and the episode Diagram holding it stays
+# alive with its plant, SceneGraph and renderer (Drake issues 22515 and 24162). So workers
+# are replaced after this many trials; a fresh one reloads the CNN and meshes in seconds.
 WORKER_MAX_TRIALS = 200
 
 
