@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M  # the run end rule's "in view"
+# The clutter run end rule's "in view": within +-15 cm of the pile's centre.
+from drake_grasp.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M
 
 
 def out_of_view(objects: list[dict], center) -> list[str]:
