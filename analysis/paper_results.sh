@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The paper's experiments at the paper's sizes (issue-level run: about 6 worker-hours on
-# the 2-core machine, by the per-trial wall times of the reference results; every command
+# The paper's experiments at the paper's sizes (issue-level run: about 8 worker-hours on
+# the 2-core machine, measured: 7.5 worker-hours summed over the trials; every command
 # resumes where it stopped, across sessions and across commits that leave the package,
 # models/ and diagrams/ unchanged). Results in analysis/results/paper/.
 set -euo pipefail
