@@ -3,7 +3,8 @@
 Three commands:
 
     # per run of a clutter results folder: objects outside the start view (+-15 cm of the
-    # pile's centre) before the first attempt and at the run's end, piles not at rest
+    # pile's centre) before the first attempt and at the run's end, piles not at rest,
+    # and per pile the objects' footprints summed
     python analysis/clutter_pour.py results analysis/results/paper/clutter
 
     # settle sampled 10-object piles with today's column drop, with a box around the
@@ -39,6 +40,23 @@ def out_of_view(objects: list[dict], center) -> list[str]:
             if max(abs(o["xyz"][0] - center[0]), abs(o["xyz"][1] - center[1])) > VIEW_HALF_M]
 
 
+def footprint_cm2(objects: list[dict]) -> float:
+    """The objects' footprints summed: the area of each settled mesh's convex hull
+    projected on the table [cm^2] (what the pile would cover laid out in one layer)."""
+    from scipy.spatial import ConvexHull
+
+    from drake_grasp.objects import load_library, visual_mesh
+    from drake_grasp.scene import ObjectPlacement
+
+    library = load_library(None)
+    total = 0.0
+    for o in objects:
+        R = ObjectPlacement(o["object_id"], o["xyz"], o["quat_wxyz"]).pose().rotation().matrix()
+        V = np.asarray(visual_mesh(library.get(o["object_id"])).vertices) @ R.T
+        total += ConvexHull(V[:, :2]).volume  # the area, in 2-D
+    return 1e4 * total
+
+
 def results(folder: str) -> dict:
     """Per run: objects out of view at the start and at the end, how the run ended."""
     records = [json.loads(Path(f).read_text())
@@ -71,6 +89,7 @@ def results(folder: str) -> dict:
             per_category[category] += o["object_id"] in outside
     return {"runs": rows,
             "piles": len(piles),
+            "footprint_cm2_per_pile": [round(footprint_cm2(p["objects"])) for p in piles.values()],
             "piles_at_rest": sum(bool(p.get("settled")) for p in piles.values()),
             "out_of_view_at_start_by_category": {
                 c: {"outside": per_category[c], "objects": seen[c]} for c in sorted(seen)}}
