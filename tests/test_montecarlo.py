@@ -430,3 +430,29 @@ def test_pool_workers_are_recycled():
         assert kwargs == {"max_tasks_per_child": montecarlo.WORKER_MAX_TRIALS}
     else:
         assert kwargs == {}
+
+
+@pytest.mark.parametrize("experiment,moves", [("clutter", False), ("clutter-shift", True)])
+def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch, experiment,
+                                                          moves):
+    """The pile and every pile an attempt leaves are settled with the sheet collision of
+    the episode (the box where the sheet is shifted): see tests/test_table.py."""
+    import drake_grasp.scene as scene_module
+
+    seen = []
+
+    def make_scene(*a, **k):
+        seen.append(("make", k.get("sheet_moves")))
+        return _pile()
+
+    def settle_scene(spec, *a, **k):
+        seen.append(("settle", k.get("sheet_moves")))
+        return dataclasses.replace(spec, settled=True)
+
+    monkeypatch.setattr(scene_module, "make_scene", make_scene)
+    monkeypatch.setattr(scene_module, "settle_scene", settle_scene)
+    monkeypatch.setattr(m, "_simulate", _scripted_simulate(["ok", "fail", "fail", "fail"], []))
+    evaluate(experiment=experiment, out=tmp_path / "c", trials=1, workers=1, seed=0,
+             progress=False, conditions=["ctr"], report=False)
+    assert seen[0] == ("make", moves)
+    assert [s for s in seen[1:]] == [("settle", moves)] * 4
