@@ -3,9 +3,9 @@
     python analysis/onnx_agreement.py [--seeds 5] [--weights W]
 
 Exports the weights with both exporters (dynamo when onnxscript is installed, and
-TorchScript) into a temporary folder and scores the inputs of tests/test_onnx.py (random
-depth images in 0.1-1.2 m with +inf and 0 pixels; 3 images per seed, 128 actions within
-+-4 cm / +-45 deg and 128 within +-10 cm / +-90 deg) with onnxruntime and with torch.
+TorchScript) into a temporary folder and scores the inputs of tests/test_onnx.py
+(`onnx_runtime.random_check_inputs`: 3 random depth images and 256 actions per seed) with
+onnxruntime and with torch.
 Prints, per exporter, the number of distances compared, the largest |difference| [m] and
 the largest feature difference relative to the largest feature. Needs '.[onnx-export]'.
 """
@@ -21,17 +21,6 @@ from pathlib import Path
 import numpy as np
 
 
-def _inputs(seed: int, images: int = 3, k: int = 128):
-    # The same draw as tests/test_onnx.py's _random_inputs.
-    rng = np.random.default_rng(seed)
-    depth = rng.uniform(0.1, 1.2, (images, 64, 64)).astype(np.float32)
-    depth[rng.random(depth.shape) < 0.05] = np.inf
-    depth[rng.random(depth.shape) < 0.03] = 0.0
-    near = np.column_stack([rng.uniform(-0.04, 0.04, (k, 2)), rng.uniform(-45, 45, k)])
-    wide = np.column_stack([rng.uniform(-0.1, 0.1, (k, 2)), rng.uniform(-90, 90, k)])
-    return depth, np.concatenate([near, wide]).astype(np.float32)
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", type=int, default=5, help="input draws (seeds 1..N)")
@@ -41,7 +30,7 @@ def main(argv=None) -> int:
     import torch
 
     from drake_grasp.onnx_export import export_onnx
-    from drake_grasp.onnx_runtime import OnnxDistanceModel
+    from drake_grasp.onnx_runtime import OnnxDistanceModel, random_check_inputs
     from drake_grasp.systems.evaluator import load_cnn
 
     torch_model = load_cnn(args.weights)
@@ -57,7 +46,7 @@ def main(argv=None) -> int:
             model = OnnxDistanceModel(path)
             n, dist_err, feat_err = 0, 0.0, 0.0
             for seed in range(1, args.seeds + 1):
-                depth, actions = _inputs(seed)
+                depth, actions = random_check_inputs(seed)
                 images = model.preprocess(depth)
                 features = model.image_features(images)
                 with torch.inference_mode():

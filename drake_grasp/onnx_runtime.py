@@ -102,6 +102,24 @@ def normalize_depth(depth: Any, config: Mapping[str, Any]) -> np.ndarray:
     return np.ascontiguousarray((d - ref) / np.float32(config["depth_scale_m"]), dtype=np.float32)
 
 
+def random_check_inputs(seed: int, images: int = 3, k: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    """Random inputs on which an export is compared with torch (tests/test_onnx.py,
+    analysis/onnx_agreement.py): depth images in 0.1-1.2 m with +inf (nothing seen) and 0
+    (invalid) pixels, and 2k actions, k in the controller's sampling ranges (+-4 cm,
+    +-45 deg) and k in the cnn-only policy's wider ones (+-10 cm, +-90 deg).
+
+    Returns:
+        depth (images, 64, 64) float32 [m], actions (2k, 3) float32 (x, y [m], theta [deg]).
+    """
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(0.1, 1.2, (images, 64, 64)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.05] = np.inf
+    depth[rng.random(depth.shape) < 0.03] = 0.0
+    near = np.column_stack([rng.uniform(-0.04, 0.04, (k, 2)), rng.uniform(-45, 45, k)])
+    wide = np.column_stack([rng.uniform(-0.1, 0.1, (k, 2)), rng.uniform(-90, 90, k)])
+    return depth, np.concatenate([near, wide]).astype(np.float32)
+
+
 def probe_inputs(image_size: int, theta_unit: str) -> tuple[np.ndarray, np.ndarray]:
     """A fixed depth image and 8 actions whose distances the export records.
 

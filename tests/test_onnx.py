@@ -19,7 +19,7 @@ from pydrake.systems.sensors import ImageDepth32F
 from drake_grasp.cli import main
 from drake_grasp.network import NetworkConfig, normalize_depth
 from drake_grasp.onnx_export import SHIPPED_WEIGHTS, export_onnx
-from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path
+from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
 from drake_grasp.onnx_runtime import normalize_depth as normalize_depth_np
 from drake_grasp.systems.evaluator import (
     DEFAULT_WEIGHTS,
@@ -45,19 +45,6 @@ def torch_model():
     return load_cnn("")
 
 
-def _random_inputs(seed, images=3, k=128):
-    """Depth images in the camera's range with +inf (nothing seen) and 0 (invalid)
-    pixels, and actions in the controller's sampling ranges (+-4 cm, +-45 deg) and the
-    cnn-only policy's wider ones."""
-    rng = np.random.default_rng(seed)
-    depth = rng.uniform(0.1, 1.2, (images, 64, 64)).astype(np.float32)
-    depth[rng.random(depth.shape) < 0.05] = np.inf
-    depth[rng.random(depth.shape) < 0.03] = 0.0
-    near = np.column_stack([rng.uniform(-0.04, 0.04, (k, 2)), rng.uniform(-45, 45, k)])
-    wide = np.column_stack([rng.uniform(-0.1, 0.1, (k, 2)), rng.uniform(-90, 90, k)])
-    return depth, np.concatenate([near, wide]).astype(np.float32)
-
-
 def test_normalization_is_bit_for_bit_torchs():
     rng = np.random.default_rng(0)
     depth = rng.uniform(-0.1, 1.5, (5, 64, 64)).astype(np.float32)
@@ -77,7 +64,7 @@ def test_normalization_is_bit_for_bit_torchs():
 
 def test_onnx_parts_equal_torch_on_random_inputs(exported, torch_model):
     onnx_model = OnnxDistanceModel(exported)
-    depth, actions = _random_inputs(1)
+    depth, actions = random_check_inputs(1)
     images = onnx_model.preprocess(depth)
     np.testing.assert_array_equal(images, torch_model.preprocess(depth).numpy())
     features = onnx_model.image_features(images)
@@ -105,14 +92,14 @@ def test_onnx_parts_equal_torch_on_random_inputs(exported, torch_model):
 def test_the_torchscript_exporter_gives_the_same_numbers(tmp_path, exported, torch_model):
     result = export_onnx(out=tmp_path / "ts.onnx", exporter="torchscript")
     assert result.exporter == "torchscript" and result.probe_max_abs_error_m <= DISTANCE_TOL_M
-    depth, actions = _random_inputs(2, images=1)
+    depth, actions = random_check_inputs(2, images=1)
     got = OnnxDistanceModel(result.path).score(depth[0], actions)
     assert np.abs(got - score_candidates(torch_model, depth[0], actions)).max() <= DISTANCE_TOL_M
     assert SHIPPED_WEIGHTS == DEFAULT_WEIGHTS  # export's default is the evaluator's
 
 
 def test_evaluator_system_with_the_onnx_file_equals_torch(exported, torch_model):
-    depth, actions = _random_inputs(3, images=1)
+    depth, actions = random_check_inputs(3, images=1)
     image = ImageDepth32F(64, 64)
     image.mutable_data[:, :, 0] = depth[0]
     out = {}
@@ -135,7 +122,7 @@ def test_onnx_backend_takes_the_scenarios_thread_count(exported):
 
 
 def test_onnx_backend_runs_with_torch_not_importable(exported, torch_model):
-    depth, actions = _random_inputs(4, images=1, k=16)
+    depth, actions = random_check_inputs(4, images=1, k=16)
     want = score_candidates(torch_model, depth[0], actions)
     script = textwrap.dedent("""
         import json, sys
