@@ -37,7 +37,7 @@ def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation"
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
     from drake_grasp.systems.evaluator import load_cnn
 
     library = load_library(None)
@@ -48,8 +48,7 @@ def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation"
     runs = []
     for seed in seeds:
         scenario = dataclasses.replace(base, seed=seed)
-        scene = make_scene(scenario.scene, seed, library, scenario.plant, physics=scenario.physics,
-                           sheet_moves=scenario.sheet_moves)
+        scene = scenario_scene(scenario, library, seed=seed)
         truth = find_grasps(scene, library, np.random.default_rng([seed, 61])).xy_theta
         t0 = time.perf_counter()
         ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False,

@@ -40,15 +40,13 @@ def run_scene(index: int, seed: int, per_scene: int) -> dict:
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.lab import check_grasp
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
 
     t0 = time.perf_counter()
     library = load_library(None)
     exp = EXPERIMENTS["isolation"]
     scenario = trial_scenario(exp, exp.conditions[0], index, base_seed=seed, library=library)
-    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics,
-                       sheet_moves=scenario.sheet_moves)
+    scene = scenario_scene(scenario, library)
     with_shake = _grasps(scene, library, scenario.seed, shake=True)
     static = _grasps(scene, library, scenario.seed, shake=False)
     # The same candidates are drawn either way (same rng); the static set is a superset.

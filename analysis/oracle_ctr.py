@@ -62,15 +62,13 @@ def run_trial(index: int, seed: int) -> dict:
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.grasps import find_grasps
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
 
     library = load_library(None)
     exp = EXPERIMENTS["isolation"]
     cond = next(c for c in exp.conditions if c.name == "ctr")
     scenario = trial_scenario(exp, cond, index, base_seed=seed, library=library)
-    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics,
-                       sheet_moves=scenario.sheet_moves)
+    scene = scenario_scene(scenario, library)
     truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
     original = controller_module.GraspController
     t0 = time.perf_counter()

@@ -48,13 +48,13 @@ from drake_grasp.network import DistanceCNN
 from drake_grasp.objects import ObjectLibrary, load_library
 from drake_grasp.plugins import make_policy_system
 from drake_grasp.scenario import Scenario, dump_scenario, load_scenario
-from drake_grasp.scene import SceneSpec, make_scene
+from drake_grasp.scene import SceneSpec, make_scene, scenario_scene
 from drake_grasp.station import GraspStation, MakeGraspStation
 from drake_grasp.systems.evaluator import load_cnn, score_candidates
 
 __all__ = [
     "load_scenario", "dump_scenario", "Scenario",
-    "load_library", "ObjectLibrary", "make_scene", "SceneSpec",
+    "load_library", "ObjectLibrary", "make_scene", "scenario_scene", "SceneSpec",
     "MakeGraspStation", "GraspStation",
     "build_episode_diagram", "EpisodeDiagram", "simulate_episode", "run_episode",
     "EpisodeRun", "EpisodeResult",

@@ -126,15 +126,13 @@ def bench_depth_frame_ms(repeats: int = 200) -> dict:
     from drake_grasp.episode import build_episode_diagram
     from drake_grasp.objects import load_library
     from drake_grasp.scenario import load_scenario, replace
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
 
     scenario = load_scenario(scenario_name="clutter", scenario_text="{policy: scripted}")
     scenario = replace(scenario, seed=BENCH_SEED)
     scenario.depth_noise.enabled = True
     library = load_library(None)
-    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics,
-                       sheet_moves=scenario.sheet_moves)
+    scene = scenario_scene(scenario, library)
     ed = build_episode_diagram(scenario, scene, library)
     diagram, station = ed.diagram, ed.station
     root = diagram.CreateDefaultContext()

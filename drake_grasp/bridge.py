@@ -704,7 +704,7 @@ def simulate_split_episode(scenario, *, scenario_name: str = "", library=None, s
     """
     from drake_grasp.episode import _run
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
 
     check_bridge_scenario(scenario)
     wall_start = time.perf_counter()
@@ -726,9 +726,7 @@ def simulate_split_episode(scenario, *, scenario_name: str = "", library=None, s
         # The controller starts (imports, CNN) while the scene settles.
         library = library if library is not None else load_library(scenario.objects_dir or None)
         if scene is None:
-            scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                               physics=scenario.physics,
-                               sheet_moves=scenario.sheet_moves)
+            scene = scenario_scene(scenario, library)
         link = BridgeLink(_accept(server, timeout_s, child, log_path),
                           peer="the controller process", timeout_s=timeout_s)
         try:

@@ -17,7 +17,7 @@ from drake_grasp.objects import ObjectLibrary, load_library, visual_mesh
 from drake_grasp.plugins import is_policy_spec
 from drake_grasp.results import classify_failure
 from drake_grasp.scenario import Scenario, dump_scenario
-from drake_grasp.scene import SceneSpec, make_scene
+from drake_grasp.scene import SceneSpec, scenario_scene
 
 logger = logging.getLogger(__name__)
 
@@ -532,9 +532,7 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
         load_policy_factory(scenario.policy)  # a bad spec fails before the scene is settled
     library = library if library is not None else load_library(scenario.objects_dir or None)
     if scene is None:
-        scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                           physics=scenario.physics,
-                           sheet_moves=scenario.sheet_moves)
+        scene = scenario_scene(scenario, library)
     visualize = scenario.visualize if visualize is None else visualize
     meshcat = None
     if visualize:

@@ -13,14 +13,12 @@ def diagram_dot(scenario: Scenario, *, depth: int = 2) -> str:
     """Graphviz text of the episode Diagram for a scenario (its settled scene)."""
     from drake_grasp.episode import build_episode_diagram
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import make_scene
+    from drake_grasp.scene import scenario_scene
 
     library = load_library(scenario.objects_dir or None)
     # Settled: the start pose is raised above standing objects, and an unsettled pile
     # stacked in the air would put it out of reach.
-    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                       physics=scenario.physics,
-                       sheet_moves=scenario.sheet_moves)
+    scene = scenario_scene(scenario, library)
     diagram = build_episode_diagram(scenario, scene, library).diagram
     return diagram.GetGraphvizString(max_depth=depth)
 

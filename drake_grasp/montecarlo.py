@@ -527,7 +527,7 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
     the error capture: an exception becomes a "simulation-error" record. The record that
     ends the run has the reason in `extra["run_end"]`."""
     from drake_grasp.results import load_records, write_record
-    from drake_grasp.scene import SceneSpec, make_scene, settle_scene
+    from drake_grasp.scene import SceneSpec, scenario_scene, settle_scene
 
     prefix = f"{task.trial_id}/attempt"
     records = sorted((r for r in load_records(out)
@@ -555,9 +555,7 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
         if records:
             scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
         else:
-            scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
-                               physics=scenario.physics,
-                               sheet_moves=scenario.sheet_moves)
+            scene = scenario_scene(scenario, library)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
         finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
                            run_index=task.index, attempt_index=attempt,

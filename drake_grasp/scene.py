@@ -468,23 +468,30 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
                      objects=settled, settled=converged)
 
 
+def _settle_plant_config(plant_config, physics):
+    """`plant_config` with the physics profile's settling time step, if it has one."""
+    if physics is None or physics.settle_time_step_s <= 0:
+        return plant_config
+    # A Drake config: no dataclasses.replace.
+    plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
+    plant_config.time_step = float(physics.settle_time_step_s)
+    return plant_config
+
+
 def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
                  speed_tol_m_s: float = 0.005, max_time_s: float = 4.0,
                  physics=None, sheet_moves: bool = False) -> SceneSpec:
     """Drops the objects onto the sheet and simulates until all are at rest.
 
-    Objects that fell off the table (below it or beyond its edge) are removed. Returns a new spec
-    with the final poses; `settled` says whether every remaining object came to rest
+    Objects that fell off the table (below it or beyond its edge) are removed. Returns a
+    new spec with the final poses; `settled` says whether every remaining object came to rest
     within `max_time_s` (see `settle_world`). `physics` (a `scenario.PhysicsConfig`)
     sets the margin, the sheet's collision and the settling time step; `sheet_moves`: see
     `build_scene_world`.
     """
-    if physics is not None and physics.settle_time_step_s > 0:
-        # A Drake config: no dataclasses.replace.
-        plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
-        plant_config.time_step = float(physics.settle_time_step_s)
-    world = build_scene_world(spec, library, plant_config=plant_config, physics=physics,
-                              sheet_moves=sheet_moves)
+    world = build_scene_world(spec, library,
+                              plant_config=_settle_plant_config(plant_config, physics),
+                              physics=physics, sheet_moves=sheet_moves)
     return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
 
 
@@ -511,9 +518,7 @@ def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, ph
     land; the column of `sample_scene` drops the last objects from over a metre, and the
     impacts scatter the pile). The whole pile then settles as in `settle_scene`.
     """
-    if physics is not None and physics.settle_time_step_s > 0:
-        plant_config = copy.deepcopy(plant_config or default_scene_plant_config())
-        plant_config.time_step = float(physics.settle_time_step_s)
+    plant_config = _settle_plant_config(plant_config, physics)
     poured: list[ObjectPlacement] = []
     for placement in spec.objects:
         step = dataclasses.replace(spec, objects=poured + [release_above(
@@ -540,3 +545,12 @@ def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_con
     return settle_scene(spec, library, plant_config=plant_config, physics=physics,
                         speed_tol_m_s=config.settle_speed_tol_m_s,
                         max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves)
+
+
+def scenario_scene(scenario, library: ObjectLibrary, *, seed: int | None = None) -> SceneSpec:
+    """`make_scene` for a `Scenario` (its scene config, seed, plant and physics), settled as
+    its episode will hold it (`Scenario.sheet_moves`). `seed`: another seed than the
+    scenario's."""
+    return make_scene(scenario.scene, scenario.seed if seed is None else seed, library,
+                      scenario.plant, physics=scenario.physics,
+                      sheet_moves=scenario.sheet_moves)
