@@ -8,7 +8,8 @@ Three commands:
     python analysis/clutter_pour.py results analysis/results/paper/clutter
 
     # settle sampled 10-object piles with today's column drop, with a box around the
-    # column that is then removed, or with the objects' angular velocity damped
+    # column that is then removed, or with the dataset's verified settling (the objects'
+    # angular velocity damped, rest judged by displacement: scene.settle_world)
     python analysis/clutter_pour.py settle --mode column --seeds 0,1,2
 
     # where the objects of one pile are while it settles (distance from the centre, speed)
@@ -124,40 +125,7 @@ def _add_walls(plant, center, half_m: float, height_m: float = 1.6, thick_m: flo
             Box(sx, sy, height_m), f"pour_wall_{i}", props)
 
 
-def _angular_damping_system(plant, bodies, time_constant_s: float):
-    """Torque -I_W w / time_constant_s on every object (a stand-in for rolling resistance)."""
-    from pydrake.common.value import AbstractValue
-    from pydrake.multibody.math import SpatialForce
-    from pydrake.multibody.plant import ExternallyAppliedSpatialForce
-    from pydrake.systems.framework import LeafSystem
-
-    class AngularDamping(LeafSystem):
-        def __init__(self):
-            super().__init__()
-            self._context = plant.CreateDefaultContext()
-            self._state = self.DeclareVectorInputPort("state", plant.num_multibody_states())
-            self.DeclareAbstractOutputPort(
-                "forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]), self._calc)
-
-        def _calc(self, context, output):
-            plant.SetPositionsAndVelocities(self._context, self._state.Eval(context))
-            forces = []
-            for body in bodies:
-                w = plant.EvalBodySpatialVelocityInWorld(self._context, body).rotational()
-                M = body.CalcSpatialInertiaInBodyFrame(self._context)
-                R = plant.EvalBodyPoseInWorld(self._context, body).rotation().matrix()
-                I_W = R @ M.CalcRotationalInertia().CopyToFullMatrix3() @ R.T
-                f = ExternallyAppliedSpatialForce()
-                f.body_index = body.index()
-                f.p_BoBq_B = M.get_com()
-                f.F_Bq_W = SpatialForce(-(I_W @ w) / time_constant_s, np.zeros(3))
-                forces.append(f)
-            output.set_value(forces)
-
-    return AngularDamping()
-
-
-def _world(spec, library, physics, *, walls_half_m: float = 0.0, damping_s: float = 0.0):
+def _world(spec, library, physics, *, walls_half_m: float = 0.0):
     from pydrake.multibody.plant import AddMultibodyPlant
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
@@ -173,18 +141,13 @@ def _world(spec, library, physics, *, walls_half_m: float = 0.0, damping_s: floa
         _add_walls(plant, spec.center_xy_m, walls_half_m)
     plant.Finalize()
     S.connect_sheet_hold(builder, plant, sheet)
-    if damping_s > 0:
-        bodies = [plant.GetBodyByName(S.OBJECT_BODY_NAME, i) for i in instances]
-        damping = builder.AddSystem(_angular_damping_system(plant, bodies, damping_s))
-        builder.Connect(plant.get_state_output_port(), damping.get_input_port(0))
-        builder.Connect(damping.get_output_port(0), plant.get_applied_spatial_force_input_port())
     diagram = builder.Build()
     world = S.SceneWorld(diagram, plant, scene_graph, instances, Simulator(diagram))
     S.set_object_poses(plant, world.plant_context(), spec, instances)
     return world
 
 
-def settle(mode: str, seeds: list[int], *, box_half_m: float, damping_s: float) -> list[dict]:
+def settle(mode: str, seeds: list[int], *, box_half_m: float) -> list[dict]:
     from drake_grasp import scene as S
 
     scenario, config, library = _scenario_and_library()
@@ -197,9 +160,8 @@ def settle(mode: str, seeds: list[int], *, box_half_m: float, damping_s: float) 
                                    spec, max_time_s=3.0)
             out = S.settle_world(_world(boxed, library, scenario.physics), boxed, max_time_s=4.0)
         else:
-            world = _world(spec, library, scenario.physics,
-                           damping_s=damping_s if mode == "damped" else 0.0)
-            out = S.settle_world(world, spec, max_time_s=4.0)
+            out = S.settle_world(_world(spec, library, scenario.physics), spec, max_time_s=4.0,
+                                 verified=mode == "damped")
         placed = [{"object_id": o.object_id, "xyz": list(o.xyz)} for o in out.objects]
         outside = out_of_view(placed, out.center_xy_m) + ["(fell off)"] * (len(spec.objects)
                                                                          - len(out.objects))
@@ -242,7 +204,6 @@ def main(argv=None) -> int:
     s.add_argument("--mode", choices=["column", "box", "damped"], default="column")
     s.add_argument("--seeds", default="0", help="'0,1,2'")
     s.add_argument("--box-half-m", type=float, default=0.10, help="box inner half width")
-    s.add_argument("--damping-s", type=float, default=0.3, help="angular damping time constant")
     t = sub.add_parser("trace", help="positions and speeds of one pile while it settles")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -250,7 +211,7 @@ def main(argv=None) -> int:
         print(json.dumps(results(args.folder), indent=1))
     elif args.command == "settle":
         settle(args.mode, [int(v) for v in args.seeds.split(",")],
-               box_half_m=args.box_half_m, damping_s=args.damping_s)
+               box_half_m=args.box_half_m)
     else:
         trace(args.seed)
     return 0

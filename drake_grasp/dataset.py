@@ -1,6 +1,7 @@
 """The simulated training set (the paper's section "Generating training data").
 
-Per scene (a `random` scene of 1-5 objects from one split, settled by physics): the
+Per scene (a `random` scene of 1-5 objects from one split, the count uniform over the
+scenes, settled by physics until verified at rest: `scene.settle_world`): the
 ground-truth grasps (`grasps.find_grasps`), then K wrist depth images from hand poses
 drawn at random in (x, y, z, theta) above the objects, each rendered by Drake's VTK
 renderer and post-processed by the same `sensing.postprocess_depth` the Diagram uses,
@@ -76,6 +77,10 @@ from drake_grasp.provenance import code_version
 # 2: exactly N scenes (replaced attempts, last shard smaller), per-run temporary names.
 # 3: depth stored as float16 (readers convert to float32; format 2 shards stay readable).
 FORMAT_VERSION = 3
+# How scenes are drawn and settled, part of the config hash: a folder begun by another
+# version is not resumed. 2: object count per scene (`scene_object_count`), verified
+# settling (`scene.settle_world(verified=True)`).
+SCENE_VERSION = 2
 # Depth storage type. float16 rounds a depth in [0.125, 0.25) m to 0.06 mm, in [0.25, 0.5) m
 # to 0.12 mm and at the far clip (1.5 m) to 0.49 mm, against the sensor model's 1.2 mm
 # noise at 0.4 m; it measured a 0.12 mm worst case over 1,600 images of a 0.15-0.30 m
@@ -98,10 +103,11 @@ class DatasetConfig:
     hand_xy_half_extent_m: float = 0.08
     # Scenes per shard file (one task of a worker).
     scenes_per_shard: int = 4
-    # Settling for data generation: tolerance and time cap. A scene still moving at the
+    # Settling for data generation (`scene.settle_world(verified=True)`: damped, judged by
+    # displacement, checked undamped): tolerance and time cap. A scene still moving at the
     # cap is not used; the next seed of its sequence replaces it.
     settle_speed_tol_m_s: float = 0.01
-    settle_max_time_s: float = 1.5
+    settle_max_time_s: float = 3.0
     # Settling only has to bring objects to rest, not resolve a grasp: a coarser step
     # than the episodes' 2 ms is enough and makes generation faster.
     settle_time_step_s: float = 0.005
@@ -126,7 +132,8 @@ class DatasetConfig:
 def _config_dict(scenario, config: DatasetConfig, split: str, seed: int) -> dict:
     from drake_grasp.scenario import dump_scenario
 
-    return {"format_version": FORMAT_VERSION, "split": split, "seed": int(seed),
+    return {"format_version": FORMAT_VERSION, "scene_version": SCENE_VERSION,
+            "split": split, "seed": int(seed),
             "dataset": dataclasses.asdict(config), "scenario": dump_scenario(scenario)}
 
 
@@ -142,6 +149,16 @@ def scene_seed(seed: int, scene_index: int, attempt: int = 0) -> int:
     """
     key = [int(seed), int(scene_index), 31] + ([int(attempt)] if attempt else [])
     return int(np.random.default_rng(key).integers(2**31 - 1))
+
+
+def scene_object_count(seed: int, scene_index: int, low: int, high: int) -> int:
+    """How many objects scene `scene_index` holds, uniform in [low, high]: drawn once per
+    scene, not per attempt, so that a replaced attempt keeps the count. (Drawn per
+    attempt, the counts of the kept scenes lean towards the scenes that settle most
+    often, the sparse ones: `analysis/settle_check.py`.)"""
+    if not 1 <= low <= high:
+        raise ValueError(f"scene.num_objects_min/max: expected 1 <= min <= max, got {low}, {high}")
+    return int(np.random.default_rng([int(seed), int(scene_index), 37]).integers(low, high + 1))
 
 
 def shard_scene_range(shard_index: int, *, num_scenes: int, scenes_per_shard: int) -> range:
@@ -426,7 +443,10 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
         clock = now
 
     s_seed = scene_seed(seed, scene_index, attempt)
-    scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[])
+    count = scene_object_count(seed, scene_index, scenario.scene.num_objects_min,
+                               scenario.scene.num_objects_max)
+    scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[],
+                                    num_objects_min=count, num_objects_max=count)
     spec = sample_scene(scene_cfg, s_seed, library)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
     plant_config.time_step = config.settle_time_step_s
@@ -435,7 +455,7 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
                               physics=scenario.physics)
     lap("build")
     settled = settle_world(world, spec, speed_tol_m_s=config.settle_speed_tol_m_s,
-                           max_time_s=config.settle_max_time_s)
+                           max_time_s=config.settle_max_time_s, verified=True)
     lap("settle")
     if not settled.settled:
         return SceneRejected(scene_index, attempt, s_seed, "unsettled", timings)

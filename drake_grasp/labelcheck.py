@@ -86,7 +86,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
         spec = settle_scene(sample_scene(scene_cfg, s_seed, library), library,
                             plant_config=scenario.plant, physics=physics,
                             speed_tol_m_s=dataset_config.settle_speed_tol_m_s,
-                            max_time_s=dataset_config.settle_max_time_s)
+                            max_time_s=dataset_config.settle_max_time_s, verified=True)
         if not spec.settled:
             attempts.append({"seed": s_seed, "rejected": "unsettled"})
             continue

@@ -416,43 +416,94 @@ def _on_table(plant, plant_context, body) -> bool:
     return bool(X.translation()[2] >= -0.05 and on_table_top(p_com))
 
 
-def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0.005,
-                 max_time_s: float = 4.0) -> SceneSpec:
-    """Simulates `world` until every object is slower than `speed_tol_m_s` (or the time
-    is up) and returns the resting spec; objects that fell off the table (below it, or
-    with their centre of mass beyond its edge: `on_table_top`) are dropped.
+# Settling. A free rigid body on a rigid plane has no rolling resistance, and the
+# discrete contact solvers dissipate little at small speeds: dropped cylinders roll on,
+# and some objects rock on a curved face for seconds (a camera body rocked +-4 degrees
+# for over 4 s at 2 and 5 ms steps). Flat faces rattle in place instead (Drake issue
+# 22213): a box on its face shows 10-25 mm/s and 0.3-0.6 rad/s at any instant while its
+# pose changes by 0.1-0.6 mm in 2 s, so a speed sampled at one instant says little.
+# `settle_world(..., verified=True)` therefore
+# - gives each object's floating joint an angular damping while settling (a stand-in
+#   for rolling resistance): its largest principal moment of inertia over
+#   `SETTLE_DAMPING_TIME_S` (0.05 s made a mug lying on its side oscillate; 0.2 s took
+#   twice as long as 0.1 s to stop the rocking camera);
+# - judges rest by displacement, not speed: over a window of `SETTLE_WINDOW_S` every
+#   object stays within speed_tol x window of where the window began (its centre of
+#   mass, and its rotation angle times its half-length);
+# - checks the pose with the damping off for another window: only a pose that stays put
+#   in the undamped plant that the episodes simulate counts as settled.
+SETTLE_DAMPING_TIME_S = 0.1
+SETTLE_WINDOW_S = 0.2
+_SETTLE_CHECK_S = 0.05
 
-    The returned spec has `settled=True` only when the objects that stay on the table
-    came to rest: when `max_time_s` runs out with one of them still faster than
-    `speed_tol_m_s`, it is returned with `settled=False` (callers that need a scene at
-    rest, such as the dataset generator, re-sample it).
+
+def _floating_joint(plant, body):
+    """The free body's floating joint (the only joint of an object's model instance)."""
+    (index,) = plant.GetJointIndices(body.model_instance())
+    return plant.get_joint(index)
+
+
+def _settle_scales(plant, bodies) -> tuple[list, list]:
+    """Per body: the settling angular damping [N m s] (largest principal moment of
+    inertia about the centre of mass / `SETTLE_DAMPING_TIME_S`), and the half-length
+    sqrt(3 I_max / m) (exact for a thin rod) that turns a rotation into a displacement."""
+    damping, half_length = [], []
+    for body in bodies:
+        M = body.default_spatial_inertia()
+        i_max = float(np.linalg.eigvalsh(M.CalcRotationalInertia().CopyToFullMatrix3()).max())
+        damping.append(i_max / SETTLE_DAMPING_TIME_S)
+        half_length.append(float(np.sqrt(3.0 * i_max / M.get_mass())))
+    return damping, half_length
+
+
+def _set_settle_damping(plant, plant_context, bodies, damping, on: bool) -> None:
+    for body, c in zip(bodies, damping):
+        _floating_joint(plant, body).SetDampingVector(
+            plant_context, np.array([c, c, c, 0.0, 0.0, 0.0]) if on else np.zeros(6))
+
+
+def _at_rest_by_speed(plant, plant_context, bodies, speed_tol_m_s: float,
+                      on_table_only: bool) -> bool:
+    """Every object (still on the table) slower than the tolerance at this instant."""
+    speeds = [np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
+              for b in bodies if not on_table_only or _on_table(plant, plant_context, b)]
+    return bool(not speeds or max(speeds) < speed_tol_m_s)
+
+
+def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0.005,
+                 max_time_s: float = 4.0, verified: bool = False) -> SceneSpec:
+    """Simulates `world` until every object is at rest (or the time is up) and returns
+    the resting spec; objects that fell off the table (below it, or with their centre of
+    mass beyond its edge: `on_table_top`) are dropped.
+
+    At rest, `verified` False: every object on the table slower than `speed_tol_m_s` at
+    one instant (checked every 50 ms, from 0.3 s). `verified` True: settled with angular
+    damping, judged by displacement over a window and checked without the damping (see
+    `SETTLE_DAMPING_TIME_S`); objects falling off the table do not hold it up.
+    The returned spec has `settled=True` only when the objects came to rest within
+    `max_time_s`; otherwise `settled=False` (callers that need a scene at rest, such as
+    the dataset generator, re-sample it). A verified world's damping is off on return.
     """
     simulator = world.simulator
     plant, plant_context = world.plant, world.plant_context()
     simulator.Initialize()
     bodies = world.bodies()
-    t, dt = simulator.get_context().get_time(), 0.05
-    t_start = t
+    t = t_start = simulator.get_context().get_time()
     t_end = t + max_time_s
-    converged = False
-    while t < t_end:
-        t += dt
-        simulator.AdvanceTo(t)
-        speeds = [
-            np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
-            for b in bodies
-        ]
-        if t >= 0.3 and (not speeds or max(speeds) < speed_tol_m_s):
-            converged = True
-            break
-    if not converged and t > t_start:
-        # The time cap: at rest only if every object still on the table is slow (one
-        # falling off the table never comes to rest, and is dropped below).
-        on_table = [
-            np.linalg.norm(plant.EvalBodySpatialVelocityInWorld(plant_context, b).translational())
-            for b in bodies if _on_table(plant, plant_context, b)
-        ]
-        converged = bool(not on_table or max(on_table) < speed_tol_m_s)
+    if verified:
+        converged = _settle_verified(world, bodies, speed_tol_m_s, t_end)
+    else:
+        converged = False
+        while t < t_end:
+            t += _SETTLE_CHECK_S
+            simulator.AdvanceTo(t)
+            if t >= 0.3 and _at_rest_by_speed(plant, plant_context, bodies, speed_tol_m_s, False):
+                converged = True
+                break
+        if not converged and t > t_start:
+            # The time cap: at rest only if every object still on the table is slow (one
+            # falling off the table never comes to rest, and is dropped below).
+            converged = _at_rest_by_speed(plant, plant_context, bodies, speed_tol_m_s, True)
     settled = []
     for placement, body in zip(spec.objects, bodies):
         X = plant.EvalBodyPoseInWorld(plant_context, body)
@@ -468,6 +519,52 @@ def settle_world(world: SceneWorld, spec: SceneSpec, *, speed_tol_m_s: float = 0
                      objects=settled, settled=converged)
 
 
+def _settle_verified(world: SceneWorld, bodies, speed_tol_m_s: float, t_end: float) -> bool:
+    """`settle_world`'s verified rest; True when reached before `t_end`."""
+    simulator = world.simulator
+    plant, plant_context = world.plant, world.plant_context()
+    damping, half_length = _settle_scales(plant, bodies)
+    reach = speed_tol_m_s * SETTLE_WINDOW_S  # how far an object may move in a window
+    window = round(SETTLE_WINDOW_S / _SETTLE_CHECK_S)
+
+    def poses():
+        return [plant.EvalBodyPoseInWorld(plant_context, b) for b in bodies]
+
+    def moved(X0, X1) -> bool:
+        for body, a, b, r in zip(bodies, X0, X1, half_length):
+            if not _on_table(plant, plant_context, body):
+                continue  # falling off the table: dropped by the caller
+            angle = a.rotation().inverse().multiply(b.rotation()).ToAngleAxis().angle()
+            if max(np.linalg.norm(b.translation() - a.translation()), angle * r) > reach:
+                return True
+        return False
+
+    _set_settle_damping(plant, plant_context, bodies, damping, True)
+    t = simulator.get_context().get_time()
+    t_min = t + 0.3
+    anchor, calm_checks, damped = poses(), 0, True
+    try:
+        while t < t_end - 1e-9:
+            t += _SETTLE_CHECK_S
+            simulator.AdvanceTo(t)
+            X = poses()
+            if moved(anchor, X):
+                anchor, calm_checks = X, 0
+                if not damped:  # it moves again without the damping: settle on, damped
+                    _set_settle_damping(plant, plant_context, bodies, damping, True)
+                    damped = True
+                continue
+            calm_checks += 1
+            if calm_checks >= window and t >= t_min:
+                if not damped:
+                    return True  # a window at rest without the damping
+                _set_settle_damping(plant, plant_context, bodies, damping, False)
+                anchor, calm_checks, damped = X, 0, False
+        return False
+    finally:
+        _set_settle_damping(plant, plant_context, bodies, damping, False)
+
+
 def _settle_plant_config(plant_config, physics):
     """`plant_config` with the physics profile's settling time step, if it has one."""
     if physics is None or physics.settle_time_step_s <= 0:
@@ -480,19 +577,20 @@ def _settle_plant_config(plant_config, physics):
 
 def settle_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None,
                  speed_tol_m_s: float = 0.005, max_time_s: float = 4.0,
-                 physics=None, sheet_moves: bool = False) -> SceneSpec:
+                 physics=None, sheet_moves: bool = False, verified: bool = False) -> SceneSpec:
     """Drops the objects onto the sheet and simulates until all are at rest.
 
     Objects that fell off the table (below it or beyond its edge) are removed. Returns a
     new spec with the final poses; `settled` says whether every remaining object came to rest
-    within `max_time_s` (see `settle_world`). `physics` (a `scenario.PhysicsConfig`)
-    sets the margin, the sheet's collision and the settling time step; `sheet_moves`: see
-    `build_scene_world`.
+    within `max_time_s` (see `settle_world`, also for `verified`). `physics` (a
+    `scenario.PhysicsConfig`) sets the margin, the sheet's collision and the settling time
+    step; `sheet_moves`: see `build_scene_world`.
     """
     world = build_scene_world(spec, library,
                               plant_config=_settle_plant_config(plant_config, physics),
                               physics=physics, sheet_moves=sheet_moves)
-    return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
+    return settle_world(world, spec, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s,
+                        verified=verified)
 
 
 def release_above(pile: SceneSpec, placement: ObjectPlacement, library: ObjectLibrary,

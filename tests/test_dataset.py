@@ -140,9 +140,9 @@ def test_other_config_in_the_same_folder_is_refused(reference):
 
 
 def test_settling_that_hits_the_time_cap_is_not_labelled_settled(library):
-    """Two scenes of the dataset's seed sequence under the dataset's settling settings
-    (5 ms steps, 1.5 s cap, 0.01 m/s): scene_seed(0, 3) still has an object rolling at
-    the cap, scene_seed(0, 0) comes to rest after about 1 s."""
+    """Two scenes of the dataset's seed sequence under the dataset's settling (5 ms steps,
+    verified rest, 3 s cap, 0.01 m/s): scene_seed(0, 4) is still moving at the cap,
+    scene_seed(0, 0) comes to rest (analysis/results/settle-check)."""
     from drake_grasp.scene import build_scene_world, sample_scene, settle_world
 
     scenario = load_scenario(scenario_name="random")
@@ -151,12 +151,25 @@ def test_settling_that_hits_the_time_cap_is_not_labelled_settled(library):
     plant_config = copy.deepcopy(scenario.plant)
     plant_config.time_step = cfg.settle_time_step_s
     settled = {}
-    for i in (0, 3):
+    for i in (0, 4):
         spec = sample_scene(scene_cfg, scene_seed(0, i), library)
-        world = build_scene_world(spec, library, plant_config=plant_config)
+        world = build_scene_world(spec, library, plant_config=plant_config,
+                                  physics=scenario.physics)
         settled[i] = settle_world(world, spec, speed_tol_m_s=cfg.settle_speed_tol_m_s,
-                                  max_time_s=cfg.settle_max_time_s).settled
-    assert settled == {0: True, 3: False}
+                                  max_time_s=cfg.settle_max_time_s, verified=True).settled
+    assert settled == {0: True, 4: False}
+
+
+def test_object_counts_are_uniform_and_kept_by_replacements():
+    from drake_grasp.dataset import scene_object_count
+
+    counts = [scene_object_count(0, i, 1, 5) for i in range(5000)]
+    assert counts == [scene_object_count(0, i, 1, 5) for i in range(5000)]
+    shares = np.bincount(counts, minlength=6)[1:] / len(counts)
+    assert np.all(np.abs(shares - 0.2) < 0.02), shares
+    assert {scene_object_count(0, i, 3, 3) for i in range(20)} == {3}
+    with pytest.raises(ValueError, match="num_objects_min/max"):
+        scene_object_count(0, 0, 0, 5)
 
 
 def test_unsettled_and_graspless_scenes_are_replaced_by_the_next_seed_of_their_scene(
@@ -201,6 +214,8 @@ def test_unsettled_and_graspless_scenes_are_replaced_by_the_next_seed_of_their_s
     for i, (attempt, spec) in scenes.items():
         assert spec["settled"] is True and spec["seed"] == scene_seed(5, i, attempt)
     assert scenes[0][0] > ref_scenes[0][0] and scenes[0][1]["seed"] != unsettled_seed
+    # A replacement draws new objects, as many as the scene it replaces.
+    assert len(scenes[0][1]["objects"]) == len(ref_scenes[0][1]["objects"])
     assert scenes[2][0] > ref_scenes[2][0] and scenes[2][1]["seed"] != graspless_seed
     assert scenes[1] == ref_scenes[1]
 
