@@ -161,7 +161,7 @@ def settle(mode: str, seeds: list[int], *, box_half_m: float) -> list[dict]:
             out = S.settle_world(_world(boxed, library, scenario.physics), boxed, max_time_s=4.0)
         else:
             out = S.settle_world(_world(spec, library, scenario.physics), spec, max_time_s=4.0,
-                                 verified=mode == "damped")
+                                 verified=mode == "verified")
         placed = [{"object_id": o.object_id, "xyz": list(o.xyz)} for o in out.objects]
         outside = out_of_view(placed, out.center_xy_m) + ["(fell off)"] * (len(spec.objects)
                                                                          - len(out.objects))
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
     r = sub.add_parser("results", help="objects out of view per run of a clutter results folder")
     r.add_argument("folder")
     s = sub.add_parser("settle", help="settle sampled piles with a pour mode")
-    s.add_argument("--mode", choices=["column", "box", "damped"], default="column")
+    s.add_argument("--mode", choices=["column", "box", "verified"], default="column")
     s.add_argument("--seeds", default="0", help="'0,1,2'")
     s.add_argument("--box-half-m", type=float, default=0.10, help="box inner half width")
     t = sub.add_parser("trace", help="positions and speeds of one pile while it settles")

@@ -580,6 +580,9 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
             next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
                                       plant_config=scenario.plant,
                                       physics=scenario.physics,
+                                      speed_tol_m_s=scenario.scene.settle_speed_tol_m_s,
+                                      max_time_s=scenario.scene.settle_max_time_s,
+                                      verified=scenario.scene.settle == "verified",
                                       sheet_moves=scenario.sheet_moves) if objects else \
                 dataclasses.replace(remaining, objects=[], settled=True)
             rec = _record_for(task, condition, attempt_scenario, run.result,

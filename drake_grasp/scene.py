@@ -607,14 +607,16 @@ def release_above(pile: SceneSpec, placement: ObjectPlacement, library: ObjectLi
 
 def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, physics=None,
                drop_gap_m: float = 0.02, step_s: float = 0.5, speed_tol_m_s: float = 0.005,
-               max_time_s: float = 4.0, sheet_moves: bool = False) -> SceneSpec:
+               max_time_s: float = 4.0, sheet_moves: bool = False,
+               verified: bool = False) -> SceneSpec:
     """Pours a clutter spec's objects one at a time, then settles the pile.
 
     Object k keeps its sampled x, y and orientation and is released with its lowest point
     `drop_gap_m` above the highest point of the pile poured before it, which has had
     `step_s` to come down (a pile poured from low height, as objects emptied from a box
     land; the column of `sample_scene` drops the last objects from over a metre, and the
-    impacts scatter the pile). The whole pile then settles as in `settle_scene`.
+    impacts scatter the pile). The whole pile then settles as in `settle_scene`
+    (`verified`: see `settle_world`).
     """
     plant_config = _settle_plant_config(plant_config, physics)
     poured: list[ObjectPlacement] = []
@@ -627,22 +629,26 @@ def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, ph
     pile = dataclasses.replace(spec, objects=poured)
     world = build_scene_world(pile, library, plant_config=plant_config, physics=physics,
                               sheet_moves=sheet_moves)
-    return settle_world(world, pile, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s)
+    return settle_world(world, pile, speed_tol_m_s=speed_tol_m_s, max_time_s=max_time_s,
+                        verified=verified)
 
 
 def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None,
                physics=None, sheet_moves: bool = False) -> SceneSpec:
     """`sample_scene` then `settle_scene` (a clutter pile with `pour: sequential`:
-    `pour_scene`) with the config's settling tolerances. `sheet_moves`: pass
-    `Scenario.sheet_moves` of the episode that will use the scene (`build_scene_world`)."""
+    `pour_scene`) with the config's settling (`settle_speed_tol_m_s`,
+    `settle_max_time_s`, `settle`). `sheet_moves`: pass `Scenario.sheet_moves` of the
+    episode that will use the scene (`build_scene_world`)."""
     spec = sample_scene(config, seed, library)
     if config.kind == "clutter" and config.pour == "sequential":
         return pour_scene(spec, library, plant_config=plant_config, physics=physics,
                           speed_tol_m_s=config.settle_speed_tol_m_s,
-                          max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves)
+                          max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves,
+                          verified=config.settle == "verified")
     return settle_scene(spec, library, plant_config=plant_config, physics=physics,
                         speed_tol_m_s=config.settle_speed_tol_m_s,
-                        max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves)
+                        max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves,
+                        verified=config.settle == "verified")
 
 
 def scenario_scene(scenario, library: ObjectLibrary, *, seed: int | None = None) -> SceneSpec:

@@ -74,3 +74,23 @@ def test_verified_settling_gives_up_at_the_cap(setup):
     rest = settle_world(world, spec, max_time_s=0.4, verified=True)
     assert not rest.settled
     assert world.simulator.get_context().get_time() == pytest.approx(0.4)
+
+
+def test_clutter_scenarios_settle_verified_and_make_scene_passes_it_on(monkeypatch):
+    import drake_grasp.scene as scene_module
+    from drake_grasp.scene import make_scene
+
+    for name in ("clutter", "clutter_shift", "clutter_moving"):
+        assert load_scenario(scenario_name=name).scene.settle == "verified"
+    for name in ("isolation", "random"):  # the rule their committed results were made with
+        assert load_scenario(scenario_name=name).scene.settle == "speed"
+    with pytest.raises(ValueError, match="scene.settle"):
+        load_scenario(scenario_name="clutter", scenario_text="{scene: {settle: still}}")
+    seen = []
+    monkeypatch.setattr(scene_module, "settle_world",
+                        lambda world, spec, **kw: seen.append(kw["verified"]) or spec)
+    library = load_library(None)
+    for name in ("clutter", "isolation"):
+        scenario = load_scenario(scenario_name=name)
+        make_scene(scenario.scene, 0, library, scenario.plant, physics=scenario.physics)
+    assert seen == [True, False]
