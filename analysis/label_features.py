@@ -9,7 +9,8 @@ accepts with gravity alone (half of them, where there are enough, among those th
 shake load case rejects). For each it records the analytic test's quantities
 (`grasps.check_grasp_poses`: the contact normals' lean from the closing line, the torque
 ratio with gravity alone and with the shake, the width, the height of the grasp centre
-and of the centre of mass above the sheet) and executes it in the grasp lab: held through
+and of the centre of mass above the sheet, how deep along the approach the contacts lie)
+and executes it in the grasp lab: held through
 lift and hold, and through the shake, and the failure class. `features.json` holds every
 grasp; the printout gives the lift-and-hold rate per object and per band of each quantity,
 so that a label rule which keeps the hammer's grasps and drops the banana's failures can
@@ -97,6 +98,10 @@ def run_scene(index: int, seed: int, per_scene: int) -> dict:
                 "torque_ratio_static": round(float(still.torque_ratio[i]), 4),
                 "torque_ratio_shake": round(float(gravity.torque_ratio[i]), 4),
                 "width_m": round(float(static.widths[i]), 4),
+                # How deep along the approach the contacts lie, from the grasp centre
+                # (the pads reach +-FINGERTIP_Z_M = 19 mm): the deeper contact's offset.
+                "contact_depth_m": round(float(np.max(
+                    (gravity.contacts[i] - static.poses[i][:3, 3]) @ static.poses[i][:3, 2])), 4),
                 "grasp_height_m": round(float(static.poses[i][2, 3] - SHEET_THICKNESS_M), 4),
                 "com_height_m": round(float(com_z[static.object_index[i]] - SHEET_THICKNESS_M), 4),
                 "held": bool(r.held), "failure": r.failure,
@@ -147,7 +152,8 @@ def main(argv=None) -> int:
                        ("torque_ratio_static", [0, 0.02, 0.04, 0.06, 0.08, 0.121]),
                        ("torque_ratio_shake", [0, 0.06, 0.12, 0.2, 0.3, 1e9]),
                        ("grasp_height_m", [0, 0.02, 0.03, 0.04, 0.06, 1]),
-                       ("width_m", [0, 0.02, 0.04, 0.06, 0.09])):
+                       ("width_m", [0, 0.02, 0.04, 0.06, 0.09]),
+                       ("contact_depth_m", [-0.02, 0.0, 0.01, 0.014, 0.017, 0.02])):
         for group, sel in (("all", rows), ("banana", [r for r in rows if "banana" in r["object"]]),
                            ("others", [r for r in rows if "banana" not in r["object"]])):
             print(f"  {key} ({group}): {_bands(sel, key, edges)}")
