@@ -161,6 +161,21 @@ def scene_object_count(seed: int, scene_index: int, low: int, high: int) -> int:
     return int(np.random.default_rng([int(seed), int(scene_index), 37]).integers(low, high + 1))
 
 
+def sample_dataset_scene(scenario, *, split: str, seed: int, scene_index: int, attempt: int,
+                         library):
+    """The (unsettled) scene of attempt `attempt` of dataset scene `scene_index`: a
+    `random` scene of the scenario's scene config with `scene_object_count` objects from
+    `split`, drawn with `scene_seed(seed, scene_index, attempt)`. `generate` and
+    `label-check` both sample through it."""
+    from drake_grasp.scene import sample_scene
+
+    count = scene_object_count(seed, scene_index, scenario.scene.num_objects_min,
+                               scenario.scene.num_objects_max)
+    cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[],
+                              num_objects_min=count, num_objects_max=count)
+    return sample_scene(cfg, scene_seed(seed, scene_index, attempt), library)
+
+
 def shard_scene_range(shard_index: int, *, num_scenes: int, scenes_per_shard: int) -> range:
     """Scene indices of shard `shard_index`: [k S, min((k + 1) S, N))."""
     first = shard_index * scenes_per_shard
@@ -430,7 +445,7 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     """
     from drake_grasp.actions import apply_actions, sample_actions_in_view
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+    from drake_grasp.scene import build_scene_world, settle_world
     from drake_grasp.sensing import frame_rng, postprocess_depth
 
     timings: dict = {}
@@ -443,11 +458,8 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
         clock = now
 
     s_seed = scene_seed(seed, scene_index, attempt)
-    count = scene_object_count(seed, scene_index, scenario.scene.num_objects_min,
-                               scenario.scene.num_objects_max)
-    scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[],
-                                    num_objects_min=count, num_objects_max=count)
-    spec = sample_scene(scene_cfg, s_seed, library)
+    spec = sample_dataset_scene(scenario, split=split, seed=seed, scene_index=scene_index,
+                                attempt=attempt, library=library)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
     plant_config.time_step = config.settle_time_step_s
     # The profile's sheet collision (the half space for `fast`); the step is the config's.

@@ -68,22 +68,23 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     """Samples, settles and labels scene `scene_index` as the dataset would, then executes
     a random sample of its accepted and rejected candidates in the lab. Returns the record.
     """
-    from drake_grasp.dataset import DatasetConfig, scene_seed
+    from drake_grasp.dataset import DatasetConfig, sample_dataset_scene, scene_seed
     from drake_grasp.grasps import find_grasps
     from drake_grasp.lab import check_grasp
-    from drake_grasp.scene import sample_scene, settle_scene
+    from drake_grasp.scene import settle_scene
 
     dataset_config = dataset_config if dataset_config is not None else DatasetConfig()
     t0 = time.perf_counter()
-    scene_cfg = dataclasses.replace(scenario.scene, kind="random", split=config.split,
-                                    object_ids=[])
     # As `dataset.generate_scene`: the profile's sheet, the dataset config's settling step.
     physics = dataclasses.replace(scenario.physics,
                                   settle_time_step_s=dataset_config.settle_time_step_s)
     attempts = []
     for attempt in range(dataset_config.max_attempts_per_scene):
         s_seed = scene_seed(seed, scene_index, attempt)
-        spec = settle_scene(sample_scene(scene_cfg, s_seed, library), library,
+        sampled = sample_dataset_scene(scenario, split=config.split, seed=seed,
+                                       scene_index=scene_index, attempt=attempt,
+                                       library=library)
+        spec = settle_scene(sampled, library,
                             plant_config=scenario.plant, physics=physics,
                             speed_tol_m_s=dataset_config.settle_speed_tol_m_s,
                             max_time_s=dataset_config.settle_max_time_s, verified=True)

@@ -155,3 +155,30 @@ def test_label_load_case_script_finds_the_static_grasps_the_shake_rejects():
     assert len(scene["checks"]) == 1
     check = scene["checks"][0]
     assert check["lift_hold"] == (check["held"] or check["failure"] == "dropped-by-shake")
+
+
+def test_label_check_samples_scenes_as_the_dataset_does(monkeypatch, library):
+    """label-check draws each scene through `dataset.sample_dataset_scene`, the sampler of
+    `generate` (same object count per scene, same seeds)."""
+    import drake_grasp.dataset as dataset_module
+    from drake_grasp.dataset import sample_dataset_scene, scene_object_count
+    from drake_grasp.labelcheck import LabelCheckConfig, check_scene
+    from drake_grasp.scenario import load_scenario
+
+    scenario = load_scenario(scenario_name="isolation")
+    specs = [sample_dataset_scene(scenario, split="train", seed=4, scene_index=7, attempt=a,
+                                  library=library) for a in range(3)]
+    assert {len(s.objects) for s in specs} == {scene_object_count(4, 7, 1, 5)}
+    assert len({s.seed for s in specs}) == 3  # each attempt its own seed
+
+    class Sampled(Exception):
+        pass
+
+    def sampler(*args, **kwargs):
+        raise Sampled(kwargs)
+
+    monkeypatch.setattr(dataset_module, "sample_dataset_scene", sampler)
+    with pytest.raises(Sampled) as info:
+        check_scene(7, seed=4, scenario=scenario, library=library, config=LabelCheckConfig())
+    kwargs = info.value.args[0]
+    assert (kwargs["seed"], kwargs["scene_index"], kwargs["attempt"]) == (4, 7, 0)
