@@ -43,22 +43,13 @@ def _lean_deg(check) -> np.ndarray:
 
 def run_scene(index: int, seed: int, per_scene: int) -> dict:
     import drake_grasp.grasps as G
-    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.lab import check_grasp
-    from drake_grasp.objects import load_library
-    from drake_grasp.scene import SHEET_THICKNESS_M, scenario_scene
+    from drake_grasp.scene import SHEET_THICKNESS_M
+    from label_load_case import _grasps, gravity_only, isolation_scene
 
     t0 = time.perf_counter()
-    library = load_library(None)
-    exp = EXPERIMENTS["isolation"]
-    scenario = trial_scenario(exp, exp.conditions[0], index, base_seed=seed, library=library)
-    scene = scenario_scene(scenario, library)
-    original = G._gravity_torque_ratio
-    G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
-    try:
-        static = G.find_grasps(scene, library, np.random.default_rng([scenario.seed, 61]))
-    finally:
-        G._gravity_torque_ratio = original
+    scenario, scene, library = isolation_scene(index, seed)
+    static = _grasps(scene, library, scenario.seed, shake=False)
     objects = G.ObjectMasses.of_scene(scene, library)
     # The surface samples `find_grasps` drew (same stream, same spacings), so that the
     # contacts below are the ones its tests saw.
@@ -70,12 +61,8 @@ def run_scene(index: int, seed: int, per_scene: int) -> dict:
     if len(static.poses):
         kw = dict(collision_points=coarse, mu=G.FORCE_CLOSURE_MU, objects=objects)
         gravity = G.check_grasp_poses(static.poses, fine, **kw)
-        original = G._gravity_torque_ratio
-        G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
-        try:
+        with gravity_only():
             still = G.check_grasp_poses(static.poses, fine, **kw)
-        finally:
-            G._gravity_torque_ratio = original
         shake_ok = gravity.torque_ratio <= G.MAX_TORQUE_RATIO
         rng = np.random.default_rng([seed, index, 211])
         pools = [np.flatnonzero(~shake_ok), np.flatnonzero(shake_ok)]

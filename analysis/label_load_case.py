@@ -17,6 +17,7 @@ grasp lab, and reports how many held through lift and hold, and through the shak
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -24,29 +25,43 @@ from pathlib import Path
 import numpy as np
 
 
-def _grasps(scene, library, seed: int, *, shake: bool):
+@contextlib.contextmanager
+def gravity_only():
+    """Within the block, the torque test's load cases are gravity alone (no shake)."""
     import drake_grasp.grasps as G
 
     original = G._gravity_torque_ratio
-    if not shake:
-        G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
+    G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
     try:
-        return G.find_grasps(scene, library, np.random.default_rng([seed, 61]))
+        yield
     finally:
         G._gravity_torque_ratio = original
 
 
-def run_scene(index: int, seed: int, per_scene: int) -> dict:
+def _grasps(scene, library, seed: int, *, shake: bool):
+    import drake_grasp.grasps as G
+
+    with contextlib.nullcontext() if shake else gravity_only():
+        return G.find_grasps(scene, library, np.random.default_rng([seed, 61]))
+
+
+def isolation_scene(index: int, seed: int):
+    """(scenario, settled scene, library) of the `isolation` experiment's trial `index`."""
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
-    from drake_grasp.lab import check_grasp
     from drake_grasp.objects import load_library
     from drake_grasp.scene import scenario_scene
 
-    t0 = time.perf_counter()
     library = load_library(None)
     exp = EXPERIMENTS["isolation"]
     scenario = trial_scenario(exp, exp.conditions[0], index, base_seed=seed, library=library)
-    scene = scenario_scene(scenario, library)
+    return scenario, scenario_scene(scenario, library), library
+
+
+def run_scene(index: int, seed: int, per_scene: int) -> dict:
+    from drake_grasp.lab import check_grasp
+
+    t0 = time.perf_counter()
+    scenario, scene, library = isolation_scene(index, seed)
     with_shake = _grasps(scene, library, scenario.seed, shake=True)
     static = _grasps(scene, library, scenario.seed, shake=False)
     # The same candidates are drawn either way (same rng); the static set is a superset.
