@@ -3,7 +3,8 @@
     python analysis/settle_check.py --scenes 96 --out analysis/results/settle-check
 
 Settles the dataset's scenes (`random`, 1-5 objects, train split, the first attempt of
-each scene's seed sequence: `dataset.scene_seed`) two ways, each in the dataset
+each scene's seed sequence: `dataset.scene_seed`; the object count drawn from that seed,
+as the shipped dataset drew it, not from `dataset.scene_object_count`) two ways, each in the dataset
 generator's scene world (the `fast` profile's half-space sheet, 5 ms steps):
 - `speed`: the settling that made the shipped paper-scale dataset: at rest when every
   object is slower than 1 cm/s at one instant (checked every 50 ms from 0.3 s), cap 1.5 s;

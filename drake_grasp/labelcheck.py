@@ -68,7 +68,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     """Samples, settles and labels scene `scene_index` as the dataset would, then executes
     a random sample of its accepted and rejected candidates in the lab. Returns the record.
     """
-    from drake_grasp.dataset import DatasetConfig, sample_dataset_scene, scene_seed
+    from drake_grasp.dataset import DatasetConfig, sample_dataset_scene
     from drake_grasp.grasps import find_grasps
     from drake_grasp.lab import check_grasp
     from drake_grasp.scene import settle_scene
@@ -80,10 +80,10 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
                                   settle_time_step_s=dataset_config.settle_time_step_s)
     attempts = []
     for attempt in range(dataset_config.max_attempts_per_scene):
-        s_seed = scene_seed(seed, scene_index, attempt)
         sampled = sample_dataset_scene(scenario, split=config.split, seed=seed,
                                        scene_index=scene_index, attempt=attempt,
                                        library=library)
+        s_seed = sampled.seed  # scene_seed(seed, scene_index, attempt)
         spec = settle_scene(sampled, library,
                             plant_config=scenario.plant, physics=physics,
                             speed_tol_m_s=dataset_config.settle_speed_tol_m_s,

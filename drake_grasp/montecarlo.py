@@ -527,7 +527,7 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
     the error capture: an exception becomes a "simulation-error" record. The record that
     ends the run has the reason in `extra["run_end"]`."""
     from drake_grasp.results import load_records, write_record
-    from drake_grasp.scene import SceneSpec, scenario_scene, settle_scene
+    from drake_grasp.scene import SceneSpec, scenario_scene, settle_options, settle_scene
 
     prefix = f"{task.trial_id}/attempt"
     records = sorted((r for r in load_records(out)
@@ -580,10 +580,8 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
             next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
                                       plant_config=scenario.plant,
                                       physics=scenario.physics,
-                                      speed_tol_m_s=scenario.scene.settle_speed_tol_m_s,
-                                      max_time_s=scenario.scene.settle_max_time_s,
-                                      verified=scenario.scene.settle == "verified",
-                                      sheet_moves=scenario.sheet_moves) if objects else \
+                                      sheet_moves=scenario.sheet_moves,
+                                      **settle_options(scenario.scene)) if objects else \
                 dataclasses.replace(remaining, objects=[], settled=True)
             rec = _record_for(task, condition, attempt_scenario, run.result,
                               wall=time.perf_counter() - t0, run_index=task.index,

@@ -633,22 +633,23 @@ def pour_scene(spec: SceneSpec, library: ObjectLibrary, *, plant_config=None, ph
                         verified=verified)
 
 
+def settle_options(config: SceneConfig) -> dict:
+    """A scene config's settling (`settle_speed_tol_m_s`, `settle_max_time_s`, `settle`)
+    as the keywords of `settle_scene` and `pour_scene`."""
+    return {"speed_tol_m_s": config.settle_speed_tol_m_s,
+            "max_time_s": config.settle_max_time_s,
+            "verified": config.settle == "verified"}
+
+
 def make_scene(config: SceneConfig, seed: int, library: ObjectLibrary, plant_config=None,
                physics=None, sheet_moves: bool = False) -> SceneSpec:
     """`sample_scene` then `settle_scene` (a clutter pile with `pour: sequential`:
-    `pour_scene`) with the config's settling (`settle_speed_tol_m_s`,
-    `settle_max_time_s`, `settle`). `sheet_moves`: pass `Scenario.sheet_moves` of the
-    episode that will use the scene (`build_scene_world`)."""
+    `pour_scene`) with the config's settling (`settle_options`). `sheet_moves`: pass
+    `Scenario.sheet_moves` of the episode that will use the scene (`build_scene_world`)."""
     spec = sample_scene(config, seed, library)
-    if config.kind == "clutter" and config.pour == "sequential":
-        return pour_scene(spec, library, plant_config=plant_config, physics=physics,
-                          speed_tol_m_s=config.settle_speed_tol_m_s,
-                          max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves,
-                          verified=config.settle == "verified")
-    return settle_scene(spec, library, plant_config=plant_config, physics=physics,
-                        speed_tol_m_s=config.settle_speed_tol_m_s,
-                        max_time_s=config.settle_max_time_s, sheet_moves=sheet_moves,
-                        verified=config.settle == "verified")
+    settle = pour_scene if config.kind == "clutter" and config.pour == "sequential" else settle_scene
+    return settle(spec, library, plant_config=plant_config, physics=physics,
+                  sheet_moves=sheet_moves, **settle_options(config))
 
 
 def scenario_scene(scenario, library: ObjectLibrary, *, seed: int | None = None) -> SceneSpec:
