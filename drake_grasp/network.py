@@ -25,6 +25,14 @@ broadcast add, lrelu and the IP layers (`DistanceCNN.score_actions` for control,
 `DistanceCNN.forward_factored` for training). Results equal the direct form up to
 floating-point rounding, gradients included.
 
+For control (one image, K candidates, no gradient) IP1 is split further
+(`DistanceCNN._ip1_split`). IP1's input is ``lrelu(Zp[j, p] + c_k[j])``; an input whose
+argument has the same sign for all K candidates (``Zp[j, p] + min_k c_k[j] > 0``, or
+``Zp[j, p] + max_k c_k[j] <= 0``) is affine in c_k, so its share of IP1 is one
+matrix-vector pass over the weights for all K together. Only the remaining inputs
+(about 20-30% on the wrist images measured) go through the per-candidate product.
+Same numbers up to summation order.
+
 Weights are stored with safetensors only (no pickle), with the architecture and input
 normalization in the file's metadata and a SHA-256 of the tensor data, so a corrupted
 or mismatched file fails loudly instead of loading garbage (`save_weights`,
@@ -388,6 +396,39 @@ class _PackedWeights:
         return (_PackedWeights, ())
 
 
+class _SplitWeights:
+    """A memo of IP1's weight in the two layouts `DistanceCNN._ip1_split` reads.
+
+    ``by_channel`` (C2, P*P, out): for the per-channel weighted sums in one batched
+    product; ``by_input`` (C2*P*P, out): rows gathered for the ambiguous inputs. Keyed
+    like `_PackedWeights` (storage and version counter), a pure cache of the weights.
+    """
+
+    def __init__(self) -> None:
+        self._key: Optional[tuple] = None
+        self._value: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+
+    def get(self, weight: torch.Tensor, channels: int):
+        """(by_channel, by_input), or None where the weight has no version counter."""
+        try:
+            key = (weight.data_ptr(), weight._version, channels)
+        except RuntimeError:
+            return None
+        if key != self._key:
+            with torch.no_grad():
+                w = weight.detach()
+                by_input = w.t().contiguous()
+                by_channel = by_input.reshape(channels, -1, w.shape[0]).contiguous()
+            self._key, self._value = key, (by_channel, by_input)
+        return self._value
+
+    def __deepcopy__(self, memo: dict) -> "_SplitWeights":
+        return _SplitWeights()
+
+    def __reduce__(self):
+        return (_SplitWeights, ())
+
+
 class DistanceCNN(nn.Module):
     """The paper's distance-to-nearest-grasp CNN, with an exact factored fast path.
 
@@ -474,6 +515,10 @@ class DistanceCNN(nn.Module):
         y = self._ip1_packed(h) if fast_ip1 else None
         if y is None:
             y = self.ip1(h)
+        return self._after_ip1(y)
+
+    def _after_ip1(self, y: torch.Tensor) -> torch.Tensor:
+        """lrelu -> IP2 -> scaled softplus on IP1's pre-activation."""
         z = self.ip2(self._lrelu(y)).squeeze(-1)
         return self.config.output_scale_m * F.softplus(z)
 
@@ -506,6 +551,68 @@ class DistanceCNN(nn.Module):
         if cache is None:
             cache = self.__dict__["_ip1_cache_obj"] = _PackedWeights()
         return cache
+
+    @property
+    def _ip1_split_cache(self) -> "_SplitWeights":
+        cache = self.__dict__.get("_ip1_split_cache_obj")
+        if cache is None:
+            cache = self.__dict__["_ip1_split_cache_obj"] = _SplitWeights()
+        return cache
+
+    # Above this fraction of ambiguous IP1 inputs the dense product is cheaper (the split
+    # costs two passes over the weights plus the per-candidate product on those inputs).
+    _SPLIT_MAX_AMBIGUOUS = 0.6
+
+    def _ip1_split(self, features: torch.Tensor, offsets: torch.Tensor) -> Optional[torch.Tensor]:
+        """IP1 for K actions on one image, split by the sign of lrelu's argument.
+
+        ``h_k[j, p] = lrelu(Z[j, p] + c_k[j])`` (Z: `image_features`, c_k:
+        `action_offsets`). Where ``Z[j, p] + min_k c_k[j] > 0`` every candidate is on the
+        identity branch; where ``Z[j, p] + max_k c_k[j] <= 0`` every candidate is on the
+        ``slope`` branch. On both, ``h_k = s (Z + c_k)`` with s = 1 or slope, so their
+        share of IP1 is ``W_s Z + M c_k`` with ``M[:, j] = sum_p s W[:, j, p]``: one
+        pass over W for all K. The ambiguous inputs go through the per-candidate
+        product. Returns None (use the dense product) where it does not apply: gradient
+        wanted, not float32 on CPU, or too many ambiguous inputs.
+
+        Args:
+            features: (C2, P, P) of one image.
+            offsets: (K, C2).
+
+        Returns:
+            IP1's pre-activation, (K, out).
+        """
+        w, b = self.ip1.weight, self.ip1.bias
+        if (
+            features.dtype != torch.float32
+            or w.dtype != torch.float32
+            or features.device.type != "cpu"
+            or (torch.is_grad_enabled()
+                and (features.requires_grad or offsets.requires_grad or w.requires_grad))
+        ):
+            return None
+        channels = features.shape[0]
+        z = features.reshape(channels, -1)  # (C2, P*P)
+        lo = offsets.min(dim=0).values[:, None]
+        hi = offsets.max(dim=0).values[:, None]
+        on = z + lo > 0
+        off = z + hi <= 0
+        ambiguous = (~(on | off)).reshape(-1).nonzero().squeeze(1)
+        if ambiguous.numel() > self._SPLIT_MAX_AMBIGUOUS * z.numel():
+            return None
+        layouts = self._ip1_split_cache.get(w, channels)
+        if layouts is None:
+            return None
+        by_channel, by_input = layouts
+        slope = self.config.leaky_slope
+        s = torch.where(on, 1.0, torch.where(off, slope, 0.0)).to(z.dtype)
+        # One batched pass over W: row 0 gives sum_p s Z W[:, j, p], row 1 gives M[:, j].
+        sums = torch.bmm(torch.stack((s * z, s), dim=1), by_channel)  # (C2, 2, out)
+        y = b + sums[:, 0].sum(dim=0) + offsets @ sums[:, 1]
+        if ambiguous.numel():
+            h = F.leaky_relu(z.reshape(-1)[ambiguous] + offsets[:, ambiguous // z.shape[1]], slope)
+            y = y + h @ by_input.index_select(0, ambiguous)
+        return y
 
     # -- direct form -----------------------------------------------------------------
 
@@ -582,10 +689,14 @@ class DistanceCNN(nn.Module):
     def score_actions(self, features: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for K candidate actions on one image (control).
 
-        All K actions go through IP1 as one (K, 8450) @ (8450, 500) product, the floor
-        of the per-action cost. Call under `torch.inference_mode()` in a controller:
-        no autograd graph is kept and, for float32, IP1 runs on cached oneDNN weights
-        (about 2x faster on CPU). The result is differentiable otherwise.
+        Call under `torch.inference_mode()` in a controller: no autograd graph is
+        kept and, for float32 on CPU, IP1 is split (`_ip1_split`): the inputs whose
+        leaky ReLU branch is the same for all K candidates cost one pass over IP1's
+        weights for all of them, and only the others go through the per-candidate
+        product (about 2x faster for the controller's candidates on the machines
+        measured). Where that does not apply, all K actions go through IP1 as one
+        (K, 8450) @ (8450, 500) product on cached oneDNN weights. The result is
+        differentiable when a gradient is wanted.
 
         Args:
             features: `image_features` of one image, (C2, P, P) or (1, C2, P, P).
@@ -607,7 +718,10 @@ class DistanceCNN(nn.Module):
             raise ValueError(
                 f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}"
             )
-        return self._score_features(features[None], offsets)
+        y = self._ip1_split(features, offsets)
+        if y is None:
+            return self._score_features(features[None], offsets)
+        return self._after_ip1(y)
 
     def forward_factored(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for M actions on each of B images (training), differentiable.

@@ -213,6 +213,66 @@ def test_raw_and_feature_actions_agree():
 _TOLERANCES = [(torch.float64, 1e-9, 1e-8), (torch.float32, 5e-5, 1e-2)]
 
 
+def _ip1_branches(m: DistanceCNN, feats: torch.Tensor, offsets: torch.Tensor) -> tuple:
+    """How many IP1 inputs are on lrelu's identity branch for every candidate, on its
+    slope branch for every candidate, and ambiguous (what `_ip1_split` partitions)."""
+    x = feats.reshape(1, feats.shape[0], -1) + offsets[:, :, None]
+    on, off = (x > 0).all(dim=0), (x <= 0).all(dim=0)
+    return int(on.sum()), int(off.sum()), int((~(on | off)).sum())
+
+
+@pytest.mark.parametrize("spread, expect_split", [(0.05, True), (1.0, True), (50.0, False)])
+def test_split_ip1_equals_dense_product(spread, expect_split):
+    # float32 under inference_mode: the controller's path. The actions' spread sets how
+    # many IP1 inputs are ambiguous; at 50 most are, and the dense product is used.
+    m = _model(seed=31, dtype=torch.float32).eval()
+    img = _images(1, seed=32, dtype=torch.float32)
+    acts = _raw_actions((128,), seed=33, dtype=torch.float32) * spread
+    with torch.inference_mode():
+        feats = m.image_features(img)[0]
+        offsets = m.action_offsets(acts)
+        on, off, ambiguous = _ip1_branches(m, feats, offsets)
+        if expect_split:
+            assert min(on, off, ambiguous) > 0, "the check needs inputs of all three kinds"
+        else:
+            assert ambiguous > m._SPLIT_MAX_AMBIGUOUS * (on + off + ambiguous)
+        assert (m._ip1_split(feats, offsets) is not None) == expect_split, (on, off, ambiguous)
+        fast = m.score_actions(feats, acts)
+        dense = m._score_features(feats[None], offsets)
+    direct = m.forward_direct(img.expand(128, -1, -1, -1), acts).detach()
+    assert _max_rel(fast, dense) <= 5e-5
+    assert _max_rel(fast, direct) <= 5e-5
+
+
+def test_split_ip1_single_candidate_has_no_ambiguous_inputs():
+    # One candidate: every input's branch is known, so IP1 is the affine part alone.
+    m = _model(seed=34, dtype=torch.float32).eval()
+    img = _images(1, seed=35, dtype=torch.float32)
+    acts = _raw_actions((1,), seed=36, dtype=torch.float32)
+    with torch.inference_mode():
+        feats = m.image_features(img)[0]
+        assert _ip1_branches(m, feats, m.action_offsets(acts))[2] == 0
+        fast = m.score_actions(feats, acts)
+    direct = m.forward_direct(img, acts).detach()
+    assert _max_rel(fast, direct) <= 5e-5
+
+
+def test_split_ip1_cache_follows_weight_updates():
+    # The weight layouts are memoized; changing the weights must change the scores.
+    m = _model(seed=37, dtype=torch.float32).eval()
+    img = _images(1, seed=38, dtype=torch.float32)
+    acts = _raw_actions((16,), seed=39, dtype=torch.float32) * 0.1
+    with torch.inference_mode():
+        before = m.score_actions(m.image_features(img), acts)
+    with torch.no_grad():
+        m.ip1.weight.mul_(0.5)
+    with torch.inference_mode():
+        after = m.score_actions(m.image_features(img), acts)
+    direct = m.forward_direct(img.expand(16, -1, -1, -1), acts).detach()
+    assert _max_rel(after, direct) <= 5e-5
+    assert not torch.allclose(before, after)
+
+
 @pytest.mark.parametrize("dtype, out_rtol, grad_rtol", _TOLERANCES)
 def test_control_fast_path_equals_direct(dtype, out_rtol, grad_rtol):
     m = _model(seed=11, dtype=dtype)

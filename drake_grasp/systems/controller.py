@@ -30,6 +30,7 @@ the grasp's tilt is kept.
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -56,6 +57,7 @@ from drake_grasp.policies import (
     offset_fraction,
 )
 from drake_grasp.scenario import Scenario
+from drake_grasp.systems.state import freeze, shared_when_copied
 from drake_grasp.systems.supervisor import (
     grasp_motion_next,
     interpolate_pose,
@@ -100,6 +102,7 @@ class StepRecord:
     moved: np.ndarray  # displacement commanded (after kinematic noise)
 
 
+@shared_when_copied
 @dataclass(frozen=True)
 class ControllerState:
     """Everything the controller remembers (the Context's abstract state)."""
@@ -125,6 +128,13 @@ class ControllerState:
 def hand_to_pose(hand) -> RigidTransform:
     x, y, z, yaw = (float(v) for v in hand)
     return RigidTransform(RotationMatrix(topdown_rotation(np.deg2rad(yaw))), [x, y, z])
+
+
+@functools.lru_cache(maxsize=32)
+def _hand_pose_memo(hand: tuple) -> RigidTransform:
+    """`hand_to_pose` memoized for `_CalcPose`, which runs at every plant step with the
+    same few segment end points. The result is shared: read it, never modify it."""
+    return hand_to_pose(hand)
 
 
 def pose_to_hand(X_WG) -> tuple:
@@ -410,7 +420,9 @@ class GraspController(LeafSystem):
         moved = apply_actions([hand[0], hand[1], hand[3]], delta[None])[0]
         z = max(hand[2] - self._dz, c.end_camera_height_m - self._cam_dz)
         new_hand = (float(moved[0]), float(moved[1]), float(z), float(moved[2]))
-        record = StepRecord(s.iteration, t, tuple(hand), depth, actions, distances, best, delta)
+        record = StepRecord(s.iteration, t, tuple(hand),
+                            *(freeze(np.array(a, copy=True))
+                              for a in (depth, actions, distances, best, delta)))
         return replace(s, iteration=s.iteration + 1, hand=new_hand, segment_from=hand,
                        phase_start_s=t, last_step=record)
 
@@ -520,38 +532,38 @@ class GraspController(LeafSystem):
         elapsed = t - s.phase_start_s
         if s.phase in (Phase.START,):
             hand = self._start
-            X = hand_to_pose(self._executed(hand))
+            X = _hand_pose_memo(self._executed(hand))
         elif s.phase == Phase.VIEW:
-            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
-                                 hand_to_pose(self._executed(s.hand)),
+            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
+                                 _hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / m.approach_time_s))
         elif s.grasp_pose is not None:
             X = self._gpd_pose(s, elapsed)
         elif s.phase == Phase.APPROACH:
-            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
-                                 hand_to_pose(self._executed(s.hand)),
+            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
+                                 _hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / m.approach_time_s))
         elif s.phase == Phase.SERVO:
             # Move to the new target within one control period.
-            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
-                                 hand_to_pose(self._executed(s.hand)),
+            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
+                                 _hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / (0.8 * self._period)))
         elif s.phase == Phase.DESCEND:
-            X = interpolate_pose(hand_to_pose(self._executed(s.segment_from)),
-                                 hand_to_pose(self._executed(s.grasp)),
+            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
+                                 _hand_pose_memo(self._executed(s.grasp)),
                                  min_jerk(elapsed / m.descend_time_s))
         elif s.phase == Phase.CLOSE:
-            X = hand_to_pose(self._executed(s.grasp))
+            X = _hand_pose_memo(self._executed(s.grasp))
         elif s.phase == Phase.LIFT:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            X = interpolate_pose(hand_to_pose(self._executed(s.grasp)),
-                                 hand_to_pose(self._executed(lifted)),
+            X = interpolate_pose(_hand_pose_memo(self._executed(s.grasp)),
+                                 _hand_pose_memo(self._executed(lifted)),
                                  min_jerk(elapsed / m.lift_time_s))
         elif s.grasp is not None:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            X = hand_to_pose(self._executed(lifted))
+            X = _hand_pose_memo(self._executed(lifted))
         else:
-            X = hand_to_pose(self._executed(s.hand))
+            X = _hand_pose_memo(self._executed(s.hand))
         output.set_value(X)
 
     def _gpd_pose(self, s: ControllerState, elapsed: float) -> RigidTransform:

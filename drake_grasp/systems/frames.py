@@ -10,6 +10,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
+from drake_grasp.systems.state import freeze, shared_when_copied
+
 # Random stream of the dropped-frame draws (`np.random.default_rng([seed, frame, 89])`).
 DROP_STREAM = 89
 # Tolerance on event times [s] (Drake computes them in double).
@@ -24,6 +26,7 @@ def frame_dropped(seed: int, frame: int, prob: float) -> bool:
     return bool(np.random.default_rng([int(seed), int(frame), DROP_STREAM]).random() < prob)
 
 
+@shared_when_copied
 @dataclass(frozen=True)
 class _Frames:
     """The FrameBuffer's memory: what the policy gets for each recent capture.
@@ -103,7 +106,7 @@ class FrameBuffer(LeafSystem):
     # -- events -----------------------------------------------------------------------
 
     def _live(self, context) -> np.ndarray:
-        return np.array(self._input.Eval(context).data, copy=True)
+        return freeze(np.array(self._input.Eval(context).data, copy=True))
 
     def _Initialize(self, context, state):
         state.get_mutable_abstract_state(int(self._state)).set_value(

@@ -18,7 +18,8 @@ def gripper_pd_target(
     """
     q_goal = 0.5 * width_ramp
     reach = 2.0 * grip_force_n / kp
-    return float(q_measured + np.clip(q_goal - q_measured, -reach, reach))
+    # min/max on Python floats, not np.clip: this runs at every plant step.
+    return float(q_measured + max(-reach, min(q_goal - q_measured, reach)))
 
 
 class GripperController(LeafSystem):
@@ -46,8 +47,8 @@ class GripperController(LeafSystem):
         self._speed = float(closing_speed_m_s)
         self._dt = float(time_step)
         self._nq = int(num_gripper_positions)
-        self.DeclareVectorInputPort("gripper_command", 2)
-        self.DeclareVectorInputPort("gripper_state", 2 * self._nq)
+        self._command = self.DeclareVectorInputPort("gripper_command", 2)
+        self._gripper_state = self.DeclareVectorInputPort("gripper_state", 2 * self._nq)
         self._ramp = self.DeclareDiscreteState(np.array([initial_width_m]))
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._UpdateRamp)
         self.DeclareVectorOutputPort("desired_state", 2, self._CalcDesiredState,
@@ -59,21 +60,24 @@ class GripperController(LeafSystem):
         """Sets the ramped opening (e.g. at the start of an episode)."""
         context.SetDiscreteState(self._ramp, np.array([width_m]))
 
+    # Both callbacks run at every plant step: scalar Python arithmetic, no numpy calls.
     def _UpdateRamp(self, context, discrete_state):
-        width_cmd = float(self.get_input_port(0).Eval(context)[0])
+        width_cmd = float(self._command.Eval(context)[0])
         ramp = float(context.get_discrete_state(self._ramp).GetAtIndex(0))
-        step = np.clip(width_cmd - ramp, -self._speed * self._dt, self._speed * self._dt)
+        limit = self._speed * self._dt
+        step = max(-limit, min(width_cmd - ramp, limit))
         discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, ramp + step)
 
     def _CalcDesiredState(self, context, output: BasicVector):
-        width_cmd, force = self.get_input_port(0).Eval(context)
-        x = self.get_input_port(1).Eval(context)
-        q = float(x[0])
+        width_cmd, force = (float(v) for v in self._command.Eval(context))
+        q = float(self._gripper_state.Eval(context)[0])
         ramp = float(context.get_discrete_state(self._ramp).GetAtIndex(0))
-        q_d = gripper_pd_target(ramp, q, self._kp, float(force))
+        q_d = gripper_pd_target(ramp, q, self._kp, force)
         # Feed the ramp's velocity forward so the fingers move smoothly, but not while
         # the force cap is active (the damping term would add to the squeeze).
         moving = abs(width_cmd - ramp) > 1e-6
         capped = abs(q_d - 0.5 * ramp) > 1e-9
-        v_d = 0.5 * np.sign(width_cmd - ramp) * self._speed if moving and not capped else 0.0
-        output.SetFromVector([q_d, v_d])
+        v_d = (0.5 * self._speed if width_cmd > ramp else -0.5 * self._speed) \
+            if moving and not capped else 0.0
+        output.SetAtIndex(0, q_d)
+        output.SetAtIndex(1, v_d)

@@ -39,6 +39,7 @@ from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.framework import LeafSystem
 
 from drake_grasp.scenario import JudgeConfig
+from drake_grasp.systems.state import shared_when_copied
 from drake_grasp.systems.supervisor import MOTION_PHASES, motion_phase_name
 
 # The bodies of the 2F-85 that carry the pads (models/robotiq_2f85).
@@ -139,6 +140,7 @@ class GraspJudgement:
         return asdict(self)
 
 
+@shared_when_copied
 @dataclass(frozen=True)
 class JudgeHistory:
     """What the judge has seen (the Context's abstract state)."""

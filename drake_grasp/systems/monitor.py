@@ -17,9 +17,11 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from drake_grasp.plugins import CLOSE_WIDTH_M
 from drake_grasp.scenario import Scenario
+from drake_grasp.systems.state import shared_when_copied
 from drake_grasp.systems.supervisor import grasp_motion_next, motion_phase_code
 
 
+@shared_when_copied
 @dataclass(frozen=True)
 class MonitorState:
     """What the monitor has seen (the Context's abstract state)."""

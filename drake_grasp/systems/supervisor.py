@@ -20,6 +20,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from drake_grasp.grasps import plan_topdown_grasp
 from drake_grasp.scenario import GripperConfig, ScriptedGraspConfig
+from drake_grasp.systems.state import shared_when_copied
 
 # The phases of the shared grasp motion, as every policy reports them in the third entry
 # of its `control_status` output (the index into this tuple): "approach" covers
@@ -49,6 +50,7 @@ class Mode(enum.Enum):
     DONE = "done"
 
 
+@shared_when_copied
 @dataclass(frozen=True)
 class SupervisorState:
     """Everything the supervisor remembers; lives in the Context's abstract state."""
