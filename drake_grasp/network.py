@@ -466,7 +466,11 @@ class DistanceCNN(nn.Module):
         self.conv2 = nn.Conv2d(cfg.conv1_channels, cfg.conv2_channels, cfg.kernel, **meta)
         self.ip1 = nn.Linear(cfg.num_features, cfg.ip1, **meta)
         self.ip2 = nn.Linear(cfg.ip1, 1, **meta)
-        self.to_empty(device="cpu")
+        # Module.to_empty would do the same, but its first call imports torch's symbolic
+        # shape machinery (~0.4 s of every worker process's start).
+        for layer in self.children():
+            for name, p in list(layer.named_parameters(recurse=False)):
+                setattr(layer, name, nn.Parameter(torch.empty(p.shape, dtype=p.dtype)))
         self.reset_parameters(generator)
 
     @torch.no_grad()
