@@ -338,3 +338,50 @@ def test_gpd_controller_names_a_detection_that_is_not_a_pose():
     _, _, sim, _ = _gpd_controller(lambda depth, X_WC: bad)
     with pytest.raises(Exception, match="not a rotation matrix"):
         sim.AdvanceTo(2.05)
+
+
+def test_state_values_are_shared_not_copied_and_stay_immutable():
+    import copy
+    from dataclasses import dataclass, replace
+
+    from drake_grasp.systems.controller import ControllerState
+    from drake_grasp.systems.judge import JudgeHistory
+    from drake_grasp.systems.state import freeze, shared_when_copied
+
+    s = ControllerState(iteration=3)
+    assert copy.deepcopy(s) is s and copy.copy(s) is s
+    assert copy.deepcopy(JudgeHistory()) is not None
+    # An update makes a new value; the old one is unchanged (what sharing relies on).
+    t = replace(s, iteration=4)
+    assert (s.iteration, t.iteration) == (3, 4)
+    a = freeze(np.zeros(3))
+    with pytest.raises(ValueError):
+        a[0] = 1.0
+
+    @dataclass
+    class Mutable:
+        x: int = 0
+
+    with pytest.raises(TypeError, match="frozen dataclass"):
+        shared_when_copied(Mutable)
+
+
+def test_context_clone_keeps_its_own_controller_state():
+    # A cloned Context shares the state value; setting a new value in one (what every
+    # update does) leaves the other as it was.
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.framework import LeafSystem
+
+    from drake_grasp.systems.controller import ControllerState
+
+    class Holder(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.idx = self.DeclareAbstractState(AbstractValue.Make(ControllerState()))
+
+    sys = Holder()
+    ctx = sys.CreateDefaultContext()
+    clone = ctx.Clone()
+    ctx.get_mutable_abstract_state(int(sys.idx)).set_value(ControllerState(iteration=7))
+    assert clone.get_abstract_state(int(sys.idx)).get_value().iteration == 0
+    assert ctx.get_abstract_state(int(sys.idx)).get_value().iteration == 7
