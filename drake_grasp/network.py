@@ -548,20 +548,21 @@ class DistanceCNN(nn.Module):
             return None
         return F.linear(h.contiguous().to_mkldnn(), *packed).to_dense()
 
+    def _weights_memo(self, kind: type):
+        # Created lazily so modules built by other means (e.g. deepcopy) get one too.
+        key = f"_memo_{kind.__name__}"
+        memo = self.__dict__.get(key)
+        if memo is None:
+            memo = self.__dict__[key] = kind()
+        return memo
+
     @property
     def _ip1_cache(self) -> "_PackedWeights":
-        # Created lazily so modules built by other means (e.g. deepcopy) get one too.
-        cache = self.__dict__.get("_ip1_cache_obj")
-        if cache is None:
-            cache = self.__dict__["_ip1_cache_obj"] = _PackedWeights()
-        return cache
+        return self._weights_memo(_PackedWeights)
 
     @property
     def _ip1_split_cache(self) -> "_SplitWeights":
-        cache = self.__dict__.get("_ip1_split_cache_obj")
-        if cache is None:
-            cache = self.__dict__["_ip1_split_cache_obj"] = _SplitWeights()
-        return cache
+        return self._weights_memo(_SplitWeights)
 
     # Above this fraction of ambiguous IP1 inputs the dense product is cheaper (the split
     # costs two passes over the weights plus the per-candidate product on those inputs).
