@@ -578,7 +578,7 @@ class DistanceCNN(nn.Module):
         share of IP1 is ``W_s Z + M c_k`` with ``M[:, j] = sum_p s W[:, j, p]``: one
         pass over W for all K. The ambiguous inputs go through the per-candidate
         product. Returns None (use the dense product) where it does not apply: gradient
-        wanted, not float32 on CPU, or too many ambiguous inputs.
+        wanted, not float32 on CPU, no candidates, or too many ambiguous inputs.
 
         Args:
             features: (C2, P, P) of one image.
@@ -594,6 +594,7 @@ class DistanceCNN(nn.Module):
             or features.device.type != "cpu"
             or (torch.is_grad_enabled()
                 and (features.requires_grad or offsets.requires_grad or w.requires_grad))
+            or offsets.shape[0] == 0
         ):
             return None
         channels = features.shape[0]

@@ -257,6 +257,14 @@ def test_split_ip1_single_candidate_has_no_ambiguous_inputs():
     assert _max_rel(fast, direct) <= 5e-5
 
 
+def test_score_actions_takes_no_candidates():
+    m = _model(seed=40, dtype=torch.float32).eval()
+    with torch.inference_mode():
+        out = m.score_actions(m.image_features(_images(1, seed=41, dtype=torch.float32)),
+                              torch.zeros(0, 3))
+    assert out.shape == (0,)
+
+
 def test_split_ip1_cache_follows_weight_updates():
     # The weight layouts are memoized; changing the weights must change the scores.
     m = _model(seed=37, dtype=torch.float32).eval()
