@@ -26,14 +26,16 @@ geometry, independent of which other objects were generated.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-import trimesh
 
 from drake_grasp.objects import geometry as g
 from drake_grasp.objects.geometry import MassProperties, Part
 from drake_grasp.objects.model_files import ContactMaterial
+
+if TYPE_CHECKING:  # annotations only
+    import trimesh
 
 # Bump whenever the geometry, masses or file contents of procedural objects
 # change: the cache folder is named after it, so stale files are never reused.

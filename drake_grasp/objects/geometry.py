@@ -14,7 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import trimesh
+
+from drake_grasp.lazy import lazy_import
+
+trimesh = lazy_import("trimesh")  # loaded when first used
 
 # Facets per full circle: enough for a smooth depth silhouette at grasping
 # distance, few enough that hydroelastic convex meshes stay cheap.

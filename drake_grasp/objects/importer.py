@@ -12,12 +12,15 @@ import re
 from pathlib import Path
 
 import numpy as np
-import trimesh
+
+from drake_grasp.lazy import lazy_import
 
 from drake_grasp.objects import categories as cat
 from drake_grasp.objects import geometry as g
 from drake_grasp.objects.library import ObjectInfo
 from drake_grasp.objects.model_files import ContactMaterial, write_object_dir
+
+trimesh = lazy_import("trimesh")  # loaded when first used
 
 SUPPORTED_SUFFIXES = (".obj", ".stl", ".ply", ".gltf", ".glb")
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,100}$")

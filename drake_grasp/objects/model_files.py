@@ -12,12 +12,15 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import escape
 
 import numpy as np
-import trimesh
 
 from drake_grasp.objects.geometry import MassProperties, write_obj
+
+if TYPE_CHECKING:  # annotations only
+    import trimesh
 
 MODEL_FILE = "model.urdf"
 META_FILE = "meta.json"
