@@ -355,18 +355,44 @@ def action_features(
 # ----------------------------------------------------------------------------------
 
 
-class _PackedWeights:
-    """A memo of (weight, bias) converted to oneDNN tensors for inference.
+class _WeightsMemo:
+    """A memo of something computed from parameters, for inference.
 
     Keyed on the parameters' storage and version counters, so an optimizer step,
-    `load_state_dict` or a dtype/device move invalidates it. It is a pure cache of a
-    function of the weights (results do not depend on whether it is warm), and is
-    dropped on copy/pickle because oneDNN tensors are not copyable.
+    `load_state_dict` or a dtype/device move invalidates it. A pure cache of a function
+    of the weights (results do not depend on whether it is warm); dropped on copy and
+    pickle (oneDNN tensors are not copyable).
     """
 
     def __init__(self) -> None:
         self._key: Optional[tuple] = None
-        self._value: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+        self._value = None
+
+    def _cached(self, tensors: tuple, make):
+        """`make()`, recomputed when any of `tensors` changed; None where they have no
+        version counter (inference tensors: no safe key, so no cache)."""
+        try:
+            key = tuple((t.data_ptr(), t._version) for t in tensors)
+        except RuntimeError:
+            return None
+        if key != self._key:
+            with torch.no_grad():
+                self._value = make()
+            self._key = key
+        return self._value
+
+    def __deepcopy__(self, memo: dict):
+        return type(self)()
+
+    def __reduce__(self):
+        return (type(self), ())
+
+
+class _PackedWeights(_WeightsMemo):
+    """(weight, bias) converted to oneDNN tensors (`DistanceCNN._ip1_packed`)."""
+
+    def __init__(self) -> None:
+        super().__init__()
         # torch builds without oneDNN, or a failing conversion, use the default path.
         self._usable = torch.backends.mkldnn.is_available()
 
@@ -375,58 +401,25 @@ class _PackedWeights:
         if not self._usable:
             return None
         try:
-            # Inference tensors have no version counter: no safe key, so no cache.
-            key = (weight.data_ptr(), weight._version, bias.data_ptr(), bias._version)
+            return self._cached((weight, bias),
+                                lambda: (weight.detach().to_mkldnn(), bias.detach().to_mkldnn()))
         except RuntimeError:
+            self._usable = False
             return None
-        if key != self._key:
-            try:
-                with torch.no_grad():
-                    self._value = (weight.detach().to_mkldnn(), bias.detach().to_mkldnn())
-            except RuntimeError:
-                self._usable = False
-                return None
-            self._key = key
-        return self._value
-
-    def __deepcopy__(self, memo: dict) -> "_PackedWeights":
-        return _PackedWeights()
-
-    def __reduce__(self):
-        return (_PackedWeights, ())
 
 
-class _SplitWeights:
-    """A memo of IP1's weight in the two layouts `DistanceCNN._ip1_split` reads.
-
-    ``by_channel`` (C2, P*P, out): for the per-channel weighted sums in one batched
-    product; ``by_input`` (C2*P*P, out): rows gathered for the ambiguous inputs. Keyed
-    like `_PackedWeights` (storage and version counter), a pure cache of the weights.
-    """
-
-    def __init__(self) -> None:
-        self._key: Optional[tuple] = None
-        self._value: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+class _SplitWeights(_WeightsMemo):
+    """IP1's weight in the two layouts `DistanceCNN._ip1_split` reads: ``by_channel``
+    (C2, P*P, out) for the per-channel weighted sums in one batched product, and
+    ``by_input`` (C2*P*P, out), whose rows are gathered for the ambiguous inputs."""
 
     def get(self, weight: torch.Tensor, channels: int):
         """(by_channel, by_input), or None where the weight has no version counter."""
-        try:
-            key = (weight.data_ptr(), weight._version, channels)
-        except RuntimeError:
-            return None
-        if key != self._key:
-            with torch.no_grad():
-                w = weight.detach()
-                by_input = w.t().contiguous()
-                by_channel = by_input.reshape(channels, -1, w.shape[0]).contiguous()
-            self._key, self._value = key, (by_channel, by_input)
-        return self._value
+        def make():
+            by_input = weight.detach().t().contiguous()
+            return by_input.reshape(channels, -1, weight.shape[0]).contiguous(), by_input
 
-    def __deepcopy__(self, memo: dict) -> "_SplitWeights":
-        return _SplitWeights()
-
-    def __reduce__(self):
-        return (_SplitWeights, ())
+        return self._cached((weight,), make)
 
 
 class DistanceCNN(nn.Module):
