@@ -8,7 +8,10 @@ piles. This script times what does not depend on that:
   scenes 1, 2, 13, 11, 21, 24, 0, 28: 1-5 objects) - wall time and simulated time;
 - `clutter5`: the scripted grasp in a stored 5-object pile (`--pile`), twice - the real-time
   factor of the simulation loop (wrist depth rendered at 10 Hz, as in `bench`);
-- `isolation`: the scripted grasp of a stored isolated object (`--isolated`), three times.
+- `isolation`: the scripted grasp of a stored isolated object (`--isolated`), three times;
+- with `--shift-pile`: the scripted grasp in a stored 5-object pile while the sheet is
+  shifted (`clutter_shift`), with the table's collision a box and a half space
+  (`physics.table_collision`), alternated twice in this process.
 
 Run it with each package version, alternating, from a folder outside the checkout:
 
@@ -45,8 +48,11 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pile", required=True, help="the 5-object pile (SceneSpec JSON)")
     parser.add_argument("--isolated", required=True, help="the isolated object (SceneSpec JSON)")
+    parser.add_argument("--shift-pile", default="",
+                        help="a 5-object pile for clutter_shift (SceneSpec JSON); with "
+                             "--make-scenes it is written too")
     parser.add_argument("--make-scenes", action="store_true",
-                        help="settle and write the two scene files, then stop")
+                        help="settle and write the scene files, then stop")
     args = parser.parse_args(argv)
 
     from drake_grasp.dataset import sample_dataset_scene
@@ -61,9 +67,13 @@ def main(argv=None) -> None:
         "{policy: scripted, scene: {clutter_objects: 5}}")), seed=3, visualize=False)
     isolated = replace(load_scenario(scenario_name="isolation",
                                      scenario_text="{policy: scripted}"), seed=3, visualize=False)
+    shift = replace(load_scenario(scenario_name="clutter_shift", scenario_text=(
+        "{policy: scripted, scene: {clutter_objects: 5}}")), seed=3, visualize=False)
     if args.make_scenes:
-        for scenario, path in ((pile, args.pile), (isolated, args.isolated)):
-            Path(path).write_text(json.dumps(scenario_scene(scenario, library).to_dict()))
+        for scenario, path in ((pile, args.pile), (isolated, args.isolated),
+                               (shift, args.shift_pile)):
+            if path:
+                Path(path).write_text(json.dumps(scenario_scene(scenario, library).to_dict()))
         return
 
     random = load_scenario(scenario_name="random", scenario_text="{seed: 3}")
@@ -87,6 +97,13 @@ def main(argv=None) -> None:
         scene = SceneSpec.from_dict(json.loads(Path(path).read_text()))
         print(json.dumps({"version": version, "what": what,
                           **_episode_rtf(scenario, library, scene, repeats)}))
+    if args.shift_pile:
+        scene = SceneSpec.from_dict(json.loads(Path(args.shift_pile).read_text()))
+        for table in ("box", "halfspace") * 2:
+            scenario = copy.deepcopy(shift)
+            scenario.physics.table_collision = table
+            print(json.dumps({"version": version, "what": f"clutter5-shift table {table}",
+                              **_episode_rtf(scenario, library, scene, 2)}))
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drake_grasp.objects import ObjectLibrary
-from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision
+from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision, table_collision
 from drake_grasp.scenario import Scenario
 from drake_grasp.systems.judge import pad_contacts
 from drake_grasp.scene import (
@@ -253,7 +253,8 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     plant.WeldFrames(parent, plant.GetFrameByName("robotiq_base", gripper))
     _, sheet = add_table_and_sheet(plant, scene_graph, one.center_xy_m,
                                    sheet_collision=sheet_collision(scenario.physics,
-                                                                   sheet_moves=False))
+                                                                   sheet_moves=False),
+                                   table_collision=table_collision(scenario.physics))
     instances = add_scene_objects(plant, one, library)
     plant.Finalize()
     apply_hydroelastic_margin(plant, scene_graph, scenario.physics.hydroelastic_margin_m,

@@ -4,6 +4,7 @@ Helpers applied to a plant's SceneGraph after the models are parsed:
 - `apply_hydroelastic_margin`: Drake's `hydroelastic_margin` on the gripper's compliant
   geometry (keeps flat-on-flat contact stable at larger time steps).
 - `sheet_collision`: which collision geometry the sheet gets in a given Diagram.
+- `table_collision`: which collision geometry the table gets.
 """
 
 from __future__ import annotations
@@ -79,3 +80,10 @@ def sheet_collision(physics, *, sheet_moves: bool) -> str:
         raise ValueError("physics.sheet_collision: 'halfspace' is anchored to the world and "
                          "cannot follow the sheet that a disturbance moves; use 'box' or 'auto'")
     return choice
+
+
+def table_collision(physics) -> str:
+    """The table collision ("box" or "halfspace") from `PhysicsConfig.table_collision`
+    ("box" without a physics config: the reference settings). Under a half-space sheet
+    `scene.add_table_and_sheet` gives the table none either way."""
+    return physics.table_collision if physics is not None else "box"

@@ -344,9 +344,11 @@ class JudgeConfig:
 # and the fidelity checks behind the choice: README, "Physics profiles".
 PHYSICS_PROFILES: dict[str, dict] = {
     "reference": {"plant.time_step": 0.002, "hydroelastic_margin_m": 0.0,
-                  "sheet_collision": "box", "settle_time_step_s": 0.0},
+                  "sheet_collision": "box", "table_collision": "box",
+                  "settle_time_step_s": 0.0},
     "fast": {"plant.time_step": 0.005, "hydroelastic_margin_m": 1e-4,
-             "sheet_collision": "auto", "settle_time_step_s": 0.005},
+             "sheet_collision": "auto", "table_collision": "halfspace",
+             "settle_time_step_s": 0.005},
 }
 DEFAULT_PHYSICS_PROFILE = "fast"
 
@@ -372,6 +374,11 @@ class PhysicsConfig:
     # compliant geometry; the box stays as its visual) or "auto" (the half space where
     # the sheet stays still, the box where a disturbance moves it).
     sheet_collision: str = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["sheet_collision"]
+    # The table's collision geometry where the sheet keeps its box: "box" (the table top
+    # and the floor below it) or "halfspace" (a rigid half space at the table top,
+    # anchored to the world; nothing falls off the table then). Under a half-space sheet
+    # the table has none (the sheet's half space lies above it everywhere).
+    table_collision: str = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["table_collision"]
     # Time step of scene settling [s]; 0: `plant.time_step`.
     settle_time_step_s: float = PHYSICS_PROFILES[DEFAULT_PHYSICS_PROFILE]["settle_time_step_s"]
 
@@ -439,6 +446,7 @@ class Scenario:
                             self.plant.contact_surface_representation),
                            ("controller.profile", self.controller.profile),
                            ("physics.sheet_collision", self.physics.sheet_collision),
+                           ("physics.table_collision", self.physics.table_collision),
                            ("physics.profile", self.physics.profile)):
             allowed = _CHOICES[key]
             if value not in allowed:
@@ -688,6 +696,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "plant.contact_surface_representation": ("polygon", "triangle"),
     "controller.profile": tuple(CONTROLLER_PROFILES),
     "physics.sheet_collision": ("box", "halfspace", "auto"),
+    "physics.table_collision": ("box", "halfspace"),
     "physics.profile": tuple(PHYSICS_PROFILES),
 }
 _CHOICE_REASONS = {

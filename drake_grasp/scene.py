@@ -21,7 +21,7 @@ import numpy as np
 
 from drake_grasp.assets import make_parser
 from drake_grasp.objects import ObjectLibrary, visual_mesh
-from drake_grasp.physics import sheet_collision
+from drake_grasp.physics import sheet_collision, table_collision
 from drake_grasp.scenario import SceneConfig
 
 TABLE_URI = "package://drake_grasp/scene/table.urdf"
@@ -99,13 +99,17 @@ class SceneSpec:
 # Plant building, shared with the station.
 
 
-def add_table_and_sheet(plant, scene_graph, center_xy_m, *, sheet_collision: str = "box") -> tuple:
+def add_table_and_sheet(plant, scene_graph, center_xy_m, *, sheet_collision: str = "box",
+                        table_collision: str = "box") -> tuple:
     """Adds the table (top surface at world z=0) and the movable sheet centred at
     `center_xy_m`; its three joints (x, y, yaw) measure the sheet's displacement.
 
     The sheet's joints fix its height, so sheet-table contact is filtered out.
     `sheet_collision` "halfspace" replaces the sheet's box collision by a rigid half
-    space at its top surface (`PhysicsConfig.sheet_collision`); call before Finalize.
+    space at its top surface (`PhysicsConfig.sheet_collision`); the table then has no
+    collision geometry. Otherwise `table_collision` "halfspace" replaces the table's top
+    and floor by a rigid half space at the top (`PhysicsConfig.table_collision`). Call
+    before Finalize.
 
     Returns:
         (table_instance, sheet_instance)
@@ -124,13 +128,19 @@ def add_table_and_sheet(plant, scene_graph, center_xy_m, *, sheet_collision: str
         RigidTransform([float(center_xy_m[0]) - SHEET_CENTER_IN_MODEL_M[0],
                         float(center_xy_m[1]) - SHEET_CENTER_IN_MODEL_M[1], 0.0]),
     )
+    if sheet_collision not in ("box", "halfspace"):
+        raise ValueError(f"sheet_collision: got {sheet_collision!r}, expected 'box' or 'halfspace'")
+    if table_collision not in ("box", "halfspace"):
+        raise ValueError(f"table_collision: got {table_collision!r}, expected 'box' or 'halfspace'")
+    table_body = plant.GetBodyByName("table", table)
     if sheet_collision == "halfspace":
         _sheet_as_half_space(plant, scene_graph, plant.GetBodyByName("sheet", sheet))
-        _drop_collision(plant, scene_graph, plant.GetBodyByName("table", table))
-    elif sheet_collision != "box":
-        raise ValueError(f"sheet_collision: got {sheet_collision!r}, expected 'box' or 'halfspace'")
+        _drop_collision(plant, scene_graph, table_body)
+    elif table_collision == "halfspace":
+        _table_as_half_space(plant, scene_graph, table_body)
+    # The world body holds the half spaces.
     geometries = plant.CollectRegisteredGeometries(
-        [plant.GetBodyByName("table", table), plant.GetBodyByName("sheet", sheet)])
+        [plant.world_body(), table_body, plant.GetBodyByName("sheet", sheet)])
     scene_graph.collision_filter_manager().Apply(
         CollisionFilterDeclaration().ExcludeWithin(geometries))
     return table, sheet
@@ -142,14 +152,23 @@ class _HalfSpaceWarningFilter:
     def filter(self, record) -> bool:
         return "half spaces are not currently supported for deformable" not in record.getMessage()
 
+    @classmethod
+    def install(cls) -> None:
+        """Drake warns (whenever a Context is made) that deformable bodies cannot touch a
+        rigid half space; there are none here. pydrake routes Drake's log through
+        `logging`."""
+        import logging
+
+        logger = logging.getLogger("drake")
+        if not any(isinstance(f, cls) for f in logger.filters):
+            logger.addFilter(cls())
+
 
 def _sheet_as_half_space(plant, scene_graph, sheet_body) -> None:
     """Swaps the sheet's box collision for a rigid half space at its top (z = 2 mm), with
     the box's friction. The half space is anchored to the world: Drake's broad phase
     crashed (segmentation fault) with a half space on a moving body, so this is only for
     scenes whose sheet stays where it is."""
-    import logging
-
     from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties, Role
     from pydrake.math import RigidTransform
 
@@ -163,14 +182,37 @@ def _sheet_as_half_space(plant, scene_graph, sheet_body) -> None:
     props = ProximityProperties()
     AddRigidHydroelasticProperties(props)
     props.AddProperty("material", "coulomb_friction", friction)
-    # Drake warns (whenever a Context is made) that deformable bodies cannot touch a rigid
-    # half space; there are none here. pydrake routes Drake's log through `logging`.
-    logger = logging.getLogger("drake")
-    if not any(isinstance(f, _HalfSpaceWarningFilter) for f in logger.filters):
-        logger.addFilter(_HalfSpaceWarningFilter())
+    _HalfSpaceWarningFilter.install()
     plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.0, 0.0, SHEET_THICKNESS_M]),
                                     HalfSpace(), "sheet_halfspace", props)
     scene_graph.RemoveRole(source_id=plant.get_source_id(), geometry_id=box_id, role=Role.kProximity)
+
+
+def _table_as_half_space(plant, scene_graph, table_body) -> None:
+    """Swaps the table's top and floor collision for a rigid half space at the top
+    (z = 0), anchored to the world, with the top's friction: cheaper than the top's box
+    for every object piece on the sheet beside it (a soft-volume / rigid-mesh
+    intersection per candidate pair). It has no edge: an object pushed beyond the table
+    top rests on it instead of falling to the floor (settled scenes drop such objects:
+    `on_table_top`)."""
+    from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties, Role
+    from pydrake.math import RigidTransform
+
+    inspector = scene_graph.model_inspector()
+    frame_id = plant.GetBodyFrameIdOrThrow(table_body.index())
+    top = [g for g in inspector.GetAllGeometryIds(Role.kProximity)
+           if inspector.GetFrameId(g) == frame_id and inspector.GetName(g).endswith("top_collision")]
+    if len(top) != 1:
+        raise RuntimeError(f"the table model has {len(top)} geometries named top_collision, "
+                           "expected 1")
+    friction = inspector.GetProximityProperties(top[0]).GetProperty("material", "coulomb_friction")
+    _drop_collision(plant, scene_graph, table_body)
+    props = ProximityProperties()
+    AddRigidHydroelasticProperties(props)
+    props.AddProperty("material", "coulomb_friction", friction)
+    _HalfSpaceWarningFilter.install()
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(), HalfSpace(),
+                                    "table_halfspace", props)
 
 
 def _drop_collision(plant, scene_graph, body) -> None:
@@ -404,7 +446,8 @@ def build_scene_world(spec: SceneSpec, library: ObjectLibrary, *, plant_config=N
     plant, scene_graph = AddMultibodyPlant(plant_config, builder)
     _, sheet = add_table_and_sheet(plant, scene_graph, spec.center_xy_m,
                                    sheet_collision=sheet_collision(physics,
-                                                                   sheet_moves=sheet_moves))
+                                                                   sheet_moves=sheet_moves),
+                                   table_collision=table_collision(physics))
     instances = add_scene_objects(plant, spec, library)
     plant.Finalize()
     connect_sheet_hold(builder, plant, sheet)

@@ -64,7 +64,7 @@ from drake_grasp.assets import make_parser
 from drake_grasp.grasps import topdown_rotation
 from drake_grasp.native import load_llvm_users_first
 from drake_grasp.objects import ObjectLibrary
-from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision
+from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision, table_collision
 from drake_grasp.scenario import Scenario
 from drake_grasp.scene import (
     OBJECT_BODY_NAME,
@@ -347,7 +347,8 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     _, sheet = add_table_and_sheet(plant, scene_graph, scene.center_xy_m,
                                    sheet_collision=sheet_collision(
                                        scenario.physics,
-                                       sheet_moves=scenario.sheet_moves))
+                                       sheet_moves=scenario.sheet_moves),
+                                   table_collision=table_collision(scenario.physics))
     objects = add_scene_objects(plant, scene, library)
     plant.Finalize()
     apply_hydroelastic_margin(plant, scene_graph, scenario.physics.hydroelastic_margin_m,

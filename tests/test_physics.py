@@ -18,7 +18,9 @@ def test_default_is_the_fast_profile_and_reference_restores_the_old_settings():
     assert ref.plant.time_step == 0.002
     assert ref.physics.hydroelastic_margin_m == 0.0
     assert ref.physics.sheet_collision == "box"
+    assert ref.physics.table_collision == "box"
     assert ref.physics.settle_time_step_s == 0.0
+    assert fast.physics.table_collision == "halfspace"
 
 
 def test_keys_given_beside_a_profile_win():
@@ -33,6 +35,7 @@ def test_keys_given_beside_a_profile_win():
 @pytest.mark.parametrize("text, words", [
     ("{physics: {profile: refrence}}", ["physics.profile", "refrence", "reference"]),
     ("{physics: {sheet_collision: plane}}", ["physics.sheet_collision", "plane"]),
+    ("{physics: {table_collision: plane}}", ["physics.table_collision", "plane"]),
     ("{physics: {hydroelastic_margin_m: -1.0}}", ["physics.hydroelastic_margin_m"]),
 ])
 def test_bad_physics_values_name_the_key(text, words):

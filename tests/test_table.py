@@ -64,20 +64,32 @@ def test_a_moving_sheet_is_settled_with_its_box(shift):
     assert not load_scenario(scenario_name="clutter").sheet_moves
 
 
-def test_under_a_half_space_the_table_has_no_collision_geometry(shift):
-    """The half space lies 2 mm above the table top everywhere, so the table's top and
-    floor cannot be reached; kept, they cost a soft-volume / rigid-mesh intersection per
-    resting object piece and step (the broad phase bounds convex pieces loosely). An
-    object settles on the sheet's top at the same height either way."""
+def test_the_table_collision_of_each_physics_profile(shift):
+    """Under the half-space sheet, which lies 2 mm above the table top everywhere, the
+    table has no collision geometry: kept, it cost a soft-volume / rigid-mesh
+    intersection per resting object piece and step (the broad phase bounds convex pieces
+    loosely). Where the sheet keeps its box, the `fast` profile makes the table a half
+    space at its top and `reference` keeps its box and floor. An object settles on the
+    sheet's top at the same height in all three."""
     scenario, library = shift
+    reference = load_scenario(scenario_name="clutter_shift", physics_profile="reference")
     spec = _one(library, 0.5)
-    moving = build_scene_world(spec, library, physics=scenario.physics, sheet_moves=True)
-    still = build_scene_world(spec, library, physics=scenario.physics, sheet_moves=False)
-    table = ("table::top_collision", "table::floor_collision")
-    assert all(name in _geometry_names(moving) for name in table)
-    assert not any(name in _geometry_names(still) for name in table)
-    z = [settle_world(w, spec, max_time_s=1.0).objects[0].xyz[2] for w in (moving, still)]
-    assert z[0] == pytest.approx(z[1], abs=5e-4)
+    worlds = {"box sheet, half-space table": build_scene_world(
+                  spec, library, physics=scenario.physics, sheet_moves=True),
+              "half-space sheet, no table": build_scene_world(
+                  spec, library, physics=scenario.physics, sheet_moves=False),
+              "box sheet, box table": build_scene_world(
+                  spec, library, physics=reference.physics, sheet_moves=True)}
+    names = {k: _geometry_names(w) for k, w in worlds.items()}
+    table = {"table::top_collision", "table::floor_collision"}
+    assert table <= set(names["box sheet, box table"])
+    assert "table_halfspace" in names["box sheet, half-space table"]
+    assert not table & set(names["box sheet, half-space table"])
+    assert not table & set(names["half-space sheet, no table"])
+    assert "table_halfspace" not in names["half-space sheet, no table"]
+    assert "table_halfspace" not in names["box sheet, box table"]
+    z = [settle_world(w, spec, max_time_s=1.0).objects[0].xyz[2] for w in worlds.values()]
+    assert z == pytest.approx([z[0]] * 3, abs=5e-4)
 
 
 def test_an_object_beyond_the_sheet_rests_on_the_table(shift):
@@ -89,19 +101,23 @@ def test_an_object_beyond_the_sheet_rests_on_the_table(shift):
     assert rest.objects[0].xyz[2] > 0.0 and abs(rest.objects[0].xyz[0] - 0.85) < 0.05
 
 
-@pytest.mark.parametrize("sheet_moves", [True, False])
-def test_an_object_beyond_the_table_falls_off(shift, sheet_moves):
-    scenario, library = shift
+@pytest.mark.parametrize("sheet_moves, profile", [(True, "reference"), (True, "fast"),
+                                                   (False, "fast")])
+def test_an_object_beyond_the_table_leaves_the_scene(shift, sheet_moves, profile):
+    _, library = shift
+    physics = load_scenario(scenario_name="clutter_shift", physics_profile=profile).physics
     spec = _one(library, TABLE_TOP_X_M[1] + 0.1)
-    world = build_scene_world(spec, library, physics=scenario.physics, sheet_moves=sheet_moves)
+    world = build_scene_world(spec, library, physics=physics, sheet_moves=sheet_moves)
     rest = settle_world(world, spec, max_time_s=1.0)
-    assert rest.objects == []  # fell off (box sheet) or beyond the edge (half space)
+    assert rest.objects == []  # fell off the table, or rests beyond its edge on a half space
     body = world.bodies()[0]
     p = world.plant.EvalBodyPoseInWorld(world.plant_context(), body).translation()
     assert np.all(np.isfinite(p))
-    if sheet_moves:
+    if profile == "reference":
         # The floor, 0.75 m below the table top, caught it: no endless fall.
         assert -0.8 < p[2] < -0.6
+    else:
+        assert p[2] > -0.01  # held up by the half space (the sheet's or the table's)
 
 
 def test_settled_spec_keeps_the_objects_on_the_table(shift):
