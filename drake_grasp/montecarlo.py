@@ -819,7 +819,9 @@ def parallel_map(fn, arg_tuples, *, workers: int = 2, desc: str = "") -> list:
 def recorded_scenario(scenario_yaml: str):
     """The `Scenario` a trial record's YAML describes. A record written before physics
     profiles existed has no `physics:` entry: it ran the reference settings (its
-    `plant.time_step` is in the record), so it gets the `reference` profile."""
+    `plant.time_step` is in the record), so it gets the `reference` profile. One written
+    before `physics.table_collision` existed ran with the table's box (the `fast`
+    profile's half-space table came later), so it gets "box"."""
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.scenario import Scenario, apply_physics_profile
@@ -833,6 +835,9 @@ def recorded_scenario(scenario_yaml: str):
                          f"{e}") from None
     if not re.search(r"^physics:", scenario_yaml, re.MULTILINE):
         scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
+    elif not re.search(r"^physics:\n(?:  .*\n)*  table_collision:", scenario_yaml, re.MULTILINE):
+        # Recorded before `physics.table_collision` existed: the table had its box.
+        scenario.physics.table_collision = "box"
     return scenario
 
 

@@ -126,6 +126,19 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
     assert old.plant.time_step == 0.002
 
 
+def test_a_record_made_before_the_table_collision_key_replays_with_the_box_table():
+    from drake_grasp.montecarlo import recorded_scenario
+    from drake_grasp.scenario import dump_scenario
+
+    fast = load_scenario(scenario_name="clutter_shift")
+    text = dump_scenario(fast)
+    assert fast.physics.table_collision == "halfspace" and "  table_collision: halfspace\n" in text
+    assert recorded_scenario(text).physics.table_collision == "halfspace"
+    old = recorded_scenario(text.replace("  table_collision: halfspace\n", ""))
+    assert old.physics.table_collision == "box"
+    assert old.physics.sheet_collision == fast.physics.sheet_collision
+
+
 def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
     from drake_grasp.montecarlo import replay_trial
     from drake_grasp.results import TrialRecord, write_record
