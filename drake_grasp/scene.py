@@ -152,67 +152,22 @@ class _HalfSpaceWarningFilter:
     def filter(self, record) -> bool:
         return "half spaces are not currently supported for deformable" not in record.getMessage()
 
-    @classmethod
-    def install(cls) -> None:
-        """Drake warns (whenever a Context is made) that deformable bodies cannot touch a
-        rigid half space; there are none here. pydrake routes Drake's log through
-        `logging`."""
-        import logging
 
-        logger = logging.getLogger("drake")
-        if not any(isinstance(f, cls) for f in logger.filters):
-            logger.addFilter(cls())
-
-
-def _sheet_as_half_space(plant, scene_graph, sheet_body) -> None:
-    """Swaps the sheet's box collision for a rigid half space at its top (z = 2 mm), with
-    the box's friction. The half space is anchored to the world: Drake's broad phase
-    crashed (segmentation fault) with a half space on a moving body, so this is only for
-    scenes whose sheet stays where it is."""
-    from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties, Role
-    from pydrake.math import RigidTransform
+def _collision_ids(plant, scene_graph, body) -> list:
+    """The ids of `body`'s geometries with a proximity role. Found by frame through the
+    inspector: ids taken from GetCollisionGeometriesForBody came back corrupted here
+    (pydrake 1.51)."""
+    from pydrake.geometry import Role
 
     inspector = scene_graph.model_inspector()
-    # By frame through the inspector: ids taken from GetCollisionGeometriesForBody came
-    # back corrupted here (pydrake 1.51).
-    frame_id = plant.GetBodyFrameIdOrThrow(sheet_body.index())
-    (box_id,) = [g for g in inspector.GetAllGeometryIds(Role.kProximity)
-                 if inspector.GetFrameId(g) == frame_id]
-    friction = inspector.GetProximityProperties(box_id).GetProperty("material", "coulomb_friction")
-    props = ProximityProperties()
-    AddRigidHydroelasticProperties(props)
-    props.AddProperty("material", "coulomb_friction", friction)
-    _HalfSpaceWarningFilter.install()
-    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.0, 0.0, SHEET_THICKNESS_M]),
-                                    HalfSpace(), "sheet_halfspace", props)
-    scene_graph.RemoveRole(source_id=plant.get_source_id(), geometry_id=box_id, role=Role.kProximity)
+    frame_id = plant.GetBodyFrameIdOrThrow(body.index())
+    return [g for g in inspector.GetAllGeometryIds(Role.kProximity)
+            if inspector.GetFrameId(g) == frame_id]
 
 
-def _table_as_half_space(plant, scene_graph, table_body) -> None:
-    """Swaps the table's top and floor collision for a rigid half space at the top
-    (z = 0), anchored to the world, with the top's friction: cheaper than the top's box
-    for every object piece on the sheet beside it (a soft-volume / rigid-mesh
-    intersection per candidate pair). It has no edge: an object pushed beyond the table
-    top rests on it instead of falling to the floor (settled scenes drop such objects:
-    `on_table_top`)."""
-    from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties, Role
-    from pydrake.math import RigidTransform
-
-    inspector = scene_graph.model_inspector()
-    frame_id = plant.GetBodyFrameIdOrThrow(table_body.index())
-    top = [g for g in inspector.GetAllGeometryIds(Role.kProximity)
-           if inspector.GetFrameId(g) == frame_id and inspector.GetName(g).endswith("top_collision")]
-    if len(top) != 1:
-        raise RuntimeError(f"the table model has {len(top)} geometries named top_collision, "
-                           "expected 1")
-    friction = inspector.GetProximityProperties(top[0]).GetProperty("material", "coulomb_friction")
-    _drop_collision(plant, scene_graph, table_body)
-    props = ProximityProperties()
-    AddRigidHydroelasticProperties(props)
-    props.AddProperty("material", "coulomb_friction", friction)
-    _HalfSpaceWarningFilter.install()
-    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(), HalfSpace(),
-                                    "table_halfspace", props)
+def _friction(scene_graph, geometry_id):
+    return scene_graph.model_inspector().GetProximityProperties(geometry_id).GetProperty(
+        "material", "coulomb_friction")
 
 
 def _drop_collision(plant, scene_graph, body) -> None:
@@ -226,12 +181,57 @@ def _drop_collision(plant, scene_graph, body) -> None:
     of the settling simulation's time, per `perf`)."""
     from pydrake.geometry import Role
 
-    inspector = scene_graph.model_inspector()
-    frame_id = plant.GetBodyFrameIdOrThrow(body.index())
-    for geometry_id in [g for g in inspector.GetAllGeometryIds(Role.kProximity)
-                        if inspector.GetFrameId(g) == frame_id]:
+    for geometry_id in _collision_ids(plant, scene_graph, body):
         scene_graph.RemoveRole(source_id=plant.get_source_id(), geometry_id=geometry_id,
                                role=Role.kProximity)
+
+
+def _add_world_half_space(plant, z_m: float, name: str, friction) -> None:
+    """A rigid hydroelastic half space with its surface at height `z_m`, anchored to the
+    world: Drake's broad phase crashed (segmentation fault) with a half space on a
+    moving body."""
+    import logging
+
+    from pydrake.geometry import AddRigidHydroelasticProperties, HalfSpace, ProximityProperties
+    from pydrake.math import RigidTransform
+
+    props = ProximityProperties()
+    AddRigidHydroelasticProperties(props)
+    props.AddProperty("material", "coulomb_friction", friction)
+    # Drake warns (whenever a Context is made) that deformable bodies cannot touch a rigid
+    # half space; there are none here. pydrake routes Drake's log through `logging`.
+    logger = logging.getLogger("drake")
+    if not any(isinstance(f, _HalfSpaceWarningFilter) for f in logger.filters):
+        logger.addFilter(_HalfSpaceWarningFilter())
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.0, 0.0, z_m]),
+                                    HalfSpace(), name, props)
+
+
+def _sheet_as_half_space(plant, scene_graph, sheet_body) -> None:
+    """Swaps the sheet's box collision for a rigid half space at its top (z = 2 mm), with
+    the box's friction. Anchored to the world (`_add_world_half_space`), so this is only
+    for scenes whose sheet stays where it is."""
+    (box_id,) = _collision_ids(plant, scene_graph, sheet_body)
+    _add_world_half_space(plant, SHEET_THICKNESS_M, "sheet_halfspace",
+                          _friction(scene_graph, box_id))
+    _drop_collision(plant, scene_graph, sheet_body)
+
+
+def _table_as_half_space(plant, scene_graph, table_body) -> None:
+    """Swaps the table's top and floor collision for a rigid half space at the top
+    (z = 0), anchored to the world, with the top's friction: cheaper than the top's box
+    for every object piece on the sheet beside it (a soft-volume / rigid-mesh
+    intersection per candidate pair). It has no edge: an object pushed beyond the table
+    top rests on it instead of falling to the floor (settled scenes drop such objects:
+    `on_table_top`)."""
+    inspector = scene_graph.model_inspector()
+    top = [g for g in _collision_ids(plant, scene_graph, table_body)
+           if inspector.GetName(g).endswith("top_collision")]
+    if len(top) != 1:
+        raise RuntimeError(f"the table model has {len(top)} geometries named top_collision, "
+                           "expected 1")
+    _add_world_half_space(plant, 0.0, "table_halfspace", _friction(scene_graph, top[0]))
+    _drop_collision(plant, scene_graph, table_body)
 
 
 def add_scene_objects(plant, spec: SceneSpec, library: ObjectLibrary) -> list:
