@@ -176,15 +176,19 @@ def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeyp
     calls = []
 
     def detect(depth, X_WC):
-        calls.append((depth.shape, np.array(X_WC)))
+        calls.append((depth.shape, np.array(X_WC), float(np.median(depth))))
         return grasp
 
     run = simulate_episode(scenario, library=library, scene=scene, record_depth=False,
                            detect_fn=detect)
     r = run.result
+    assert len(calls) == 1 and calls[0][0] == (480, 640)
+    # The arm really took the sensor there: the table and sheet, most of the picture, lie
+    # the viewpoint's height below it (an arm that stalls short of a viewpoint out of its
+    # reach would leave the sensor lower, and the cloud placed wrong).
+    assert calls[0][2] == pytest.approx(scenario.gpd.view_camera_height_m, abs=0.005)
     assert r.success, r.failure_reason
     assert r.details["grasped_object_id"] == "can_000"
-    assert len(calls) == 1 and calls[0][0] == (480, 640)
     assert calls[0][1][2, 3] == pytest.approx(scenario.gpd.view_camera_height_m)
     assert counts.get(640) == 1  # the GPD sensor rendered once, at the viewpoint
     assert r.details["decisions"] == 1  # one detection

@@ -87,6 +87,27 @@ def test_wrist_camera_sees_the_object(scenario, scene, library):
     assert np.isfinite(raw).any()
 
 
+def test_gpd_viewpoint_sees_the_top_of_an_upright_hammer(library):
+    """The GPD sensor reads nothing nearer than `gpd.depth_min_m`, so the viewpoint must be
+    high enough for the tallest test object standing upright: the cloud the detector
+    builds of an upright hammer_000 (0.283 m tall) reaches to within 5 mm of its top."""
+    from drake_grasp import gpd
+    from drake_grasp.gpd_training import experiment_view
+    from drake_grasp.grasps import scene_meshes
+
+    # The isolation experiment's trial 26: "lying" turned this hammer onto its end.
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{scene: {object_ids: [hammer_000], pose: lying}}"))
+    settled, X_WC, depth = experiment_view(scenario, 1364363495, library)
+    top = max(float(np.asarray(m.vertices)[:, 2].max()) for m in scene_meshes(settled, library))
+    assert top > 0.27  # standing on its end
+    g = scenario.gpd
+    cloud = gpd.cloud_from_depth(depth, fov_y_deg=g.fov_y_deg, X_WC=X_WC,
+                                 depth_min_m=g.depth_min_m, depth_max_m=g.depth_max_m,
+                                 center_xy=tuple(scenario.scene.center_xy_m))
+    assert cloud.points[:, 2].max() > top - 0.005
+
+
 def test_gpd_camera_sees_the_table_from_the_viewpoint(scenario, scene, library):
     """The GPD sensor (640x480) on its mount, the hand at the gpd policy's viewpoint: the
     table fills most of the view at the viewpoint's height; the object is nearer."""
