@@ -196,7 +196,7 @@ def _cmd_evaluate(args) -> int:
                       objects_dir=args.objects,
                       conditions=[c for c in args.conditions.split(",") if c] or None,
                       force_new=args.force_new, physics_profile=args.physics_profile,
-                      weights=args.weights or "")
+                      weights=args.weights or "", gpd_weights=args.gpd_weights or "")
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -503,7 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "on the same seeds, e.g. ctr,centroid_policy:make_policy")
     p.add_argument("--force-new", action="store_true",
                    help="when --out holds a different run (another experiment, seed, object "
-                        "library, resolved scenario, CNN weights or code version: without "
+                        "library, resolved scenario, CNN or GPD weights or code version: "
+                        "without "
                         "this flag that is an error naming the first difference), run in a "
                         "new folder next to it instead: the first of OUT-2, OUT-3, ... that "
                         "does not exist or already holds this same run (printed)")
@@ -515,6 +516,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
                         "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped "
                         "models/cnn/weights.safetensors. Its sha256 is part of the run's "
+                        "identity")
+    p.add_argument("--gpd-weights", default=None, metavar="FILE",
+                   help="GPD grasp-classifier weights (safetensors from 'drake-grasp "
+                        "gpd-train') for the gpd conditions; default: the shipped "
+                        "models/gpd/weights.safetensors. Its sha256 is part of the run's "
                         "identity")
     p.set_defaults(func=_cmd_evaluate)
 

@@ -519,6 +519,23 @@ def final_distance(plant, plant_context, station, scene: SceneSpec, library, see
             "num_true_grasps": int(len(grasps.xy_theta))}
 
 
+def detection_check(now: SceneSpec, library, seed: int, X_WG) -> dict:
+    """The judge's look at a one-shot detection (gpd), taken as it is decided (`now`: the
+    scene then): whether the selected grasp pose X_WG passes the ground truth of GPD's
+    training labels (`gpd_training.ground_truth_passes`: collision, closing region, force
+    closure and the torque limit) on 2 independent surface samplings, and the object
+    between its pads. Evaluation only: the policy never sees it."""
+    from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes
+
+    X = np.asarray(X_WG, dtype=float).reshape(1, 4, 4)
+    passes, obj = ground_truth_passes(now, library, X, np.random.default_rng([seed, 62]),
+                                      GpdDataConfig(), samplings=2)
+    return {"X_WG": [float(v) for v in X.reshape(16)],
+            "ground_truth_passes": int(passes[0]), "samplings": 2,
+            "object_id": now.objects[int(obj[0])].object_id if obj[0] >= 0 else None,
+            "tilt_deg": float(np.degrees(np.arccos(np.clip(-X[0, 2, 2], -1.0, 1.0))))}
+
+
 def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=None,
                      scene: SceneSpec | None = None, record_depth: bool = True,
                      visualize: bool | None = None, model=None, detect_fn=None) -> EpisodeRun:
@@ -577,6 +594,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
     depth_port = station.diagram.GetOutputPort("depth_image")
     frames, steps = [], []
     distance = None
+    detection = None  # gpd: the judge's check of its detection (`detection_check`)
     dt = 1.0 / scenario.camera.fps
     t = 0.0
     loop_start = time.perf_counter()
@@ -593,6 +611,11 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         # close (INIT: where it started).
         if distance is None and (mode == "close" or (mode == "done" and scenario.policy == "init")):
             distance = final_distance(plant, plant_context, station, scene, library, scenario.seed)
+        if detection is None and scenario.policy == "gpd":
+            X_det = policy.get_controller_state(policy_context).outcome.get("gpd_detection")
+            if X_det is not None:
+                detection = detection_check(_scene_now(plant, plant_context, station, scene),
+                                            library, scenario.seed, X_det)
         if policy.is_done(policy_context) or t >= scenario.max_sim_time_s:
             break
         t = min(t + dt, scenario.max_sim_time_s)
@@ -657,6 +680,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  "decisions": ed.decision_timer.calls if ed.decision_timer is not None else 0,
                  **({"policy_inputs": ed.user_policy_inputs}
                     if ed.user_policy_inputs is not None else {}),
+                 **({"gpd_detection": detection} if detection is not None else {}),
                  **({"camera_mount_error": _pose_dict(station.X_CC_actual)}
                     if scenario.calibration.active() else {}),
                  "judge": verdict.details},

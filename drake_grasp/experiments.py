@@ -79,6 +79,9 @@ class Experiment:
     # The distance CNN's weights file for the conditions whose policy uses it; "" keeps
     # the scenario's (the shipped weights). `evaluate --weights` sets it.
     cnn_weights: str = ""
+    # The GPD grasp classifier's weights file for the `gpd` conditions; "" keeps the
+    # scenario's (the shipped models/gpd weights). `evaluate --gpd-weights` sets it.
+    gpd_weights: str = ""
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -257,6 +260,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     s = dataclasses.replace(s, seed=0, policy=condition.policy)
     if experiment.cnn_weights and condition.policy in CNN_POLICIES:
         s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
+    if experiment.gpd_weights and condition.policy == "gpd":
+        s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,

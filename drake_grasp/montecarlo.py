@@ -64,6 +64,8 @@ class TrialTask:
     policy_spec: str = ""
     # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
     cnn_weights: str = ""
+    # The GPD classifier's weights file of the gpd conditions (`Experiment.gpd_weights`).
+    gpd_weights: str = ""
 
     @property
     def trial_id(self) -> str:
@@ -71,12 +73,15 @@ class TrialTask:
 
 
 def task_experiment(task: TrialTask) -> Experiment:
-    """The experiment a task belongs to, with the task's physics profile and CNN weights."""
+    """The experiment a task belongs to, with the task's physics profile, CNN weights and
+    GPD classifier weights."""
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
     if task.cnn_weights:
         experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
+    if task.gpd_weights:
+        experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
     return experiment
 
 
@@ -102,7 +107,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
-                      experiment.cnn_weights)
+                      experiment.cnn_weights, experiment.gpd_weights)
             for i in range(n) for c, spec in asked]
 
 
@@ -148,12 +153,22 @@ def weights_path(scenario) -> str | None:
     return str(models_dir() / DEFAULT_WEIGHTS)
 
 
+def gpd_weights_path(scenario) -> str | None:
+    """The GPD classifier weights file a scenario's policy loads (`gpd.weights`, "" = the
+    shipped file), None for policies without it."""
+    if scenario.policy != "gpd":
+        return None
+    from drake_grasp.gpd import default_weights_path
+
+    return scenario.gpd.weights or str(default_weights_path())
+
+
 def condition_identity(experiment: Experiment, condition: Condition, *,
                        objects_dir: str | None = None) -> dict:
     """What run.json records of one condition, and what a resume compares: the condition's
     fields, its resolved scenario without the per-trial seed (`condition_scenario`), the
-    sha256 of the CNN weights file it uses (None when its policy uses none) and its
-    config hash."""
+    sha256 of the CNN weights file it uses and of the GPD classifier weights file (each
+    None when its policy uses none) and its config hash."""
     from pydrake.common.yaml import yaml_load_data
 
     from drake_grasp.scenario import dump_scenario
@@ -163,8 +178,10 @@ def condition_identity(experiment: Experiment, condition: Condition, *,
     resolved = yaml_load_data(yaml)
     resolved.pop("seed", None)
     weights = weights_path(scenario)
+    gpd_weights = gpd_weights_path(scenario)
     return {**dataclasses.asdict(condition), "scenario": resolved,
             "weights_sha256": None if weights is None else file_sha256(weights),
+            "gpd_weights_sha256": None if gpd_weights is None else file_sha256(gpd_weights),
             "config_hash": config_hash(yaml)}
 
 
@@ -402,6 +419,8 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
                "decisions": r.details.get("decisions", 0),
                **({"policy_inputs": r.details["policy_inputs"]}
                   if "policy_inputs" in r.details else {}),
+               **({"gpd_detection": r.details["gpd_detection"]}
+                  if "gpd_detection" in r.details else {}),
                **(extra or {})})
 
 
@@ -613,7 +632,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
-             physics_profile: str = "", weights: str = "") -> dict:
+             physics_profile: str = "", weights: str = "", gpd_weights: str = "") -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -646,6 +665,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         weights: A distance-CNN weights file (safetensors or ONNX) for the conditions
             whose policy uses the CNN; "" keeps the shipped weights. Its sha256 is part of
             the run's identity, as the shipped file's is.
+        gpd_weights: A GPD grasp classifier weights file (safetensors from
+            `drake-grasp gpd-train`) for the `gpd` conditions; "" keeps the shipped
+            weights. Its sha256 is part of the run's identity, as the shipped file's is.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -668,6 +690,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             raise ValueError(f"--weights {weights}: no such file (expected CNN weights: "
                              "*.safetensors from `drake-grasp train`, or *.onnx)")
         exp = dataclasses.replace(exp, cnn_weights=str(weights))
+    if gpd_weights:
+        if not Path(gpd_weights).is_file():
+            raise ValueError(f"--gpd-weights {gpd_weights}: no such file (expected GPD "
+                             "classifier weights: *.safetensors from `drake-grasp gpd-train`)")
+        exp = dataclasses.replace(exp, gpd_weights=str(gpd_weights))
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

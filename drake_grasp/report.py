@@ -861,6 +861,36 @@ def fairness_markdown(records) -> list[str]:
     return lines
 
 
+def detection_markdown(records) -> list[str]:
+    """For the conditions whose records carry the judge's check of a one-shot detection
+    (`extra.gpd_detection`, `episode.detection_check`): how many selected grasps passed
+    the labels' ground truth on both, one or none of its 2 surface samplings, and how
+    many of each succeeded. [] when no record has it (other policies, older records)."""
+    by_condition: dict[str, list] = {}
+    for r in records:
+        if r.failure_class == "simulation-error" or not isinstance(r.extra, dict):
+            continue
+        d = r.extra.get("gpd_detection")
+        if isinstance(d, dict) and "ground_truth_passes" in d:
+            by_condition.setdefault(r.condition, []).append((int(d["ground_truth_passes"]),
+                                                             bool(r.success)))
+    if not by_condition:
+        return []
+    lines = ["| condition | detections | a true grasp on both samplings (succeeded) | on one | "
+             "on none |", "|---|---|---|---|---|"]
+    for condition, rows in sorted(by_condition.items(), key=lambda kv: _condition_order(kv[0])):
+        cells = []
+        for k in (2, 1, 0):
+            hit = [ok for passes, ok in rows if passes == k]
+            cells.append(f"{len(hit)} ({sum(hit)})")
+        lines.append(f"| {condition} | {len(rows)} | " + " | ".join(cells) + " |")
+    lines += ["", "The selected grasp as detected (before kinematic noise), checked by the judge "
+              "against the ground truth of the GPD classifier's labels (collision, closing "
+              "region, force closure, torque limit) in the scene as it was at the decision; "
+              "the policy never sees it."]
+    return lines
+
+
 def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path, *,
                          prefix: str, level: str = "##",
                          histogram: bool = True) -> tuple[list[str], list[Path], list[dict]]:
@@ -903,6 +933,9 @@ def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path,
     if any("clutter_runs" in st for st in policies.values()):
         md += [f"{level} Clutter runs: attempts per run", ""] + _clutter_runs_table(exp, policies) + [""]
     md += [f"{level} What each policy senses (fairness)", ""] + fairness_markdown(res.records) + [""]
+    detections = detection_markdown(res.records)
+    if detections:
+        md += [f"{level} GPD's detections against the ground truth", ""] + detections + [""]
     md += [f"{level} Time", ""] + _time_table(res, policies) + [""]
     md += [f"{level} Failure classes", ""] + _failure_table(policies) + [""]
     md += [f"{level} Failed trials with replays", ""] + _failed_replay_links(res, policies, out_dir) + [""]

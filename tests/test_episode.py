@@ -192,8 +192,46 @@ def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeyp
     assert calls[0][1][2, 3] == pytest.approx(scenario.gpd.view_camera_height_m)
     assert counts.get(640) == 1  # the GPD sensor rendered once, at the viewpoint
     assert r.details["decisions"] == 1  # one detection
+    # The judge's look at the detection: the pose it was given, on the can, 20 deg tilt.
+    judged = r.details["gpd_detection"]
+    assert np.allclose(np.reshape(judged["X_WG"], (4, 4)), grasp)
+    assert judged["object_id"] == "can_000"
+    assert judged["tilt_deg"] == pytest.approx(20.0, abs=0.01)
+    assert 0 <= judged["ground_truth_passes"] <= judged["samplings"] == 2
     # The distance metric takes the tilted hand's centre and x_G on the table.
     assert r.final_distance_m is not None and r.final_distance_m < 0.02
+
+
+def test_detection_check_reports_the_ground_truth_verdict_and_the_object(library):
+    """`episode.detection_check` reports the labels' ground truth (2 surface samplings,
+    seeded by the trial's seed) for the detected pose and the object between its pads:
+    ground-truth grasps of the settled can pass on both samplings or on one, and the
+    same poses 15 cm aside, over the bare sheet, on none and on no object."""
+    from drake_grasp.episode import detection_check
+    from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes
+    from drake_grasp.grasps import find_grasps
+    from drake_grasp.scene import make_scene
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 1, policy: gpd, scene: {object_ids: [can_000], pose: lying}}"))
+    scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
+                       physics=scenario.physics)
+    truth = find_grasps(scene, library, np.random.default_rng(0)).poses
+    passes, _ = ground_truth_passes(scene, library, truth, np.random.default_rng([1, 62]),
+                                    GpdDataConfig(), samplings=2)
+    # A ground-truth grasp of one sampling passes on most others (the labels drop the
+    # candidates two samplings disagree on).
+    assert np.mean(passes == 2) > 0.5
+    for k in (int(np.argmax(passes == 2)), int(np.argmax(passes < 2))):
+        on = detection_check(scene, library, 1, truth[k])
+        assert on["ground_truth_passes"] == passes[k] and on["samplings"] == 2
+        assert np.allclose(np.reshape(on["X_WG"], (4, 4)), truth[k])
+        if passes[k]:
+            assert on["object_id"] == "can_000"
+        aside = np.array(truth[k])
+        aside[1, 3] += 0.15
+        off = detection_check(scene, library, 1, aside)
+        assert off["ground_truth_passes"] == 0 and off["object_id"] is None
 
 
 def test_gpd_geometric_episode_grasps_an_isolated_can(library):

@@ -411,6 +411,51 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     assert not (tmp_path / "run").exists()
 
 
+def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(tmp_path):
+    """`evaluate --gpd-weights FILE`: the gpd conditions load FILE, the run's identity
+    holds its sha256, so a folder run with one classifier refuses a resume with a file
+    changed in place; the other conditions are unchanged; a missing file is refused
+    before any folder is made."""
+    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.gpd import default_weights_path, load_classifier
+    from drake_grasp.results import write_run_info
+
+    shipped = default_weights_path()
+    other = tmp_path / "gpd.safetensors"
+    shutil.copy(shipped, other)
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], gpd_weights=str(other))
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    assert base["gpd"]["gpd_weights_sha256"] == file_sha256(shipped)
+    assert ident["gpd"]["scenario"]["gpd"]["weights"] == str(other)
+    assert ident["gpd"]["gpd_weights_sha256"] == file_sha256(other)
+    assert ident["ctr"] == base["ctr"] and ident["scripted"] == base["scripted"]
+    assert base["ctr"]["gpd_weights_sha256"] is None
+    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.gpd.weights == (str(other) if task.condition == "gpd" else "")
+        assert m.gpd_weights_path(s) == (str(other) if task.condition == "gpd" else None)
+    # The same path with other tensors is another run.
+    out = tmp_path / "run"
+    out.mkdir()
+    write_run_info(out, m.run_identity(exp, seed=0))
+    import torch
+
+    from drake_grasp.gpd import save_classifier
+
+    model = load_classifier(other)
+    with torch.no_grad():
+        next(model.parameters()).mul_(0.5)
+    save_classifier(model, other)
+    conflict = m.folder_conflict(out, m.run_identity(exp, seed=0))
+    assert conflict is not None and "gpd_weights_sha256" in conflict
+    with pytest.raises(ValueError, match="--gpd-weights .*nope.safetensors: no such file"):
+        evaluate(experiment="isolation", out=tmp_path / "run2", trials=1,
+                 gpd_weights=str(tmp_path / "nope.safetensors"), progress=False)
+    assert not (tmp_path / "run2").exists()
+
+
 def test_parallel_map_keeps_the_order_in_and_out_of_process():
     import operator
 

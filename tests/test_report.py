@@ -351,3 +351,33 @@ def test_fairness_table_names_each_policys_sensor_and_decision_time():
     assert "64x64, 55 deg vertical" in rows["ctr"] and "38 ms" in rows["ctr"] and "| 50 |" in rows["ctr"]
     assert "640x480, 45 deg vertical" in rows["gpd"] and "2500 ms" in rows["gpd"]
     assert "privileged" in rows["scripted"] and rows["scripted"].count("| - |") >= 2
+
+
+def test_report_counts_gpds_detections_by_their_ground_truth_verdict(tmp_path):
+    """The report's detection table: per gpd condition, detections that pass the ground
+    truth on 2, 1 and 0 surface samplings, with how many of each succeeded; simulation
+    errors and records without the check are left out; no table without any check."""
+    from drake_grasp.report import detection_markdown
+
+    def gpd(i, passes, success, **kw):
+        kw.setdefault("failure_class", "none" if success else "slipped-during-lift")
+        return make_record(f"isolation/gpd/{i:04d}", policy="gpd", condition="gpd",
+                           success=success, extra={"gpd_detection": {
+                               "ground_truth_passes": passes, "samplings": 2}}, **kw)
+
+    records = [gpd(0, 2, True), gpd(1, 2, True), gpd(2, 2, False), gpd(3, 1, True),
+               gpd(4, 0, False), gpd(5, 0, True),
+               gpd(6, 2, False, failure_class="simulation-error", final_distance_m=None),
+               make_record("isolation/gpd/0007", policy="gpd", condition="gpd"),
+               make_record("isolation/ctr/0000")]
+    records[6].failure_reason = "simulation error: boom"
+    lines = detection_markdown(records)
+    assert "| gpd | 6 | 3 (2) | 1 (1) | 2 (1) |" in lines
+    assert not any(line.startswith("| ctr") for line in lines)
+    assert detection_markdown([make_record("isolation/ctr/0000")]) == []
+    d = tmp_path / "iso"
+    write_run_info(d, {"experiment": "isolation"})
+    for r in records:
+        write_record(d, r)
+    make_report(d)
+    assert "| gpd | 6 | 3 (2) | 1 (1) | 2 (1) |" in (d / "report.md").read_text()

@@ -257,8 +257,9 @@ class GraspController(LeafSystem):
 
     def outcome(self, context) -> dict:
         """The policy's own data once done: iterations and stop_reason, or a
-        failure_reason when it attempted no grasp (init, no GPD detection). Success and
-        the failure class come from the GraspJudge."""
+        failure_reason when it attempted no grasp (init, no GPD detection); gpd: its
+        detection ("gpd_detection", the selected X_WG as 16 floats, row by row, before
+        kinematic noise). Success and the failure class come from the GraspJudge."""
         return dict(self.get_controller_state(context).outcome)
 
     @property
@@ -452,7 +453,8 @@ class GraspController(LeafSystem):
             if nxt is not None:
                 new = replace(s, phase=Phase(nxt), phase_start_s=t)
                 if nxt == "done":
-                    new = replace(new, outcome={"stop_reason": s.stop_reason,
+                    # Keeps what the policy recorded on the way (gpd: its detection).
+                    new = replace(new, outcome={**s.outcome, "stop_reason": s.stop_reason,
                                                 "iterations": s.iteration})
         if new is not s:
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
@@ -521,7 +523,8 @@ class GraspController(LeafSystem):
         pre = self._pregrasp(RigidTransform(grasp_pose))
         return replace(s, phase=Phase.APPROACH, phase_start_s=t, segment_from=s.hand,
                        hand=pose_to_hand(pre), grasp=pose_to_hand(grasp_pose),
-                       grasp_pose=_pose_tuple(grasp_pose), decided_s=t)
+                       grasp_pose=_pose_tuple(grasp_pose), decided_s=t,
+                       outcome={"gpd_detection": _pose_tuple(X)})
 
     # -- outputs ------------------------------------------------------------------------
 
