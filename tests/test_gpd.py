@@ -165,3 +165,38 @@ def test_classifier_weights_round_trip_and_bad_files(tmp_path):
 def test_shipped_classifier_loads():
     model = gpd.load_classifier()
     assert isinstance(model, gpd.GraspClassifier)
+
+
+def test_selection_variants_script_ranks_as_each_rule_says():
+    """analysis/gpd_selection.py's variants on hand-made candidates: a lone grasp with the
+    highest probability, a tight cluster of 3 (4 mm apart) with the largest sum, and a row
+    of 5 grasps 15 mm apart that a second classifier prefers. Each rule picks its own."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "analysis" / "gpd_selection.py"
+    spec = importlib.util.spec_from_file_location("gpd_selection", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def pose(x, y):
+        X = np.eye(4)
+        X[:3, :3] = np.diag([1.0, -1.0, -1.0])  # approach straight down
+        X[:3, 3] = [x, y, 0.05]
+        return X
+
+    poses = [pose(0.0, 0.0)]                                     # 0: lone, 0.99
+    poses += [pose(0.2 + d, 0.0) for d in (0.0, 0.004, 0.008)]   # 1-3: tight, 0.95
+    poses += [pose(0.4 + d, 0.0) for d in (0.0, 0.015, 0.03, 0.045, 0.06)]  # 4-8: loose
+    prob = np.array([0.99, 0.95, 0.95, 0.95, 0.9, 0.9, 0.9, 0.9, 0.9])
+    picks = module.variants(np.array(poses), prob, None)
+    assert picks["shipped: highest probability"] == 0
+    assert picks["shipped: cluster mean (the detector's)"] == 0  # a lone grasp's mean is its own
+    assert picks["shipped: cluster sum (support)"] in (1, 2, 3)  # 3 x 0.95 beats 0.99 and 0.9
+    assert picks["shipped: cluster mean, threshold 0.9"] == 0
+    other = np.array([0.6, 0.6, 0.6, 0.6, 0.9, 0.9, 0.9, 0.9, 0.9])  # a second classifier
+    picks = module.variants(np.array(poses), prob, other)
+    assert picks["retrained: cluster mean"] in (4, 5, 6, 7, 8)
+    # Means of both: lone 0.795, tight 0.775, loose 0.9.
+    assert picks["mean of both: cluster mean"] in (4, 5, 6, 7, 8)
+    assert module.variants(np.array(poses), np.zeros(9), None)["shipped: highest probability"] is None
