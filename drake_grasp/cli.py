@@ -169,10 +169,17 @@ def _cmd_checkpoint_weights(args) -> int:
 def _cmd_gpd_generate(args) -> int:
     from drake_grasp.gpd_training import GpdDataConfig, generate
 
+    kinds = tuple(k for k in args.scene_kinds.split(",") if k)
+    allowed = GpdDataConfig().scene_kinds
+    if not kinds or any(k not in allowed for k in kinds):
+        print(f"--scene-kinds {args.scene_kinds!r}: expected a comma-separated list of "
+              f"{', '.join(allowed)}", file=sys.stderr)
+        return 2
     scenario = _load(args, seed=args.seed)
     summary = generate(out=args.out, num_scenes=args.scenes, split=args.split, seed=args.seed,
                        scenario=scenario,
-                       config=GpdDataConfig(candidates_per_scene=args.candidates_per_scene),
+                       config=GpdDataConfig(candidates_per_scene=args.candidates_per_scene,
+                                            scene_kinds=kinds),
                        workers=args.workers, objects_dir=args.objects)
     print(json.dumps({k: summary[k] for k in ("num_scenes", "candidates", "positives")}))
     return 0
@@ -463,11 +470,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates-per-scene", type=int, default=600,
                    help="labelled candidates kept per scene: positives up to a quarter, "
                         "negatives fill up (default 600)")
+    p.add_argument("--scene-kinds", default="isolation,random,clutter",
+                   help="scene kinds drawn in turn (default isolation,random,clutter); "
+                        "'clutter' piles have the scenario's scene.clutter_objects objects")
     p.set_defaults(func=_cmd_gpd_generate)
 
     p = sub.add_parser("gpd-train", help="train the GPD baseline's grasp classifier (Adam, "
                                           "class-weighted cross-entropy); re-running resumes")
-    p.add_argument("--data", required=True, help="gpd-generate folder of the train split")
+    p.add_argument("--data", required=True, help="gpd-generate folder of the train split, or "
+                                                  "several, comma-separated (concatenated)")
     p.add_argument("--test-data", required=True,
                    help="gpd-generate folder of the test split (held-out object instances)")
     p.add_argument("--out", required=True,

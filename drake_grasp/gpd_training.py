@@ -333,6 +333,20 @@ def load_data(folder: str | Path, *, require_complete: bool = True) -> dict:
     return out
 
 
+def load_data_folders(folders) -> dict:
+    """`load_data` of one folder, or of several (a list, or one string with commas:
+    "data/a,data/b"), concatenated in the order given."""
+    if isinstance(folders, (str, Path)):
+        folders = str(folders).split(",")
+    names = [str(f) for f in folders if str(f)]
+    if not names:
+        raise ValueError(f"data folders: none given ({folders!r})")
+    sets = [load_data(f) for f in names]
+    out = {k: np.concatenate([s[k] for s in sets]) for k in sets[0] if k != "scene_stats"}
+    out["scene_stats"] = [row for s in sets for row in s["scene_stats"]]
+    return out
+
+
 # ----------------------------------------------------------------------------
 # Training.
 
@@ -379,7 +393,7 @@ def train(*, data: str | Path, test_data: str | Path, out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, config.threads))
-    train_set, test_set = load_data(data), load_data(test_data)
+    train_set, test_set = load_data_folders(data), load_data(test_data)
     X, y = train_set["images"], train_set["labels"].astype(np.float32)
     gen = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)

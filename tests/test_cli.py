@@ -38,3 +38,11 @@ def test_scenarios_lists_the_shipped_names(capsys):
     assert main(["scenarios"]) == 0
     names = capsys.readouterr().out.split()
     assert "isolation" in names and "clutter" in names
+
+
+def test_gpd_generate_refuses_unknown_scene_kinds(tmp_path, capsys):
+    code = main(["gpd-generate", "--scenes", "1", "--split", "train", "--out",
+                 str(tmp_path / "d"), "--scene-kinds", "clutter,piles"])
+    assert code == 2
+    assert "--scene-kinds 'clutter,piles': expected a comma-separated list of isolation, random, clutter" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()

@@ -57,6 +57,22 @@ def test_load_data_refuses_incomplete_folders(tmp_path):
         gpd_training.load_data(tmp_path)
 
 
+def test_several_data_folders_are_concatenated_in_order(tiny_data, tmp_path):
+    """`gpd-train --data A,B`: the folders' candidates one after the other; a missing
+    or incomplete folder among them is named."""
+    out, _ = tiny_data
+    one = gpd_training.load_data(out)
+    both = gpd_training.load_data_folders(f"{out},{out}")
+    n = len(one["labels"])
+    assert len(both["labels"]) == 2 * n and len(both["scene_stats"]) == 2 * len(one["scene_stats"])
+    np.testing.assert_array_equal(both["images"][n:], one["images"])
+    assert len(gpd_training.load_data_folders([out])["labels"]) == n
+    with pytest.raises(ValueError, match=f"{tmp_path}: not a complete GPD data folder"):
+        gpd_training.load_data_folders([out, tmp_path])
+    with pytest.raises(ValueError, match="none given"):
+        gpd_training.load_data_folders(",")
+
+
 def test_train_writes_weights_metrics_and_resumes(tiny_data, tmp_path):
     out, _ = tiny_data
     cfg = gpd_training.GpdTrainConfig(epochs=1, batch_size=8, threads=1)
