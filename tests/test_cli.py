@@ -46,3 +46,23 @@ def test_gpd_generate_refuses_unknown_scene_kinds(tmp_path, capsys):
     assert code == 2
     assert "--scene-kinds 'clutter,piles': expected a comma-separated list of isolation, random, clutter" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
+
+
+def test_gpd_generate_passes_its_settling_limit_and_scene_kinds(tmp_path, monkeypatch, capsys):
+    """gpd-generate --settle-max-time S --scene-kinds K: the data config gets both (they are
+    part of a data folder's identity); a limit <= 0 is refused before anything runs."""
+    from drake_grasp import gpd_training
+
+    seen = {}
+
+    def fake_generate(**kwargs):
+        seen.update(kwargs)
+        return {"num_scenes": 0, "candidates": 0, "positives": 0}
+
+    monkeypatch.setattr(gpd_training, "generate", fake_generate)
+    assert main(["gpd-generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path / "d"),
+                 "--scene-kinds", "clutter", "--settle-max-time", "4"]) == 0
+    assert seen["config"].settle_max_time_s == 4.0 and seen["config"].scene_kinds == ("clutter",)
+    assert main(["gpd-generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path / "e"),
+                 "--settle-max-time", "0"]) == 2
+    assert "--settle-max-time 0.0: expected seconds > 0" in capsys.readouterr().err
