@@ -29,19 +29,9 @@ import numpy as np
 PILE_SIZES = (10, 7, 5, 3)
 
 
-def _aligned_support(poses: np.ndarray, prob: np.ndarray, distance_m: float, angle_deg: float):
-    """(mean, sum) of the probabilities of the candidates aligned with each candidate."""
-    p, z, x = poses[:, :3, 3], poses[:, :3, 2], poses[:, :3, 0]
-    close = np.linalg.norm(p[:, None] - p[None], axis=-1) <= distance_m
-    c = np.cos(np.deg2rad(angle_deg))
-    aligned = close & (z @ z.T >= c) & (np.abs(x @ x.T) >= c)
-    total = aligned @ prob
-    return total / aligned.sum(axis=1), total
-
-
 def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None) -> dict:
     """Index of the top-1 candidate of each variant (None: nothing accepted)."""
-    from drake_grasp.gpd import Selection, select
+    from drake_grasp.gpd import Selection, cluster_support, select
 
     out = {}
 
@@ -54,7 +44,7 @@ def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None) -
     out["shipped: cluster mean 2 cm / 30 deg"] = first(select(
         poses, prob_a, Selection(cluster_distance_m=0.02, cluster_angle_deg=30.0)))
     if len(acc):
-        _, total = _aligned_support(poses[acc], prob_a[acc], 0.01, 15.0)
+        _, total = cluster_support(poses[acc], prob_a[acc])
         out["shipped: cluster sum (support)"] = int(acc[np.argmax(total)])
     else:
         out["shipped: cluster sum (support)"] = None

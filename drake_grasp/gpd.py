@@ -445,21 +445,30 @@ class Selection:
     cluster_angle_deg: float = 15.0
 
 
-def cluster_scores(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection(),
-                   chunk: int = 2048) -> np.ndarray:
-    """Each candidate's mean classifier probability over the candidates aligned with it
-    (itself included): a grasp whose slightly moved and turned neighbours are grasps too
-    is the robust one, the reason GPD clusters its detections."""
+def cluster_support(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection(),
+                    chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """Per candidate, the (mean, sum) of the classifier probabilities of the candidates
+    aligned with it (itself included): within `sel.cluster_distance_m` and with approach
+    and closing axes within `sel.cluster_angle_deg`."""
     prob = np.asarray(probabilities, float)
-    out = np.empty(len(prob))
+    mean, total = np.empty(len(prob)), np.empty(len(prob))
     for lo in range(0, len(prob), chunk):
         P = poses[lo:lo + chunk]
         p, z, x = P[:, :3, 3], P[:, :3, 2], P[:, :3, 0]
         close = np.linalg.norm(p[:, None] - poses[None, :, :3, 3], axis=-1) <= sel.cluster_distance_m
         c = np.cos(np.deg2rad(sel.cluster_angle_deg))
         aligned = close & (z @ poses[:, :3, 2].T >= c) & (np.abs(x @ poses[:, :3, 0].T) >= c)
-        out[lo:lo + chunk] = (aligned @ prob) / aligned.sum(axis=1)
-    return out
+        total[lo:lo + chunk] = aligned @ prob
+        mean[lo:lo + chunk] = total[lo:lo + chunk] / aligned.sum(axis=1)
+    return mean, total
+
+
+def cluster_scores(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection(),
+                   chunk: int = 2048) -> np.ndarray:
+    """Each candidate's mean classifier probability over the candidates aligned with it
+    (itself included, `cluster_support`): a grasp whose slightly moved and turned
+    neighbours are grasps too is the robust one, the reason GPD clusters its detections."""
+    return cluster_support(poses, probabilities, sel, chunk)[0]
 
 
 def select(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection()) -> np.ndarray:
