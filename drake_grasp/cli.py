@@ -199,6 +199,26 @@ def _cmd_gpd_train(args) -> int:
     return 0
 
 
+def _cmd_gpd_eval(args) -> int:
+    from drake_grasp.gpd_training import evaluate_classifier
+
+    result = evaluate_classifier(weights=args.weights or "", data=args.data, threads=args.threads)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(result, indent=1))
+        tmp.replace(out)
+    rows = [("all", result["held_out"])] + list(result["by_category"].items())
+    print(f"{'category':14s} {'candidates':>10s} {'positives':>9s}  precision / recall "
+          "at 0.5 | 0.9")
+    for name, m in rows:
+        a, b = m["0.5"], m["0.9"]
+        print(f"{name:14s} {a['num']:10d} {a['positives']:9d}  {a['precision']:.3f} / "
+              f"{a['recall']:.3f} | {b['precision']:.3f} / {b['recall']:.3f}")
+    return 0
+
+
 def _cmd_evaluate(args) -> int:
     from drake_grasp.montecarlo import evaluate
 
@@ -495,6 +515,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="initial weights and shuffling seed")
     p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     p.set_defaults(func=_cmd_gpd_train)
+
+    p = sub.add_parser("gpd-eval", help="held-out precision and recall of a GPD classifier, "
+                                         "over all candidates and per object category")
+    p.add_argument("--data", required=True, help="gpd-generate folder(s) to score, "
+                                                  "comma-separated (e.g. a test split)")
+    p.add_argument("--weights", default="", help="classifier weights (a gpd-train "
+                                                  "weights.safetensors); default: the shipped one")
+    p.add_argument("--out", default="", help="also write the metrics as JSON to this file")
+    p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    p.set_defaults(func=_cmd_gpd_eval)
 
     p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "
                                          "write its report; re-running resumes")

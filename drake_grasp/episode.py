@@ -530,9 +530,11 @@ def detection_check(now: SceneSpec, library, seed: int, X_WG) -> dict:
     X = np.asarray(X_WG, dtype=float).reshape(1, 4, 4)
     passes, obj = ground_truth_passes(now, library, X, np.random.default_rng([seed, 62]),
                                       GpdDataConfig(), samplings=2)
+    object_id = now.objects[int(obj[0])].object_id if obj[0] >= 0 else None
     return {"X_WG": [float(v) for v in X.reshape(16)],
             "ground_truth_passes": int(passes[0]), "samplings": 2,
-            "object_id": now.objects[int(obj[0])].object_id if obj[0] >= 0 else None,
+            "object_id": object_id,
+            "object_category": library.get(object_id).category if object_id else None,
             "tilt_deg": float(np.degrees(np.arccos(np.clip(-X[0, 2, 2], -1.0, 1.0))))}
 
 

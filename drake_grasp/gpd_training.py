@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp import gpd
+from drake_grasp.provenance import file_sha256
 
 SHARD_FORMAT = "drake_grasp.gpd_data/1"
 
@@ -371,6 +372,48 @@ def precision_recall(prob: np.ndarray, labels: np.ndarray, threshold: float = 0.
                 num=int(len(labels)), positives=int(labels.sum()))
 
 
+NO_OBJECT = "(no object)"
+
+
+def held_out_metrics(prob: np.ndarray, labels: np.ndarray, category: np.ndarray,
+                     thresholds=(0.5, 0.7, 0.9)) -> dict:
+    """Precision and recall at each threshold, over all candidates and per object category
+    (the category of the object between the pads; NO_OBJECT where there is none).
+
+    Returns:
+        {"held_out": {"0.5": precision_recall, ...},
+         "by_category": {category: {"0.5": precision_recall, ...}}}
+    """
+    prob, labels = np.asarray(prob), np.asarray(labels)
+    category = np.asarray(category)
+    if not len(prob) == len(labels) == len(category):
+        raise ValueError(f"held_out_metrics: {len(prob)} probabilities, {len(labels)} labels, "
+                         f"{len(category)} categories (expected one of each per candidate)")
+    names = np.where(category == "", NO_OBJECT, category)
+    return dict(
+        held_out={f"{t:.1f}": precision_recall(prob, labels, t) for t in thresholds},
+        by_category={str(c): {f"{t:.1f}": precision_recall(prob[names == c], labels[names == c], t)
+                              for t in thresholds}
+                     for c in sorted(set(names.tolist()))})
+
+
+def evaluate_classifier(*, weights: str | Path = "", data, threads: int = 2) -> dict:
+    """`held_out_metrics` of a classifier (`gpd.load_classifier(weights)`; "" is the shipped
+    one) on gpd-generate folders (`load_data_folders`), with the weights' sha256."""
+    import torch
+
+    torch.set_num_threads(max(1, int(threads)))
+    model = gpd.load_classifier(weights)
+    path = Path(weights) if weights else gpd.default_weights_path()
+    test_set = load_data_folders(data)
+    out = held_out_metrics(_predict(model, test_set["images"]), test_set["labels"],
+                           test_set["category"])
+    return dict(weights=str(weights) or "shipped", weights_sha256=file_sha256(path),
+                data=str(data), candidates=int(len(test_set["labels"])),
+                positives=int(test_set["labels"].sum()),
+                scenes=len(test_set["scene_stats"]), **out)
+
+
 def _predict(model, images: np.ndarray, batch: int = 1024) -> np.ndarray:
     import torch
 
@@ -441,14 +484,14 @@ def train(*, data: str | Path, test_data: str | Path, out: str | Path,
             print(f"epoch {epoch + 1}: train loss {total / count:.4f}, held-out precision "
                   f"{pr['precision']:.3f} recall {pr['recall']:.3f}", flush=True)
     p_test = _predict(model, test_set["images"])
-    thresholds = {f"{t:.1f}": precision_recall(p_test, test_set["labels"], t)
-                  for t in (0.5, 0.7, 0.9)}
+    held = held_out_metrics(p_test, test_set["labels"], test_set["category"])
     metrics = dict(
         train=dict(folder=str(data), candidates=int(len(y)), positives=int(y.sum()),
                    scenes=len(train_set["scene_stats"])),
         test=dict(folder=str(test_data), candidates=int(len(test_set["labels"])),
                   positives=int(test_set["labels"].sum()), scenes=len(test_set["scene_stats"])),
-        config=dataclasses.asdict(config), history=history, held_out=thresholds,
+        config=dataclasses.asdict(config), history=history, held_out=held["held_out"],
+        held_out_by_category=held["by_category"],
         seconds_this_run=time.perf_counter() - t_start)
     gpd.save_classifier(model, out / "weights.safetensors",
                         metadata={"train_candidates": len(y), "epochs": config.epochs})

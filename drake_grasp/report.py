@@ -865,15 +865,19 @@ def detection_markdown(records) -> list[str]:
     """For the conditions whose records carry the judge's check of a one-shot detection
     (`extra.gpd_detection`, `episode.detection_check`): how many selected grasps passed
     the labels' ground truth on both, one or none of its 2 surface samplings, and how
-    many of each succeeded. [] when no record has it (other policies, older records)."""
+    many of each succeeded; then the same by the category of the object between the pads.
+    [] when no record has it (other policies, older records)."""
     by_condition: dict[str, list] = {}
+    by_category: dict[str, dict[str, list]] = {}
     for r in records:
         if r.failure_class == "simulation-error" or not isinstance(r.extra, dict):
             continue
         d = r.extra.get("gpd_detection")
         if isinstance(d, dict) and "ground_truth_passes" in d:
-            by_condition.setdefault(r.condition, []).append((int(d["ground_truth_passes"]),
-                                                             bool(r.success)))
+            row = (int(d["ground_truth_passes"]), bool(r.success))
+            by_condition.setdefault(r.condition, []).append(row)
+            by_category.setdefault(r.condition, {}).setdefault(
+                _detection_category(d), []).append(row)
     if not by_condition:
         return []
     lines = ["| condition | detections | a true grasp on both samplings (succeeded) | on one | "
@@ -887,8 +891,29 @@ def detection_markdown(records) -> list[str]:
     lines += ["", "The selected grasp as detected (before kinematic noise), checked by the judge "
               "against the ground truth of the GPD classifier's labels (collision, closing "
               "region, force closure, torque limit) in the scene as it was at the decision; "
-              "the policy never sees it."]
+              "the policy never sees it.", ""]
+    lines += ["By the object between the pads at the decision:", "",
+              "| condition | object category | detections | succeeded | a true grasp on both "
+              "samplings |", "|---|---|---|---|---|"]
+    for condition, rows in sorted(by_category.items(), key=lambda kv: _condition_order(kv[0])):
+        for category, hits in sorted(rows.items()):
+            lines.append(f"| {condition} | {category} | {len(hits)} | "
+                         f"{sum(ok for _, ok in hits)} | {sum(p == 2 for p, _ in hits)} |")
     return lines
+
+
+def _detection_category(check: dict) -> str:
+    """The category of the object a detection's pads enclosed: as recorded, or for records
+    made before `object_category` was, read from a built-in id (`mug_003` -> mug)."""
+    from drake_grasp.objects.categories import CATEGORIES
+
+    if check.get("object_category"):
+        return str(check["object_category"])
+    oid = check.get("object_id")
+    if not oid:
+        return "(no object)"
+    head, _, tail = str(oid).rpartition("_")
+    return head if head in CATEGORIES and tail.isdigit() else str(oid)
 
 
 def _experiment_sections(res: Results, policies: dict[str, dict], out_dir: Path, *,

@@ -227,11 +227,12 @@ def test_detection_check_reports_the_ground_truth_verdict_and_the_object(library
         assert on["ground_truth_passes"] == passes[k] and on["samplings"] == 2
         assert np.allclose(np.reshape(on["X_WG"], (4, 4)), truth[k])
         if passes[k]:
-            assert on["object_id"] == "can_000"
+            assert on["object_id"] == "can_000" and on["object_category"] == "can"
         aside = np.array(truth[k])
         aside[1, 3] += 0.15
         off = detection_check(scene, library, 1, aside)
         assert off["ground_truth_passes"] == 0 and off["object_id"] is None
+        assert off["object_category"] is None
 
 
 def test_gpd_geometric_episode_grasps_an_isolated_can(library):

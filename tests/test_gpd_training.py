@@ -80,9 +80,46 @@ def test_train_writes_weights_metrics_and_resumes(tiny_data, tmp_path):
     assert (tmp_path / "weights.safetensors").exists()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["held_out"]["0.5"]["num"] == metrics["test"]["candidates"]
+    assert sum(c["0.5"]["num"] for c in saved["held_out_by_category"].values()) \
+        == metrics["test"]["candidates"]
     assert len(saved["history"]) == 1
     gpd.load_classifier(tmp_path / "weights.safetensors")
     # A second run with more epochs continues from the checkpoint (one more epoch).
     cfg2 = gpd_training.GpdTrainConfig(epochs=2, batch_size=8, threads=1)
     again = gpd_training.train(data=out, test_data=out, out=tmp_path, config=cfg2, progress=False)
     assert [h["epoch"] for h in again["history"]] == [1, 2]
+
+
+def test_held_out_metrics_split_by_category():
+    prob = np.array([0.95, 0.6, 0.2, 0.8, 0.3, 0.99])
+    labels = np.array([1, 0, 1, 0, 0, 0])
+    category = np.array(["mug", "mug", "mug", "hammer", "hammer", ""])
+    m = gpd_training.held_out_metrics(prob, labels, category)
+    assert m["held_out"]["0.5"]["tp"] == 1 and m["held_out"]["0.5"]["fp"] == 3
+    assert set(m["by_category"]) == {"mug", "hammer", gpd_training.NO_OBJECT}
+    mug = m["by_category"]["mug"]
+    assert (mug["0.5"]["tp"], mug["0.5"]["fp"], mug["0.5"]["fn"]) == (1, 1, 1)
+    assert mug["0.9"]["precision"] == 1.0 and mug["0.9"]["recall"] == 0.5
+    assert m["by_category"]["hammer"]["0.5"]["precision"] == 0.0
+    assert m["by_category"][gpd_training.NO_OBJECT]["0.5"]["fp"] == 1
+    # The per-category counts add up to the overall ones.
+    for t in ("0.5", "0.7", "0.9"):
+        for k in ("tp", "fp", "fn", "num"):
+            assert sum(c[t][k] for c in m["by_category"].values()) == m["held_out"][t][k]
+    with pytest.raises(ValueError, match="3 categories"):
+        gpd_training.held_out_metrics(prob, labels, category[:3])
+
+
+def test_gpd_eval_scores_a_classifier_per_category(tiny_data, tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    out, summary = tiny_data
+    assert main(["gpd-eval", "--data", str(out), "--out", str(tmp_path / "eval.json"),
+                 "--threads", "1"]) == 0
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["weights"] == "shipped" and len(result["weights_sha256"]) == 64
+    assert result["candidates"] == summary["candidates"]
+    assert result["held_out"]["0.5"]["num"] == summary["candidates"]
+    data = gpd_training.load_data(out)
+    assert set(result["by_category"]) == {c or gpd_training.NO_OBJECT for c in data["category"]}
+    assert "all" in capsys.readouterr().out

@@ -359,20 +359,28 @@ def test_report_counts_gpds_detections_by_their_ground_truth_verdict(tmp_path):
     errors and records without the check are left out; no table without any check."""
     from drake_grasp.report import detection_markdown
 
-    def gpd(i, passes, success, **kw):
+    def gpd(i, passes, success, object_id=None, **kw):
         kw.setdefault("failure_class", "none" if success else "slipped-during-lift")
+        check = {"ground_truth_passes": passes, "samplings": 2, "object_id": object_id}
+        if object_id == "my_hammer":  # an imported object: its category is recorded
+            check["object_category"] = "hammer"
         return make_record(f"isolation/gpd/{i:04d}", policy="gpd", condition="gpd",
-                           success=success, extra={"gpd_detection": {
-                               "ground_truth_passes": passes, "samplings": 2}}, **kw)
+                           success=success, extra={"gpd_detection": check}, **kw)
 
-    records = [gpd(0, 2, True), gpd(1, 2, True), gpd(2, 2, False), gpd(3, 1, True),
-               gpd(4, 0, False), gpd(5, 0, True),
+    records = [gpd(0, 2, True, "mug_003"), gpd(1, 2, True, "hammer_002"),
+               gpd(2, 2, False, "my_hammer"), gpd(3, 1, True, "mug_010"),
+               gpd(4, 0, False, "hammer_004"), gpd(5, 0, True),
                gpd(6, 2, False, failure_class="simulation-error", final_distance_m=None),
                make_record("isolation/gpd/0007", policy="gpd", condition="gpd"),
                make_record("isolation/ctr/0000")]
     records[6].failure_reason = "simulation error: boom"
     lines = detection_markdown(records)
     assert "| gpd | 6 | 3 (2) | 1 (1) | 2 (1) |" in lines
+    # By category: built-in ids read as their category, a recorded category wins, and a
+    # detection with no object between the pads is its own row.
+    assert "| gpd | hammer | 3 | 1 | 2 |" in lines
+    assert "| gpd | mug | 2 | 2 | 1 |" in lines
+    assert "| gpd | (no object) | 1 | 1 | 0 |" in lines
     assert not any(line.startswith("| ctr") for line in lines)
     assert detection_markdown([make_record("isolation/ctr/0000")]) == []
     d = tmp_path / "iso"
