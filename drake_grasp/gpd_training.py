@@ -89,8 +89,9 @@ def ground_truth_passes(settled, library, poses, rng: np.random.Generator,
     """The labelling check of GPD candidates: on how many of `samplings` independent
     surface samplings of the true objects each pose passes the ground truth
     (`grasps.check_grasp_poses` with `config`'s friction and torque limits), and the
-    object between its pads (index into the scene's objects, -1: none) from the first
-    sampling that finds one. No pose: nothing is drawn from `rng`."""
+    one object both its pads touch (index into the scene's objects; -1: none, or two
+    different objects) from the first sampling that finds one. No pose: nothing is drawn
+    from `rng`."""
     from drake_grasp.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
 
     poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
@@ -372,13 +373,14 @@ def precision_recall(prob: np.ndarray, labels: np.ndarray, threshold: float = 0.
                 num=int(len(labels)), positives=int(labels.sum()))
 
 
-NO_OBJECT = "(no object)"
+NO_OBJECT = "(no single object)"
 
 
 def held_out_metrics(prob: np.ndarray, labels: np.ndarray, category: np.ndarray,
                      thresholds=(0.5, 0.7, 0.9)) -> dict:
     """Precision and recall at each threshold, over all candidates and per object category
-    (the category of the object between the pads; NO_OBJECT where there is none).
+    (the category of the one object both pads touch, by the ground truth's surface
+    sampling; NO_OBJECT where the pads touch none, or two different objects).
 
     Returns:
         {"held_out": {"0.5": precision_recall, ...},

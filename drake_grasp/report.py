@@ -865,7 +865,7 @@ def detection_markdown(records) -> list[str]:
     """For the conditions whose records carry the judge's check of a one-shot detection
     (`extra.gpd_detection`, `episode.detection_check`): how many selected grasps passed
     the labels' ground truth on both, one or none of its 2 surface samplings, and how
-    many of each succeeded; then the same by the category of the object between the pads.
+    many of each succeeded; then the same by the category of the one object both pads touch.
     [] when no record has it (other policies, older records)."""
     by_condition: dict[str, list] = {}
     by_category: dict[str, dict[str, list]] = {}
@@ -892,7 +892,8 @@ def detection_markdown(records) -> list[str]:
               "against the ground truth of the GPD classifier's labels (collision, closing "
               "region, force closure, torque limit) in the scene as it was at the decision; "
               "the policy never sees it.", ""]
-    lines += ["By the object between the pads at the decision:", "",
+    lines += ["By the object both pads touch at the decision (ground truth's surface sampling; "
+              "\"no single object\": none, or two different objects):", "",
               "| condition | object category | detections | succeeded | a true grasp on both "
               "samplings |", "|---|---|---|---|---|"]
     for condition, rows in sorted(by_category.items(), key=lambda kv: _condition_order(kv[0])):
@@ -903,7 +904,7 @@ def detection_markdown(records) -> list[str]:
 
 
 def _detection_category(check: dict) -> str:
-    """The category of the object a detection's pads enclosed: as recorded, or for records
+    """The category of the one object a detection's pads both touch: as recorded, or for records
     made before `object_category` was, read from a built-in id (`mug_003` -> mug)."""
     from drake_grasp.objects.categories import CATEGORIES
 
@@ -911,7 +912,7 @@ def _detection_category(check: dict) -> str:
         return str(check["object_category"])
     oid = check.get("object_id")
     if not oid:
-        return "(no object)"
+        return "(no single object)"
     head, _, tail = str(oid).rpartition("_")
     return head if head in CATEGORIES and tail.isdigit() else str(oid)
 

@@ -377,10 +377,10 @@ def test_report_counts_gpds_detections_by_their_ground_truth_verdict(tmp_path):
     lines = detection_markdown(records)
     assert "| gpd | 6 | 3 (2) | 1 (1) | 2 (1) |" in lines
     # By category: built-in ids read as their category, a recorded category wins, and a
-    # detection with no object between the pads is its own row.
+    # detection whose pads touch no single object is its own row.
     assert "| gpd | hammer | 3 | 1 | 2 |" in lines
     assert "| gpd | mug | 2 | 2 | 1 |" in lines
-    assert "| gpd | (no object) | 1 | 1 | 0 |" in lines
+    assert "| gpd | (no single object) | 1 | 1 | 0 |" in lines
     assert not any(line.startswith("| ctr") for line in lines)
     assert detection_markdown([make_record("isolation/ctr/0000")]) == []
     d = tmp_path / "iso"
