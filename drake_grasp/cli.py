@@ -178,12 +178,14 @@ def _cmd_gpd_generate(args) -> int:
     if not args.settle_max_time > 0:
         print(f"--settle-max-time {args.settle_max_time}: expected seconds > 0", file=sys.stderr)
         return 2
+    focus = tuple(c for c in args.focus_categories.split(",") if c)
     scenario = _load(args, seed=args.seed)
     summary = generate(out=args.out, num_scenes=args.scenes, split=args.split, seed=args.seed,
                        scenario=scenario,
                        config=GpdDataConfig(candidates_per_scene=args.candidates_per_scene,
                                             scene_kinds=kinds,
-                                            settle_max_time_s=args.settle_max_time),
+                                            settle_max_time_s=args.settle_max_time,
+                                            focus_categories=focus),
                        workers=args.workers, objects_dir=args.objects)
     print(json.dumps({k: summary[k] for k in ("num_scenes", "candidates", "positives")}))
     return 0
@@ -494,6 +496,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates-per-scene", type=int, default=600,
                    help="labelled candidates kept per scene: positives up to a quarter, "
                         "negatives fill up (default 600)")
+    p.add_argument("--focus-categories", default="", metavar="A,B",
+                   help="object categories every scene holds one instance of (e.g. "
+                        "hammer,flashlight: more data where the classifier is weakest, see "
+                        "gpd-eval); default: objects drawn as the experiments draw them")
     p.add_argument("--scene-kinds", default="isolation,random,clutter",
                    help="scene kinds drawn in turn (default isolation,random,clutter); "
                         "'clutter' piles have the scenario's scene.clutter_objects objects")

@@ -63,6 +63,10 @@ def test_gpd_generate_passes_its_settling_limit_and_scene_kinds(tmp_path, monkey
     assert main(["gpd-generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path / "d"),
                  "--scene-kinds", "clutter", "--settle-max-time", "4"]) == 0
     assert seen["config"].settle_max_time_s == 4.0 and seen["config"].scene_kinds == ("clutter",)
+    assert seen["config"].focus_categories == ()
+    assert main(["gpd-generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path / "f"),
+                 "--focus-categories", "hammer,flashlight"]) == 0
+    assert seen["config"].focus_categories == ("hammer", "flashlight")
     assert main(["gpd-generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path / "e"),
                  "--settle-max-time", "0"]) == 2
     assert "--settle-max-time 0.0: expected seconds > 0" in capsys.readouterr().err

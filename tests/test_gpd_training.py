@@ -123,3 +123,32 @@ def test_gpd_eval_scores_a_classifier_per_category(tiny_data, tmp_path, capsys):
     data = gpd_training.load_data(out)
     assert set(result["by_category"]) == {c or gpd_training.NO_OBJECT for c in data["category"]}
     assert "all" in capsys.readouterr().out
+
+
+def test_focus_categories_put_one_instance_of_them_in_every_scene(tmp_path):
+    from drake_grasp.objects import load_library
+
+    library = load_library()
+    for seed in range(6):
+        ids = gpd_training.focus_object_ids(library, ("hammer",), "train", seed, slots=5)
+        assert sorted(ids) == sorted(library.ids(split="train"))
+        assert any(library.get(i).category == "hammer" for i in ids[:5])
+    firsts = {gpd_training.focus_object_ids(library, ("hammer", "flashlight"), "test", s)[0]
+              for s in range(12)}
+    assert {library.get(i).category for i in firsts} == {"hammer", "flashlight"}
+    assert gpd_training.focus_object_ids(library, ("hammer",), "test", 3) == \
+        gpd_training.focus_object_ids(library, ("hammer",), "test", 3)
+    with pytest.raises(ValueError, match="wrench"):
+        gpd_training.focus_object_ids(library, ("wrench",), "train", 0)
+    with pytest.raises(ValueError, match="wrench"):
+        gpd_training.generate(out=tmp_path / "never", num_scenes=1, split="train", seed=0,
+                              scenario=Scenario(), config=gpd_training.GpdDataConfig(
+                                  focus_categories=("wrench",)), progress=False)
+    assert not (tmp_path / "never").exists()
+    cfg = gpd_training.GpdDataConfig(scene_kinds=("isolation",), candidates_per_scene=16,
+                                     scenes_per_shard=1, noisy_fraction=0.0,
+                                     focus_categories=("hammer",))
+    gpd_training.generate(out=tmp_path, num_scenes=2, split="train", seed=3,
+                          scenario=Scenario(), config=cfg, progress=False)
+    data = gpd_training.load_data(tmp_path)
+    assert {s["object_ids"][0].split("_")[0] for s in data["scene_stats"]} == {"hammer"}
