@@ -212,11 +212,11 @@ def _cmd_gpd_eval(args) -> int:
         tmp.write_text(json.dumps(result, indent=1))
         tmp.replace(out)
     rows = [("all", result["held_out"])] + list(result["by_category"].items())
-    print(f"{'category':14s} {'candidates':>10s} {'positives':>9s}  precision / recall "
+    print(f"{'category':18s} {'candidates':>10s} {'positives':>9s}  precision / recall "
           "at 0.5 | 0.9")
     for name, m in rows:
         a, b = m["0.5"], m["0.9"]
-        print(f"{name:14s} {a['num']:10d} {a['positives']:9d}  {a['precision']:.3f} / "
+        print(f"{name:18s} {a['num']:10d} {a['positives']:9d}  {a['precision']:.3f} / "
               f"{a['recall']:.3f} | {b['precision']:.3f} / {b['recall']:.3f}")
     return 0
 
