@@ -206,11 +206,9 @@ def _cmd_gpd_eval(args) -> int:
 
     result = evaluate_classifier(weights=args.weights or "", data=args.data, threads=args.threads)
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(json.dumps(result, indent=1))
-        tmp.replace(out)
+        from drake_grasp.results import atomic_write_text
+
+        atomic_write_text(args.out, json.dumps(result, indent=1))
     rows = [("all", result["held_out"])] + list(result["by_category"].items())
     print(f"{'category':18s} {'candidates':>10s} {'positives':>9s}  precision / recall "
           "at 0.5 | 0.9")

@@ -524,7 +524,8 @@ def detection_check(now: SceneSpec, library, seed: int, X_WG) -> dict:
     scene then): whether the selected grasp pose X_WG passes the ground truth of GPD's
     training labels (`gpd_training.ground_truth_passes`: collision, closing region, force
     closure and the torque limit) on 2 independent surface samplings, and the one object
-    both its pads touch (None: none, or two different objects). Evaluation only: the policy never sees it."""
+    both its pads touch (None: none, or two different objects). Evaluation only: the
+    policy never sees it."""
     from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes
 
     X = np.asarray(X_WG, dtype=float).reshape(1, 4, 4)

@@ -78,11 +78,12 @@ def focus_object_ids(library, categories, split: str, seed: int, slots: int = 1)
         ValueError: a category without instances in the split, named with the known ones.
     """
     rng = np.random.default_rng([int(seed), 63])
-    focus = sorted(i for c in categories for i in library.ids(split=split, category=c))
-    missing = [c for c in categories if not library.ids(split=split, category=c)]
-    if missing or not focus:
+    per_category = {c: library.ids(split=split, category=c) for c in categories}
+    missing = [c for c, ids in per_category.items() if not ids]
+    if missing or not per_category:
         raise ValueError(f"focus categories {list(categories)}: no {split!r} instances of "
                          f"{missing or list(categories)} (categories: {library.categories()})")
+    focus = sorted(i for ids in per_category.values() for i in ids)
     chosen = focus[int(rng.integers(len(focus)))]
     others = [i for i in library.ids(split=split) if i != chosen]
     ids = [others[int(k)] for k in rng.permutation(len(others))]
@@ -166,9 +167,10 @@ def generate_scene(index: int, *, seed: int, split: str, scenario, config: GpdDa
     kind = config.scene_kinds[index % len(config.scene_kinds)]
     for attempt in range(20):
         s_seed = scene_seed(seed, index, attempt)
-        slots = scenario.scene.clutter_objects if kind == "clutter" else 1
-        ids = (focus_object_ids(library, config.focus_categories, split, s_seed, slots)
-               if config.focus_categories else [])
+        ids = []
+        if config.focus_categories:
+            slots = scenario.scene.clutter_objects if kind == "clutter" else 1
+            ids = focus_object_ids(library, config.focus_categories, split, s_seed, slots)
         scene_cfg = dataclasses.replace(scenario.scene, kind=kind, split=split, object_ids=ids)
         spec = sample_scene(scene_cfg, s_seed, library)
         plant_config = copy.deepcopy(scenario.plant)
@@ -412,25 +414,24 @@ def precision_recall(prob: np.ndarray, labels: np.ndarray, threshold: float = 0.
                 num=int(len(labels)), positives=int(labels.sum()))
 
 
-NO_OBJECT = "(no single object)"
-
-
 def held_out_metrics(prob: np.ndarray, labels: np.ndarray, category: np.ndarray,
                      thresholds=(0.5, 0.7, 0.9)) -> dict:
     """Precision and recall at each threshold, over all candidates and per object category
     (the category of the one object both pads touch, by the ground truth's surface
-    sampling; NO_OBJECT where the pads touch none, or two different objects).
+    sampling; `NO_SINGLE_OBJECT` where the pads touch none, or two different objects).
 
     Returns:
         {"held_out": {"0.5": precision_recall, ...},
          "by_category": {category: {"0.5": precision_recall, ...}}}
     """
+    from drake_grasp.objects.categories import NO_SINGLE_OBJECT
+
     prob, labels = np.asarray(prob), np.asarray(labels)
     category = np.asarray(category)
     if not len(prob) == len(labels) == len(category):
         raise ValueError(f"held_out_metrics: {len(prob)} probabilities, {len(labels)} labels, "
                          f"{len(category)} categories (expected one of each per candidate)")
-    names = np.where(category == "", NO_OBJECT, category)
+    names = np.where(category == "", NO_SINGLE_OBJECT, category)
     return dict(
         held_out={f"{t:.1f}": precision_recall(prob, labels, t) for t in thresholds},
         by_category={str(c): {f"{t:.1f}": precision_recall(prob[names == c], labels[names == c], t)

@@ -906,13 +906,13 @@ def detection_markdown(records) -> list[str]:
 def _detection_category(check: dict) -> str:
     """The category of the one object a detection's pads both touch: as recorded, or for records
     made before `object_category` was, read from a built-in id (`mug_003` -> mug)."""
-    from drake_grasp.objects.categories import CATEGORIES
+    from drake_grasp.objects.categories import CATEGORIES, NO_SINGLE_OBJECT
 
     if check.get("object_category"):
         return str(check["object_category"])
     oid = check.get("object_id")
     if not oid:
-        return "(no single object)"
+        return NO_SINGLE_OBJECT
     head, _, tail = str(oid).rpartition("_")
     return head if head in CATEGORIES and tail.isdigit() else str(oid)
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from drake_grasp import gpd, gpd_training
+from drake_grasp.objects.categories import NO_SINGLE_OBJECT
 from drake_grasp.scenario import Scenario
 
 TINY = gpd_training.GpdDataConfig(scene_kinds=("isolation",), candidates_per_scene=16,
@@ -96,12 +97,12 @@ def test_held_out_metrics_split_by_category():
     category = np.array(["mug", "mug", "mug", "hammer", "hammer", ""])
     m = gpd_training.held_out_metrics(prob, labels, category)
     assert m["held_out"]["0.5"]["tp"] == 1 and m["held_out"]["0.5"]["fp"] == 3
-    assert set(m["by_category"]) == {"mug", "hammer", gpd_training.NO_OBJECT}
+    assert set(m["by_category"]) == {"mug", "hammer", NO_SINGLE_OBJECT}
     mug = m["by_category"]["mug"]
     assert (mug["0.5"]["tp"], mug["0.5"]["fp"], mug["0.5"]["fn"]) == (1, 1, 1)
     assert mug["0.9"]["precision"] == 1.0 and mug["0.9"]["recall"] == 0.5
     assert m["by_category"]["hammer"]["0.5"]["precision"] == 0.0
-    assert m["by_category"][gpd_training.NO_OBJECT]["0.5"]["fp"] == 1
+    assert m["by_category"][NO_SINGLE_OBJECT]["0.5"]["fp"] == 1
     # The per-category counts add up to the overall ones.
     for t in ("0.5", "0.7", "0.9"):
         for k in ("tp", "fp", "fn", "num"):
@@ -121,7 +122,7 @@ def test_gpd_eval_scores_a_classifier_per_category(tiny_data, tmp_path, capsys):
     assert result["candidates"] == summary["candidates"]
     assert result["held_out"]["0.5"]["num"] == summary["candidates"]
     data = gpd_training.load_data(out)
-    assert set(result["by_category"]) == {c or gpd_training.NO_OBJECT for c in data["category"]}
+    assert set(result["by_category"]) == {c or NO_SINGLE_OBJECT for c in data["category"]}
     assert "all" in capsys.readouterr().out
 
 

@@ -615,6 +615,9 @@ CATEGORY_SPECS: dict[str, CategorySpec] = {
     for name, seed, count, density, rgba, (modulus, mu_s, mu_d) in _TABLE
 }
 CATEGORIES: tuple[str, ...] = tuple(sorted(CATEGORY_SPECS))
+# The label of a grasp whose pads touch no single object (none, or two different ones)
+# where grasps are counted by the category of their object.
+NO_SINGLE_OBJECT = "(no single object)"
 
 
 def object_id(category: str, index: int) -> str:
