@@ -219,6 +219,15 @@ def _cmd_gpd_eval(args) -> int:
     return 0
 
 
+def _cmd_gpd_combine(args) -> int:
+    from drake_grasp.gpd import combine_classifiers
+    from drake_grasp.provenance import file_sha256
+
+    model = combine_classifiers(args.weights, args.out)
+    print(f"{args.out}: mean of {len(model.members)} classifiers, sha256 {file_sha256(args.out)}")
+    return 0
+
+
 def _cmd_evaluate(args) -> int:
     from drake_grasp.montecarlo import evaluate
 
@@ -529,6 +538,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="", help="also write the metrics as JSON to this file")
     p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     p.set_defaults(func=_cmd_gpd_eval)
+
+    p = sub.add_parser("gpd-combine", help="one GPD weights file whose probabilities are the "
+                                            "mean of several classifiers' (an ensemble)")
+    p.add_argument("weights", nargs="+", help="classifier weights files (gpd-train "
+                                               "weights.safetensors), at least 2")
+    p.add_argument("--out", required=True, help="the ensemble's safetensors file")
+    p.set_defaults(func=_cmd_gpd_combine)
 
     p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "
                                          "write its report; re-running resumes")

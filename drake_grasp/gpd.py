@@ -385,13 +385,50 @@ class GraspClassifier(nn.Module):
         return torch.cat(out).numpy().astype(float) if out else np.zeros(0)
 
 
-def save_classifier(model: GraspClassifier, path: str | Path, *, metadata: dict | None = None) -> None:
-    """Writes the weights as safetensors (no code can run on load), atomically."""
+class ClassifierEnsemble(nn.Module):
+    """Several `GraspClassifier`s whose probabilities are averaged (`probabilities`).
+
+    Classifiers trained on different data err on different candidates; the mean of their
+    probabilities ranks fewer false grasps first (see models/gpd/README.md for the
+    measured effect). Saved and loaded as one safetensors file (`save_classifier`,
+    `load_classifier`), so a run's identity is still one file's sha256.
+    """
+
+    def __init__(self, members):
+        super().__init__()
+        members = list(members)
+        if len(members) < 2:
+            raise ValueError(f"ClassifierEnsemble: expected at least 2 classifiers, got {len(members)}")
+        sizes = {m.size for m in members}
+        if len(sizes) != 1:
+            raise ValueError(f"ClassifierEnsemble: the classifiers' image sizes differ: {sorted(sizes)}")
+        self.members = nn.ModuleList(members)
+        self.size = members[0].size
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """The logit of the mean probability (so that sigmoid(forward) = `probabilities`)."""
+        p = torch.stack([torch.sigmoid(m(images)) for m in self.members]).mean(dim=0)
+        return torch.logit(p, eps=1e-7)
+
+    @torch.no_grad()
+    def probabilities(self, images: np.ndarray, batch: int = 512) -> np.ndarray:
+        return np.mean([m.probabilities(images, batch) for m in self.members], axis=0)
+
+
+def save_classifier(model: GraspClassifier | ClassifierEnsemble, path: str | Path, *,
+                    metadata: dict | None = None) -> None:
+    """Writes the weights as safetensors (no code can run on load), atomically.
+
+    An ensemble is one file: its members' tensors under `members.<i>.`, and "members" in
+    the header.
+    """
     import safetensors.torch
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": "drake_grasp.gpd.GraspClassifier", "image_size": str(model.size)}
+    if isinstance(model, ClassifierEnsemble):
+        meta["members"] = str(len(model.members))
     meta.update({k: str(v) for k, v in (metadata or {}).items()})
     tmp = path.with_name(path.name + ".tmp")
     safetensors.torch.save_file({k: v.contiguous() for k, v in model.state_dict().items()},
@@ -405,8 +442,9 @@ def default_weights_path() -> Path:
     return Path(models_dir()) / "gpd" / "weights.safetensors"
 
 
-def load_classifier(path: str | Path = "") -> GraspClassifier:
-    """The classifier from a safetensors file ("" = the shipped models/gpd weights).
+def load_classifier(path: str | Path = "") -> GraspClassifier | ClassifierEnsemble:
+    """The classifier from a safetensors file ("" = the shipped models/gpd weights): one
+    `GraspClassifier`, or a `ClassifierEnsemble` when the file holds several.
 
     Raises:
         FileNotFoundError / ValueError: naming the file and what was expected.
@@ -423,12 +461,37 @@ def load_classifier(path: str | Path = "") -> GraspClassifier:
     if meta.get("format") != "drake_grasp.gpd.GraspClassifier":
         raise ValueError(f"{path}: not GPD classifier weights (metadata format "
                          f"{meta.get('format')!r}, expected 'drake_grasp.gpd.GraspClassifier')")
-    model = GraspClassifier(int(meta.get("image_size", IMAGE_SIZE)))
+    size = int(meta.get("image_size", IMAGE_SIZE))
+    members = meta.get("members")
+    if members is None:
+        model = GraspClassifier(size)
+    else:
+        if not members.isdigit() or int(members) < 2:
+            raise ValueError(f"{path}: header 'members' is {members!r}, expected an integer >= 2")
+        model = ClassifierEnsemble(GraspClassifier(size) for _ in range(int(members)))
     try:
         model.load_state_dict(safetensors.torch.load_file(str(path)))
     except RuntimeError as e:
         raise ValueError(f"{path}: weights do not fit the classifier: {e}") from None
     model.eval()
+    return model
+
+
+def combine_classifiers(paths, out: str | Path) -> ClassifierEnsemble:
+    """Writes the `ClassifierEnsemble` of the classifiers in `paths` (single classifiers
+    or ensembles, flattened) to `out`, with each source's sha256 in the header."""
+    from drake_grasp.provenance import file_sha256
+
+    paths = [Path(p) for p in paths]
+    if len(paths) < 2:
+        raise ValueError(f"combine_classifiers: expected at least 2 weights files, got {len(paths)}")
+    members = []
+    for p in paths:
+        m = load_classifier(p)
+        members.extend(m.members if isinstance(m, ClassifierEnsemble) else [m])
+    model = ClassifierEnsemble(members)
+    save_classifier(model, out, metadata={
+        "sources": ",".join(f"{p.name}:{file_sha256(p)}" for p in paths)})
     return model
 
 
@@ -517,7 +580,7 @@ class Detections:
 class GpdDetector:
     """The whole pipeline: depth image -> selected grasps (`detect`)."""
 
-    classifier: GraspClassifier
+    classifier: GraspClassifier | ClassifierEnsemble
     fov_y_deg: float
     depth_min_m: float
     depth_max_m: float
@@ -545,7 +608,7 @@ class GpdDetector:
         return Detections(hands.poses[order], prob[order], len(hands), len(cloud), timings)
 
 
-def make_detector(scenario, classifier: GraspClassifier | None = None):
+def make_detector(scenario, classifier: GraspClassifier | ClassifierEnsemble | None = None):
     """detect(depth, X_WC) -> X_WG (4x4) of the selected grasp, or None, for a scenario.
 
     The classifier is `scenario.gpd.weights` ("" = shipped) unless one is given; the

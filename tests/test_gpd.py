@@ -162,9 +162,53 @@ def test_classifier_weights_round_trip_and_bad_files(tmp_path):
         gpd.load_classifier(other)
 
 
+def test_ensemble_averages_its_members_and_round_trips(tmp_path, capsys):
+    """`gpd-combine` writes one file whose probabilities are the mean of its sources'; a
+    combined file can be combined again (flattened), and bad inputs are refused."""
+    from drake_grasp.cli import main
+
+    x = np.random.default_rng(1).random((6, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)).astype(np.float32)
+    paths, probs = [], []
+    for seed in (0, 1, 2):
+        torch.manual_seed(seed)
+        m = gpd.GraspClassifier()
+        paths.append(tmp_path / f"m{seed}.safetensors")
+        gpd.save_classifier(m, paths[-1])
+        probs.append(m.probabilities(x))
+    assert np.ptp(np.stack(probs), axis=0).max() > 1e-3  # the members differ
+    pair = tmp_path / "pair.safetensors"
+    assert main(["gpd-combine", str(paths[0]), str(paths[1]), "--out", str(pair)]) == 0
+    assert "mean of 2 classifiers" in capsys.readouterr().out
+    loaded = gpd.load_classifier(pair)
+    assert isinstance(loaded, gpd.ClassifierEnsemble) and len(loaded.members) == 2
+    np.testing.assert_allclose(loaded.probabilities(x), 0.5 * (probs[0] + probs[1]), rtol=1e-5)
+    with torch.no_grad():  # forward is the mean's logit (what gpd_training's scoring calls)
+        np.testing.assert_allclose(torch.sigmoid(loaded(torch.from_numpy(x))).numpy(),
+                                   0.5 * (probs[0] + probs[1]), rtol=1e-5)
+    trio = gpd.combine_classifiers([pair, paths[2]], tmp_path / "trio.safetensors")
+    assert len(trio.members) == 3
+    np.testing.assert_allclose(gpd.load_classifier(tmp_path / "trio.safetensors").probabilities(x),
+                               np.mean(probs, axis=0), rtol=1e-5)
+    # The detector takes either kind.
+    detector = gpd.GpdDetector(loaded, fov_y_deg=45.0, depth_min_m=0.3, depth_max_m=1.5)
+    assert detector.classifier.probabilities(x).shape == (6,)
+    with pytest.raises(ValueError, match="at least 2"):
+        gpd.combine_classifiers([paths[0]], tmp_path / "one.safetensors")
+    assert not (tmp_path / "one.safetensors").exists()
+    with pytest.raises(ValueError, match="image sizes differ"):
+        gpd.ClassifierEnsemble([gpd.GraspClassifier(32), gpd.GraspClassifier(24)])
+    import safetensors.torch
+
+    bad = tmp_path / "bad.safetensors"
+    safetensors.torch.save_file({k: v.contiguous() for k, v in loaded.state_dict().items()}, str(bad),
+                                metadata={"format": "drake_grasp.gpd.GraspClassifier", "members": "1"})
+    with pytest.raises(ValueError, match="'members' is '1'"):
+        gpd.load_classifier(bad)
+
+
 def test_shipped_classifier_loads():
     model = gpd.load_classifier()
-    assert isinstance(model, gpd.GraspClassifier)
+    assert isinstance(model, gpd.ClassifierEnsemble) and len(model.members) == 2
 
 
 def test_selection_variants_script_ranks_as_each_rule_says():
