@@ -12,6 +12,16 @@ The grasps are those of the scene as settled at the start; an object pushed duri
 approach is not followed.
 
     python analysis/oracle_ctr.py --trials 120 --workers 2 --out analysis/results/oracle-ctr
+
+In clutter (`--records DIR`): the piles of a clutter experiment's recorded CTR attempts,
+each as it was when its attempt began (the record's `extra["scene"]`, scenario and seed),
+simulated twice with the current package: once by CTR with the CNN and once with the true
+distances (the ground truth of that pile, every object's grasps). A paired comparison:
+does a perfect distance function lift the clutter success, or do the attempts fail in
+execution (pushing, collisions, slips) whatever the scores?
+
+    python analysis/oracle_ctr.py --records analysis/results/gpd-view-068/clutter \
+        --workers 2 --out analysis/results/oracle-ctr-clutter
 """
 
 from __future__ import annotations
@@ -88,13 +98,95 @@ def run_trial(index: int, seed: int) -> dict:
             "wall_s": time.perf_counter() - t0}
 
 
+def run_attempt(path: str) -> dict:
+    """One recorded clutter attempt's pile, simulated by CTR with the CNN and by the oracle."""
+    import drake_grasp.systems.controller as controller_module
+    from drake_grasp.grasps import find_grasps
+    from drake_grasp.montecarlo import _simulate
+    from drake_grasp.objects import load_library
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import SceneSpec
+
+    rec = json.loads(Path(path).read_text())
+    if rec.get("policy") != "ctr" or not (rec.get("extra") or {}).get("scene"):
+        raise ValueError(f"{path}: expected a CTR clutter attempt record with extra.scene")
+    library = load_library(None)
+    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
+    scene = SceneSpec.from_dict(rec["extra"]["scene"])
+    truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
+    row = {"trial_id": rec["trial_id"], "objects": len(scene.objects),
+           "recorded": {"success": bool(rec["success"]), "failure_class": rec["failure_class"]},
+           "num_true_grasps": int(len(truth))}
+    for name in ("cnn", "oracle"):
+        t0 = time.perf_counter()
+        original = controller_module.GraspController
+        oracle = _oracle_controller(np.asarray(truth, float)) if name == "oracle" else None
+        if oracle is not None:
+            controller_module.GraspController = oracle
+        try:
+            run = _simulate(scenario, library, scene=scene)
+        finally:
+            controller_module.GraspController = original
+        r = run.result
+        row[name] = {"success": bool(r.success), "failure_class": r.details.get("failure_class"),
+                     "failure_reason": r.failure_reason,
+                     "final_distance_m": r.final_distance_m, "control_steps": r.control_steps,
+                     "grasped_object_id": r.details.get("grasped_object_id"),
+                     "stop_reason": r.details.get("stop_reason"),
+                     "oracle_steps": oracle.oracle_steps if oracle is not None else 0,
+                     "wall_s": time.perf_counter() - t0}
+    return row
+
+
+def clutter_main(args) -> int:
+    from drake_grasp.montecarlo import parallel_map
+    from drake_grasp.provenance import code_version
+    from drake_grasp.results import wilson_interval
+
+    paths = sorted(str(p) for p in Path(args.records, "trials").glob(f"*__{args.condition}__*.json"))
+    if args.trials:
+        paths = paths[:args.trials]
+    if not paths:
+        raise SystemExit(f"{args.records}/trials: no records of condition {args.condition!r}")
+    rows = parallel_map(run_attempt, [(p,) for p in paths], workers=args.workers,
+                        desc="oracle ctr, clutter")
+    summary = {"attempts": len(rows), "records": str(args.records), "condition": args.condition,
+               "code_version": code_version()}
+    for name in ("recorded", "cnn", "oracle"):
+        k = sum(r[name]["success"] for r in rows)
+        classes: dict = {}
+        for r in rows:
+            classes[r[name]["failure_class"]] = classes.get(r[name]["failure_class"], 0) + 1
+        summary[name] = {"successes": k, "rate": k / len(rows),
+                         "ci95": list(wilson_interval(k, len(rows))), "failure_classes": classes}
+    summary["paired_cnn_vs_oracle"] = {
+        "both": sum(r["cnn"]["success"] and r["oracle"]["success"] for r in rows),
+        "cnn_only": sum(r["cnn"]["success"] and not r["oracle"]["success"] for r in rows),
+        "oracle_only": sum(r["oracle"]["success"] and not r["cnn"]["success"] for r in rows),
+        "neither": sum(not r["cnn"]["success"] and not r["oracle"]["success"] for r in rows)}
+    summary["without_true_grasps"] = sum(r["num_true_grasps"] == 0 for r in rows)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "oracle_ctr_clutter.json").write_text(json.dumps({"summary": summary, "rows": rows},
+                                                            indent=1))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--trials", type=int, default=40)
+    p.add_argument("--trials", type=int, default=None,
+                   help="isolation trials (default 40); with --records, the first N attempts (default all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", required=True)
+    p.add_argument("--records", default="",
+                   help="a clutter experiment's results folder: replay its CTR attempts' piles")
+    p.add_argument("--condition", default="ctr", help="with --records: the condition's records")
     args = p.parse_args(argv)
+    if args.records:
+        return clutter_main(args)
+    args.trials = 40 if args.trials is None else args.trials
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from drake_grasp.montecarlo import parallel_map
