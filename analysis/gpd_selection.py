@@ -10,7 +10,8 @@ pile shrinks as objects are removed), test-split object instances, settled and s
 the experiments' viewpoint. For each scene: the cloud and GPD's candidates once, the
 probabilities of each classifier, the top-1 grasp of each variant, and that grasp checked
 with the ground truth (`gpd_training.ground_truth_passes`, 2 surface samplings, as the
-episodes' `detection_check`).
+episodes' `detection_check`). The lever-arm variants prefer candidates whose closing
+axis passes near the centroid of the cloud segment under them (`lever_arms`).
 
     python analysis/gpd_selection.py --scenes 40 --workers 2 \\
         --weights-b data/gpd3_model/weights.safetensors --out analysis/results/gpd-selection.json
@@ -29,9 +30,50 @@ import numpy as np
 PILE_SIZES = (10, 7, 5, 3)
 
 
-def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None) -> dict:
-    """Index of the top-1 candidate of each variant (None: nothing accepted)."""
-    from drake_grasp.gpd import Selection, cluster_support, select
+def segment_cloud(points: np.ndarray, radius_m: float = 0.005) -> np.ndarray:
+    """Label (N,) of each cloud point's segment: the connected components of the graph
+    joining points closer than `radius_m` (Euclidean clustering, as point-cloud grasping
+    pipelines segment a table-top scene). Objects that touch share a segment."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def lever_arms(points: np.ndarray, labels: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Per candidate, the horizontal distance [m] from the centroid of the seen segment
+    under its grasp centre to the vertical plane through its closing axis: the lever arm
+    of the object's weight about the axis between the pads, if the centroid of what the
+    camera sees stands for the centre of mass. Pads resist a torque about that axis
+    only by their patch's torsional friction, so a long object held far from its middle
+    turns out of the grip as it is lifted."""
+    from scipy.spatial import cKDTree
+
+    if len(poses) == 0 or len(points) == 0:
+        return np.zeros(len(poses))
+    counts = np.bincount(labels)
+    centroids = np.stack([np.bincount(labels, weights=points[:, j]) / counts for j in range(3)], 1)
+    centre = poses[:, :3, 3]
+    seg = labels[cKDTree(points).query(centre)[1]]
+    r = (centroids[seg] - centre)[:, :2]
+    x = poses[:, :2, 0]
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    x = np.where(norm > 1e-9, x / np.maximum(norm, 1e-9), 0.0)
+    along = np.sum(r * x, axis=1, keepdims=True) * x
+    return np.linalg.norm(r - along, axis=1)
+
+
+def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None,
+             arms: np.ndarray | None = None) -> dict:
+    """Index of the top-1 candidate of each variant (None: nothing accepted). `arms`:
+    each candidate's lever arm (`gpd.lever_arms`) for the balance variants."""
+    from drake_grasp.gpd import Selection, cluster_scores, cluster_support, select
 
     out = {}
 
@@ -49,6 +91,15 @@ def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None) -
     else:
         out["shipped: cluster sum (support)"] = None
     out["shipped: cluster mean, threshold 0.9"] = first(select(poses, prob_a, Selection(threshold=0.9)))
+    if arms is not None and len(acc):
+        score = cluster_scores(poses, prob_a)[acc]
+        for w in (0.1, 0.2, 0.4):
+            out[f"shipped: cluster mean - {w} per 5 cm of lever arm"] = int(
+                acc[np.argmax(score - w * arms[acc] / 0.05)])
+        for tol in (0.05, 0.1):
+            near = score >= score.max() - tol
+            out[f"shipped: least lever arm within {tol} of the best cluster mean"] = int(
+                acc[near][np.argmin(arms[acc][near])])
     if prob_b is not None:
         out["retrained: cluster mean"] = first(select(poses, prob_b))
         out["mean of both: cluster mean"] = first(select(poses, 0.5 * (prob_a + prob_b)))
@@ -84,7 +135,8 @@ def scene_row(i: int, seed: int, weights_b: str) -> dict:
     images = gpd.grasp_images(cloud, hands.poses)
     prob_a = detector.classifier.probabilities(images)
     prob_b = gpd.load_classifier(weights_b).probabilities(images) if weights_b else None
-    picks = variants(hands.poses, prob_a, prob_b)
+    arms = lever_arms(cloud.points, segment_cloud(cloud.points), hands.poses)
+    picks = variants(hands.poses, prob_a, prob_b, arms)
     chosen = sorted({v for v in picks.values() if v is not None})
     passes, obj = ground_truth_passes(settled, library, hands.poses[chosen],
                                       np.random.default_rng([s_seed, 62]), GpdDataConfig(),
@@ -94,7 +146,7 @@ def scene_row(i: int, seed: int, weights_b: str) -> dict:
     for name, c in picks.items():
         row["picks"][name] = None if c is None else {
             "candidate": c, "ground_truth_passes": verdict[c][0], "object_id": verdict[c][1],
-            "probability_shipped": float(prob_a[c])}
+            "probability_shipped": float(prob_a[c]), "lever_arm_m": float(arms[c])}
     row["seconds"] = time.perf_counter() - t0
     return row
 
