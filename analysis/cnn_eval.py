@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from drake_grasp.cnn_metrics import ranking_metrics
-from drake_grasp.network import load_weights
+from drake_grasp.network import MirrorAveragedCNN, load_weights
 from drake_grasp.training import ChunkCache, ShardSet, evaluate_l1
 
 
@@ -28,15 +28,21 @@ def main(argv=None) -> dict:
     parser.add_argument("--ranking-images", type=int, default=200,
                         help="test images for the ranking metrics (default 200, as train)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--mirror", action="store_true",
+                        help="score as the mean of the image and its mirror image "
+                             "(network.MirrorAveragedCNN)")
     parser.add_argument("--out", required=True, help="JSON file to write")
     args = parser.parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
     model, _ = load_weights(args.weights)
+    if args.mirror:
+        model = MirrorAveragedCNN(model)
     t0 = time.perf_counter()
     data = ShardSet(args.test_data, ChunkCache(int(2e9)))
     l1 = evaluate_l1(model, data, device=torch.device("cpu"))
     ranking = ranking_metrics(model, args.test_data, images=args.ranking_images, seed=0)
-    out = {"weights": str(args.weights), "test_data": str(args.test_data),
+    out = {"weights": str(args.weights), "mirror_averaged": bool(args.mirror),
+           "test_data": str(args.test_data),
            "num_test_images": len(data), "test_l1_m": l1, "ranking": ranking,
            "seconds": time.perf_counter() - t0}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

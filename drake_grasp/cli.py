@@ -236,7 +236,8 @@ def _cmd_evaluate(args) -> int:
                       objects_dir=args.objects,
                       conditions=[c for c in args.conditions.split(",") if c] or None,
                       force_new=args.force_new, physics_profile=args.physics_profile,
-                      weights=args.weights or "", gpd_weights=args.gpd_weights or "")
+                      weights=args.weights or "", gpd_weights=args.gpd_weights or "",
+                      mirror_average=args.mirror_average)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -591,6 +592,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "gpd-train') for the gpd conditions; default: the shipped "
                         "models/gpd/weights.safetensors. Its sha256 is part of the run's "
                         "identity")
+    p.add_argument("--mirror-average", action="store_true",
+                   help="the CNN conditions score every candidate as the mean over the "
+                        "wrist image and its mirror image (controller.mirror_average)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

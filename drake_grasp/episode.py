@@ -432,7 +432,8 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     c = scenario.controller
     needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
     timer = DecisionTimer()
-    score_fn = (timer.wrap(lambda d, actions: score_candidates(model, d, actions))
+    score_fn = (timer.wrap(lambda d, actions: score_candidates(model, d, actions,
+                                                              mirror=c.mirror_average))
                 if needs_cnn else None)
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=X_WG_start, X_GC=X_GC,

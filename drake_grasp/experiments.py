@@ -82,6 +82,9 @@ class Experiment:
     # The GPD grasp classifier's weights file for the `gpd` conditions; "" keeps the
     # scenario's (the shipped models/gpd weights). `evaluate --gpd-weights` sets it.
     gpd_weights: str = ""
+    # True: the conditions whose policy uses the CNN score with `controller.mirror_average`
+    # on; False keeps the scenario's. `evaluate --mirror-average` sets it.
+    cnn_mirror_average: bool = False
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -260,6 +263,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     s = dataclasses.replace(s, seed=0, policy=condition.policy)
     if experiment.cnn_weights and condition.policy in CNN_POLICIES:
         s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
+    if experiment.cnn_mirror_average and condition.policy in CNN_POLICIES:
+        s.controller = dataclasses.replace(s.controller, mirror_average=True)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
     if objects_dir:

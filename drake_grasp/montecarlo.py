@@ -66,6 +66,8 @@ class TrialTask:
     cnn_weights: str = ""
     # The GPD classifier's weights file of the gpd conditions (`Experiment.gpd_weights`).
     gpd_weights: str = ""
+    # `Experiment.cnn_mirror_average`.
+    cnn_mirror_average: bool = False
 
     @property
     def trial_id(self) -> str:
@@ -73,8 +75,8 @@ class TrialTask:
 
 
 def task_experiment(task: TrialTask) -> Experiment:
-    """The experiment a task belongs to, with the task's physics profile, CNN weights and
-    GPD classifier weights."""
+    """The experiment a task belongs to, with the task's physics profile, CNN weights, CNN
+    mirror averaging and GPD classifier weights."""
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
@@ -82,6 +84,8 @@ def task_experiment(task: TrialTask) -> Experiment:
         experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
     if task.gpd_weights:
         experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
+    if task.cnn_mirror_average:
+        experiment = dataclasses.replace(experiment, cnn_mirror_average=True)
     return experiment
 
 
@@ -107,7 +111,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
-                      experiment.cnn_weights, experiment.gpd_weights)
+                      experiment.cnn_weights, experiment.gpd_weights,
+                      experiment.cnn_mirror_average)
             for i in range(n) for c, spec in asked]
 
 
@@ -632,7 +637,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
-             physics_profile: str = "", weights: str = "", gpd_weights: str = "") -> dict:
+             physics_profile: str = "", weights: str = "", gpd_weights: str = "",
+             mirror_average: bool = False) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -668,6 +674,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         gpd_weights: A GPD grasp classifier weights file (safetensors from
             `drake-grasp gpd-train`) for the `gpd` conditions; "" keeps the shipped
             weights. Its sha256 is part of the run's identity, as the shipped file's is.
+        mirror_average: The CNN conditions score with `controller.mirror_average` on (the
+            mean over the wrist image and its mirror image); part of the run's identity
+            through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -695,6 +704,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             raise ValueError(f"--gpd-weights {gpd_weights}: no such file (expected GPD "
                              "classifier weights: *.safetensors from `drake-grasp gpd-train`)")
         exp = dataclasses.replace(exp, gpd_weights=str(gpd_weights))
+    if mirror_average:
+        exp = dataclasses.replace(exp, cnn_mirror_average=True)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

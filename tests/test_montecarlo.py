@@ -456,6 +456,31 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     assert not (tmp_path / "run2").exists()
 
 
+def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp_path):
+    """`evaluate --mirror-average`: the CNN conditions' trials score with
+    controller.mirror_average on, the run's identity differs (a resume without the flag
+    is refused), the other conditions are unchanged."""
+    from drake_grasp.experiments import trial_scenario
+
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_mirror_average=True)
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    assert ident["ctr"]["scenario"]["controller"]["mirror_average"] is True
+    assert base["ctr"]["scenario"]["controller"]["mirror_average"] is False
+    assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
+    assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
+    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.controller.mirror_average == (task.condition == "ctr")
+    out = tmp_path / "run"
+    out.mkdir()
+    from drake_grasp.results import write_run_info
+
+    write_run_info(out, m.run_identity(exp, seed=0))
+    assert m.folder_conflict(out, m.run_identity(EXPERIMENTS["isolation"], seed=0)) is not None
+
+
 def test_parallel_map_keeps_the_order_in_and_out_of_process():
     import operator
 

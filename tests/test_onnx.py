@@ -17,7 +17,7 @@ import torch
 from pydrake.systems.sensors import ImageDepth32F
 
 from drake_grasp.cli import main
-from drake_grasp.network import NetworkConfig, normalize_depth
+from drake_grasp.network import MirrorAveragedCNN, NetworkConfig, normalize_depth
 from drake_grasp.onnx_export import SHIPPED_WEIGHTS, export_onnx
 from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
 from drake_grasp.onnx_runtime import normalize_depth as normalize_depth_np
@@ -112,6 +112,28 @@ def test_evaluator_system_with_the_onnx_file_equals_torch(exported, torch_model)
     assert isinstance(load_cnn(str(exported)), OnnxDistanceModel)
     assert out["onnx"].shape == (len(actions),)
     assert np.abs(out["onnx"] - out["torch"]).max() <= DISTANCE_TOL_M
+
+
+def test_mirror_average_is_the_same_on_both_backends(exported, torch_model):
+    # controller.mirror_average: the evaluator scores the mean over the image and its
+    # mirror image, as MirrorAveragedCNN does, with either backend.
+    depth, actions = random_check_inputs(5, images=1)
+    mirrored = MirrorAveragedCNN(torch_model)
+    with torch.inference_mode():
+        want = mirrored.score_actions(mirrored.image_features(mirrored.preprocess(depth[0])),
+                                      torch.from_numpy(actions)).numpy()
+    image = ImageDepth32F(64, 64)
+    image.mutable_data[:, :, 0] = depth[0]
+    for model in (torch_model, load_cnn(str(exported))):
+        out = {}
+        for mirror in (False, True):
+            system = DistanceEvaluator(model, mirror=mirror)
+            ctx = system.CreateDefaultContext()
+            system.GetInputPort("depth_image").FixValue(ctx, image)
+            system.GetInputPort("candidate_actions").FixValue(ctx, actions.astype(float))
+            out[mirror] = np.asarray(system.GetOutputPort("predicted_distances").Eval(ctx))
+        assert np.abs(out[True] - want).max() <= DISTANCE_TOL_M
+        assert np.abs(out[True] - out[False]).max() > 1e-4  # the flag changes the scores
 
 
 def test_onnx_backend_takes_the_scenarios_thread_count(exported):

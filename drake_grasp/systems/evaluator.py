@@ -44,8 +44,17 @@ def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxD
 
 
 def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel], depth: np.ndarray,
-                     actions: np.ndarray) -> np.ndarray:
-    """Predicted distance [m] for each candidate action on one depth image (fast path)."""
+                     actions: np.ndarray, *, mirror: bool = False) -> np.ndarray:
+    """Predicted distance [m] for each candidate action on one depth image (fast path).
+
+    `mirror`: the mean of the scores on the image and on its mirror image with the
+    mirrored actions (`network.mirror_actions`; `controller.mirror_average`)."""
+    if mirror:
+        from drake_grasp.network import mirror_actions, mirror_images
+
+        return 0.5 * (score_candidates(model, depth, actions)
+                      + score_candidates(model, mirror_images(np.asarray(depth)),
+                                         mirror_actions(np.asarray(actions))))
     if isinstance(model, OnnxDistanceModel):
         return model.score(depth, np.asarray(actions, np.float32))
     import torch
@@ -65,12 +74,15 @@ class DistanceEvaluator(LeafSystem):
         predicted_distances: (K,) metres.
     """
 
-    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel], *, score_fn=None):
+    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel], *, score_fn=None,
+                 mirror: bool = False):
         """`model`: from `load_cnn` (torch or onnxruntime backend). `score_fn(depth,
-        actions)` replaces `score_candidates(model, ...)` (e.g. a timed wrapper of it)."""
+        actions)` replaces `score_candidates(model, ..., mirror=mirror)` (e.g. a timed
+        wrapper of it)."""
         super().__init__()
         self._model = model
-        self._score_fn = score_fn or (lambda depth, actions: score_candidates(model, depth, actions))
+        self._score_fn = score_fn or (lambda depth, actions: score_candidates(
+            model, depth, actions, mirror=mirror))
         self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
         self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
         self.DeclareAbstractOutputPort(
