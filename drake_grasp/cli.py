@@ -150,7 +150,7 @@ def _cmd_train(args) -> int:
         learning_rate=args.lr, momentum=args.momentum, lr_decay_per_epoch=args.lr_decay,
         seed=args.seed, device=args.device, threads=args.threads,
         max_memory_gb=args.max_memory_gb, checkpoint_minutes=args.checkpoint_minutes,
-        ranking_images=args.ranking_images)
+        ranking_images=args.ranking_images, init_weights=args.init_weights)
     metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
                       "device": metrics["device"], "out": str(args.out)}))
@@ -481,6 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "HDF5 chunks of both sets plus the batch being assembled; larger "
                         "datasets stream from the shards (slower epochs, the same batches). "
                         "Too small for one batch is an error. May differ when resuming")
+    p.add_argument("--init-weights", default=None, metavar="FILE",
+                   help="start from these weights (e.g. the shipped "
+                        "models/cnn/weights.safetensors) instead of a fresh initialization, "
+                        "with a fresh optimizer; their tensors' sha256 is part of the run's "
+                        "identity")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

@@ -55,13 +55,19 @@ import torch
 from drake_grasp.cnn_metrics import ranking_metrics
 from drake_grasp.dataset import GenerateLock, load_manifest, replace_durably
 from drake_grasp.native import load_llvm_users_first
-from drake_grasp.network import DistanceCNN, NetworkConfig, save_weights
+from drake_grasp.network import (
+    DistanceCNN,
+    NetworkConfig,
+    load_weights,
+    save_weights,
+    tensors_sha256,
+)
 from drake_grasp.provenance import code_version
 
 # Settings that say where and how fast a run computes, not what it computes: they may
 # change when a run is resumed (with `epochs`, which may grow).
 NOT_IDENTITY = ("epochs", "device", "threads", "max_memory_gb", "checkpoint_minutes",
-                "ranking_images")
+                "ranking_images", "init_weights")
 
 OPTIMIZERS = ("sgd", "adam")
 
@@ -103,6 +109,10 @@ class TrainConfig:
     checkpoint_minutes: float = 5.0
     # Test images for the within-image ranking metrics after each epoch (0: none).
     ranking_images: int = 200
+    # Start from these weights (a `save_weights` file, e.g. the shipped ones) instead of a
+    # fresh initialization: training continues on `data` with a fresh optimizer. The
+    # file's tensors' sha256, not its path, is part of the run's identity.
+    init_weights: str = ""
 
     @classmethod
     def from_recipe(cls, name: str, **overrides) -> "TrainConfig":
@@ -501,8 +511,12 @@ def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = N
     """
     config = config or TrainConfig()
     config.validate()
-    # Bad --data is refused before `out` is created.
+    # Bad --data or --init-weights is refused before `out` is created.
     train_dir, test_dir = resolve_data_dirs(data, test_data)
+    if config.init_weights and not Path(config.init_weights).is_file():
+        raise ValueError(f"init_weights {config.init_weights}: no such file (expected a "
+                         "weights file from `train`, e.g. the shipped "
+                         "models/cnn/weights.safetensors)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with TrainLock(out):
@@ -515,6 +529,14 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     """`train` once `out` is locked and the config validated."""
     from tqdm import tqdm
 
+    init = None
+    if config.init_weights:
+        path = Path(config.init_weights)
+        init, _ = load_weights(path)
+        if network is not None and network != init.config:
+            raise ValueError(f"init_weights {path}: its network config differs from the "
+                             "one asked for")
+        network = init.config
     network = network or NetworkConfig(theta_unit="deg")
     if config.threads > 0:
         torch.set_num_threads(config.threads)
@@ -527,6 +549,8 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
                 "train_data": str(train_dir), "test_data": str(test_dir),
                 "train_manifest_sha256": train_set.manifest_sha256,
                 "test_manifest_sha256": test_set.manifest_sha256}
+    if init is not None:
+        resolved["init_weights_sha256"] = tensors_sha256(init.state_dict())
     # The datasets are identified by their manifests' content, not by where they lie.
     located = resolved
     resolved = {k: v for k, v in located.items() if k not in ("train_data", "test_data")}
@@ -538,7 +562,10 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     legacy_hash = _identity_hash(located, exclude=("epochs",))
 
     generator = torch.Generator().manual_seed(config.seed)
-    model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed)).to(device)
+    model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed))
+    if init is not None:
+        model.load_state_dict(init.state_dict())
+    model = model.to(device)
     # Creating an optimizer loads triton's LLVM; keep it apart from a renderer's
     # (drake_grasp.native).
     load_llvm_users_first()

@@ -63,6 +63,30 @@ def test_training_reduces_the_l1_loss(data, tmp_path):
     assert (out / "weights.safetensors").is_file()
 
 
+def test_init_weights_start_from_a_trained_net(data, tmp_path):
+    """--init-weights: the run starts from the given net (at a learning rate too small to
+    move it, its test L1 is the given net's, far below a fresh net's), its identity holds
+    the tensors' sha256, and a missing file is refused before the folder is made."""
+    with torch.random.fork_rng():
+        trained = train(data=data, out=tmp_path / "a", config=_config(12), progress=False)
+        still = dict(learning_rate=1e-12)
+        warm = train(data=data, out=tmp_path / "b", progress=False, config=_config(
+            1, init_weights=str(tmp_path / "a" / "weights.safetensors"), **still))
+        cold = train(data=data, out=tmp_path / "c", config=_config(1, **still), progress=False)
+    assert warm["test_l1_m"] == pytest.approx(trained["test_l1_m"], rel=1e-4)
+    assert cold["test_l1_m"] > 1.5 * warm["test_l1_m"]
+    from drake_grasp.network import load_weights, tensors_sha256
+
+    net, _ = load_weights(tmp_path / "a" / "weights.safetensors")
+    config = json.loads((tmp_path / "b" / "train_config.json").read_text())
+    assert config["init_weights_sha256"] == tensors_sha256(net.state_dict())
+    assert "init_weights_sha256" not in json.loads((tmp_path / "c" / "train_config.json").read_text())
+    with pytest.raises(ValueError, match="init_weights .*nope.safetensors: no such file"):
+        train(data=data, out=tmp_path / "d", progress=False,
+              config=_config(1, init_weights=str(tmp_path / "nope.safetensors")))
+    assert not (tmp_path / "d").exists()
+
+
 def test_resume_continues_from_the_saved_epoch(data, tmp_path):
     out = tmp_path / "run"
     straight = train(data=data, out=tmp_path / "straight", config=_config(4), progress=False)
