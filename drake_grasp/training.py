@@ -562,9 +562,8 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     legacy_hash = _identity_hash(located, exclude=("epochs",))
 
     generator = torch.Generator().manual_seed(config.seed)
-    model = DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed))
-    if init is not None:
-        model.load_state_dict(init.state_dict())
+    model = (init if init is not None
+             else DistanceCNN(network, generator=torch.Generator().manual_seed(config.seed)))
     model = model.to(device)
     # Creating an optimizer loads triton's LLVM; keep it apart from a renderer's
     # (drake_grasp.native).
