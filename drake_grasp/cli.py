@@ -151,7 +151,12 @@ def _cmd_train(args) -> int:
         seed=args.seed, device=args.device, threads=args.threads,
         max_memory_gb=args.max_memory_gb, checkpoint_minutes=args.checkpoint_minutes,
         ranking_images=args.ranking_images, init_weights=args.init_weights)
-    metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config)
+    network = None  # the default net (or the --init-weights file's)
+    if args.action_fusion == "window":
+        from drake_grasp.network import NetworkConfig
+        network = NetworkConfig(theta_unit="deg", action_fusion="window")
+    metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config,
+                    network=network)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
                       "device": metrics["device"], "out": str(args.out)}))
     return 0
@@ -486,6 +491,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "models/cnn/weights.safetensors) instead of a fresh initialization, "
                         "with a fresh optimizer; their tensors' sha256 is part of the run's "
                         "identity")
+    p.add_argument("--action-fusion", choices=("tiled", "window"), default="tiled",
+                   help="how the candidate action enters the net: tiled (default, the "
+                        "paper's: IP(a) added to every Pool1 cell) or window (the net reads "
+                        "its Conv2 features in a 12 cm window placed and turned where the "
+                        "candidate grasp would be; README *Window fusion*)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

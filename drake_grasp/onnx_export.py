@@ -147,7 +147,7 @@ def export_onnx(
 
     Raises:
         FileNotFoundError: No weights file, or `out`'s folder does not exist.
-        ValueError: A bad weights file, `out` not ending in ``.onnx``, an unknown
+        ValueError: A bad weights file, a window-fusion net, `out` not ending in ``.onnx``, an unknown
             exporter, or an export that does not reproduce torch.
         ImportError: onnx / onnxruntime (or onnxscript for "dynamo") missing.
     """
@@ -163,6 +163,9 @@ def export_onnx(
                           "'drake_grasp[onnx-export]'")
     source = Path(weights) if weights else models_dir() / SHIPPED_WEIGHTS
     model, _ = load_weights(source)
+    if model.config.action_fusion != "tiled":
+        raise ValueError(f"{source}: action_fusion {model.config.action_fusion!r}; the ONNX "
+                         "export covers the tiled (paper) fusion only")
     source_sha = tensors_sha256(model.state_dict())
     model = model.float().eval()
     cfg = model.config

@@ -494,3 +494,83 @@ def test_load_bad_metadata(tmp_path):
     safetensors.torch.save_file({"x": torch.zeros(2)}, str(path))
     with pytest.raises(ValueError, match=re.escape(str(path)) + ".*metadata key 'format' missing"):
         load_weights(path)
+
+
+# -- window fusion ---------------------------------------------------------------------
+
+WIN = NetworkConfig(action_fusion="window")
+
+
+def test_window_config_and_backward_compatible_dicts():
+    """A tiled net's dict has no window fields (files and run identities written before
+    the window fusion existed are unchanged); a window net's needs all of them."""
+    assert "action_fusion" not in CFG.to_dict()
+    assert NetworkConfig.from_dict(CFG.to_dict()).action_fusion == "tiled"
+    assert NetworkConfig.from_dict(WIN.to_dict()) == WIN
+    d = WIN.to_dict()
+    del d["window_side_m"]
+    with pytest.raises(ValueError, match="missing.*window_side_m"):
+        NetworkConfig.from_dict(d)
+    assert WIN.feature_shape() == (51, 26, 26)
+    assert WIN.num_features == 50 * 10 * 10
+    with pytest.raises(ValueError, match="window_samples"):
+        NetworkConfig(action_fusion="window", window_samples=7)
+    with pytest.raises(ValueError, match="depth_reference"):
+        NetworkConfig(action_fusion="window", depth_reference="median")
+    with pytest.raises(ValueError, match="action_fusion"):
+        NetworkConfig(action_fusion="concat")
+
+
+def test_window_forms_agree_and_save_load(tmp_path):
+    m = _model(config=WIN)
+    images = _images(3, seed=1) * 0.3
+    actions = _raw_actions((3, 5), seed=2) * torch.tensor([0.8, 0.8, 1.0], dtype=torch.float64)
+    factored = m.forward_factored(images, actions)
+    direct = torch.stack([m.forward(images, actions[:, j]) for j in range(5)], dim=1)
+    control = torch.stack([m.score_actions(m.image_features(images[i:i + 1])[0], actions[i])
+                           for i in range(3)])
+    assert factored.shape == (3, 5) and (factored > 0).all()
+    assert _max_rel(direct, factored) < 1e-12 and _max_rel(control, factored) < 1e-12
+    save_weights(m, tmp_path / "w.safetensors", metadata={})
+    loaded, meta = load_weights(tmp_path / "w.safetensors")
+    assert loaded.config == WIN and meta["config"]["action_fusion"] == "window"
+    assert torch.equal(loaded.forward_factored(images, actions), factored)
+    with pytest.raises(ValueError, match="window"):
+        m.action_offsets(actions)
+
+
+def test_window_is_placed_where_the_candidate_grasp_is_seen():
+    """Translation equivariance, exactly: content moved by 4 pixels (two Conv2 cells) in
+    the image, and the candidate moved by the same 4 pixels' worth of metres at the
+    image's depth, score the same. And the window's centre is the pixel where the
+    candidate's grasp axis is seen (`policies.grasp_axis_pixel`'s geometry)."""
+    from drake_grasp.policies import grasp_axis_pixel
+
+    m = _model(config=WIN)
+    rng = np.random.default_rng(0)
+    depth = np.full((64, 64), 0.25)
+    depth[24:40, 20:44] -= rng.uniform(0.0, 0.06, (16, 24))  # an object, away from borders
+    moved = np.roll(depth, 4, axis=1)  # 4 px towards +u, i.e. +x_G
+    dx = 4 * 0.25 / WIN.focal_px
+    a = torch.tensor([[0.0, -0.05, 30.0], [0.01, -0.04, -60.0]], dtype=torch.float64)
+    b = a + torch.tensor([dx, 0.0, 0.0], dtype=torch.float64)
+    images = m.preprocess(np.stack([depth, moved]))
+    f = m.image_features(images)
+    assert torch.allclose(f[:, -1, 0, 0], torch.full((2,), 0.25, dtype=torch.float64))
+    d0 = m.score_actions(f[0], a)
+    d1 = m.score_actions(f[1], b)
+    assert torch.allclose(d0, d1, rtol=1e-9, atol=0), (d0, d1)
+    # The grid's centre for the hand's own grasp axis (action 0) at the image's depth.
+    feats = action_features(torch.zeros(1, 1, 3), WIN, dtype=torch.float64)
+    grid = m._window_grid(feats, torch.tensor([0.25], dtype=torch.float64))
+    side = WIN.feature_shape()[1]
+    u, v = ((grid.mean(dim=(1, 2))[0] + 1) * (side - 1) / 2) * 2 + 6.5  # back to pixels
+    u0, v0 = grasp_axis_pixel((64, 64), WIN.focal_px, (WIN.camera_x_G_m, WIN.camera_y_G_m), 0.25)
+    assert abs(u.item() - u0) < 1e-9 and abs(v.item() - v0) < 1e-9
+    # Turned by 60 degrees, each window row runs along the closing axis, (cos 60, sin 60)
+    # in (x_G, y_G), i.e. in (u, v).
+    turned = m._window_grid(action_features(torch.tensor([[[0.0, 0.0, math.pi / 3]]]), WIN,
+                                            dtype=torch.float64),
+                            torch.tensor([0.25], dtype=torch.float64))
+    du, dv = (turned[0, 0, 1] - turned[0, 0, 0]).tolist()
+    assert du > 0 and abs(dv / du - math.sqrt(3)) < 1e-5

@@ -17,7 +17,8 @@ import torch
 from pydrake.systems.sensors import ImageDepth32F
 
 from drake_grasp.cli import main
-from drake_grasp.network import MirrorAveragedCNN, NetworkConfig, normalize_depth
+from drake_grasp.network import (DistanceCNN, MirrorAveragedCNN, NetworkConfig,
+                                  normalize_depth, save_weights)
 from drake_grasp.onnx_export import SHIPPED_WEIGHTS, export_onnx
 from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
 from drake_grasp.onnx_runtime import normalize_depth as normalize_depth_np
@@ -237,4 +238,9 @@ def test_export_cli_errors(tmp_path, capsys):
     assert main(["export-onnx", "--out", str(tmp_path / "a.onnx"),
                  "--weights", str(tmp_path / "missing.safetensors")]) == 2
     assert "missing.safetensors: no such weights file" in capsys.readouterr().err
+    window = tmp_path / "window.safetensors"
+    save_weights(DistanceCNN(NetworkConfig(action_fusion="window")), window, metadata={})
+    assert main(["export-onnx", "--out", str(tmp_path / "a.onnx"), "--weights", str(window)]) == 2
+    assert "action_fusion 'window'; the ONNX export covers the tiled" in capsys.readouterr().err
+    window.unlink()
     assert not list(tmp_path.iterdir())  # nothing half-written
