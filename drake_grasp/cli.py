@@ -152,9 +152,17 @@ def _cmd_train(args) -> int:
         max_memory_gb=args.max_memory_gb, checkpoint_minutes=args.checkpoint_minutes,
         ranking_images=args.ranking_images, init_weights=args.init_weights)
     network = None  # the default net (or the --init-weights file's)
+    if args.context_side and args.action_fusion != "window":
+        print("--context-side: needs --action-fusion window", file=sys.stderr)
+        return 2
     if args.action_fusion == "window":
         from drake_grasp.network import NetworkConfig
-        network = NetworkConfig(theta_unit="deg", action_fusion="window")
+        try:
+            network = NetworkConfig(theta_unit="deg", action_fusion="window",
+                                    context_side_m=args.context_side)
+        except ValueError as e:
+            print(f"--context-side {args.context_side}: {e}", file=sys.stderr)
+            return 2
     metrics = train(data=args.data, test_data=args.test_data, out=args.out, config=config,
                     network=network)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
@@ -496,6 +504,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "paper's: IP(a) added to every Pool1 cell) or window (the net reads "
                         "its Conv2 features in a 12 cm window placed and turned where the "
                         "candidate grasp would be; README *Window fusion*)")
+    p.add_argument("--context-side", type=float, default=0.0, metavar="M",
+                   help="with --action-fusion window: side in metres of a second, coarser "
+                        "window around the candidate (as many samples as the 12 cm one), "
+                        "so the net sees what lies beyond it; 0 (default): none")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

@@ -85,7 +85,10 @@ _THETA_ENCODINGS = ("double_angle",)
 _ACTION_FUSIONS = ("tiled", "window")
 # Fields that only the window fusion uses: absent from a "tiled" net's dict.
 _WINDOW_FIELDS = ("action_fusion", "window_side_m", "window_samples", "camera_fov_deg",
-                  "camera_x_G_m", "camera_y_G_m")
+                  "camera_x_G_m", "camera_y_G_m", "context_side_m")
+# Fields added after the window fusion, with the value that means "as before": left out
+# of the dict at that value, read as it when missing.
+_LATER_FIELDS = {"context_side_m": 0.0}
 
 
 @dataclass
@@ -152,6 +155,9 @@ class NetworkConfig:
             belong to it and are left out of `to_dict` for "tiled" nets, so files and
             run identities written before they existed are unchanged.
         window_side_m: Side of the square window around the candidate grasp [m].
+        context_side_m: Side of a second, coarser window around the candidate [m], with
+            as many samples; 0 = none. It shows the net what lies beyond the fine
+            window (a candidate far from any object has its nearest grasp there).
         window_samples: Samples per window side (even); pooled 2x2 into IP1's input.
         camera_fov_deg: The wrist camera's field of view (square image) [deg].
         camera_x_G_m, camera_y_G_m: The camera's centre in the grasp frame G [m]
@@ -179,6 +185,7 @@ class NetworkConfig:
     camera_fov_deg: float = 55.0
     camera_x_G_m: float = 0.0
     camera_y_G_m: float = -0.05
+    context_side_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("image_size", "conv1_channels", "conv2_channels", "kernel", "ip1",
@@ -221,6 +228,10 @@ class NetworkConfig:
         if not self.camera_fov_deg < 180.0:
             raise ValueError(
                 f"NetworkConfig.camera_fov_deg: expected < 180, got {self.camera_fov_deg!r}")
+        if (not _is_real(self.context_side_m) or not math.isfinite(self.context_side_m)
+                or self.context_side_m < 0.0):
+            raise ValueError("NetworkConfig.context_side_m: expected a finite number >= 0, "
+                             f"got {self.context_side_m!r}")
         for name in ("camera_x_G_m", "camera_y_G_m"):
             if not _is_real(getattr(self, name)) or not math.isfinite(getattr(self, name)):
                 raise ValueError(
@@ -272,7 +283,8 @@ class NetworkConfig:
         """Length of IP1's input: the flattened Pool2 output (8450 for the defaults), or
         for the window fusion the pooled window, C2 x (window_samples / 2)^2."""
         if self.action_fusion == "window":
-            return self.conv2_channels * (self.window_samples // 2) ** 2
+            windows = 2 if self.context_side_m > 0 else 1
+            return windows * self.conv2_channels * (self.window_samples // 2) ** 2
         c, h, w = self.feature_shape()
         return c * h * w
 
@@ -287,6 +299,9 @@ class NetworkConfig:
         d = dataclasses.asdict(self)
         if self.action_fusion == "tiled":
             for name in _WINDOW_FIELDS:
+                d.pop(name)
+        for name, before in _LATER_FIELDS.items():
+            if d.get(name, None) == before:
                 d.pop(name)
         return d
 
@@ -310,6 +325,7 @@ class NetworkConfig:
         missing = [n for n in names if n not in data]
         if "action_fusion" not in data:  # a "tiled" net's dict (`to_dict`)
             missing = [n for n in missing if n not in _WINDOW_FIELDS]
+        missing = [n for n in missing if n not in _LATER_FIELDS]
         if missing:
             raise ValueError(f"{source}: missing NetworkConfig field(s) {missing}")
         try:
@@ -758,11 +774,13 @@ class DistanceCNN(nn.Module):
         depth = images.flatten(1) * cfg.depth_scale_m + cfg.depth_offset_m
         return depth.median(dim=1).values
 
-    def _window_grid(self, feats: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    def _window_grid(self, feats: torch.Tensor, ref: torch.Tensor,
+                     side_m: Optional[float] = None) -> torch.Tensor:
         """grid_sample coordinates of every candidate's window on the lrelu(Conv2) map.
 
         Args:
             feats: (B, M, 4) action features; ref: (B,) reference depths [m].
+            side_m: The window's side [m]; default `window_side_m`.
 
         Returns:
             (B, M * n, n, 2), n = `window_samples`, in align_corners=True units.
@@ -776,7 +794,7 @@ class DistanceCNN(nn.Module):
         theta = 0.5 * torch.atan2(feats[..., 3], feats[..., 2])
         e1 = torch.stack((torch.cos(theta), torch.sin(theta)), dim=-1)  # (B, M, 2)
         e2 = torch.stack((-torch.sin(theta), torch.cos(theta)), dim=-1)
-        step = cfg.window_side_m / n
+        step = (cfg.window_side_m if side_m is None else side_m) / n
         s = (torch.arange(n, dtype=feats.dtype, device=feats.device) - (n - 1) / 2.0) * step
         # points[b, m, i, j] = centre + s[j] e1 + s[i] e2 (row i along e2, column j along e1)
         pts = (centre[:, :, None, None, :] + s[None, None, None, :, None] * e1[:, :, None, None, :]
@@ -806,17 +824,22 @@ class DistanceCNN(nn.Module):
         b, m = feats.shape[:2]
         n = cfg.window_samples
         fmap, ref = features[:, :-1], features[:, -1, 0, 0]
-        grid = self._window_grid(feats, ref)
-        win = F.grid_sample(fmap, grid, mode="bilinear", padding_mode="zeros",
-                            align_corners=True)  # (B, C2, M * n, n)
         c2, half = fmap.shape[1], n // 2
-        # 2x2 max-pool in place (n is even: no block straddles two windows), then the
-        # 4x smaller result goes to one row per candidate.
-        # (Four strided maxima: ~10x faster on CPU than max_pool2d or amax here.)
-        w = win.reshape(b, c2, m * half, 2, half, 2)
-        win = torch.maximum(torch.maximum(w[:, :, :, 0, :, 0], w[:, :, :, 0, :, 1]),
-                            torch.maximum(w[:, :, :, 1, :, 0], w[:, :, :, 1, :, 1]))
-        h = win.reshape(b, c2, m, half * half).transpose(1, 2).reshape(b * m, c2 * half * half)
+        sides = [cfg.window_side_m] + ([cfg.context_side_m] if cfg.context_side_m > 0 else [])
+        parts = []
+        for side_m in sides:
+            grid = self._window_grid(feats, ref, side_m)
+            win = F.grid_sample(fmap, grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=True)  # (B, C2, M * n, n)
+            # 2x2 max-pool in place (n is even: no block straddles two windows), then
+            # the 4x smaller result goes to one row per candidate. (Four strided maxima:
+            # ~10x faster on CPU than max_pool2d or amax here.)
+            w = win.reshape(b, c2, m * half, 2, half, 2)
+            win = torch.maximum(torch.maximum(w[:, :, :, 0, :, 0], w[:, :, :, 0, :, 1]),
+                                torch.maximum(w[:, :, :, 1, :, 0], w[:, :, :, 1, :, 1]))
+            parts.append(win.reshape(b, c2, m, half * half).transpose(1, 2)
+                         .reshape(b * m, c2 * half * half))
+        h = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
         z = (ref - cfg.depth_offset_m) / cfg.depth_scale_m
         extra = torch.cat((feats[..., 2:], z[:, None, None].expand(b, m, 1)),
                           dim=-1).reshape(b * m, 3)

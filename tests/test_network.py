@@ -519,10 +519,15 @@ def test_window_config_and_backward_compatible_dicts():
         NetworkConfig(action_fusion="window", depth_reference="median")
     with pytest.raises(ValueError, match="action_fusion"):
         NetworkConfig(action_fusion="concat")
+    with pytest.raises(ValueError, match="context_side_m"):
+        NetworkConfig(action_fusion="window", context_side_m=-0.1)
 
 
-def test_window_forms_agree_and_save_load(tmp_path):
-    m = _model(config=WIN)
+@pytest.mark.parametrize("context_side_m", [0.0, 0.3])
+def test_window_forms_agree_and_save_load(tmp_path, context_side_m):
+    cfg = dataclasses.replace(WIN, context_side_m=context_side_m)
+    assert cfg.num_features == (2 if context_side_m else 1) * 5000
+    m = _model(config=cfg)
     images = _images(3, seed=1) * 0.3
     actions = _raw_actions((3, 5), seed=2) * torch.tensor([0.8, 0.8, 1.0], dtype=torch.float64)
     factored = m.forward_factored(images, actions)
@@ -533,7 +538,9 @@ def test_window_forms_agree_and_save_load(tmp_path):
     assert _max_rel(direct, factored) < 1e-12 and _max_rel(control, factored) < 1e-12
     save_weights(m, tmp_path / "w.safetensors", metadata={})
     loaded, meta = load_weights(tmp_path / "w.safetensors")
-    assert loaded.config == WIN and meta["config"]["action_fusion"] == "window"
+    assert loaded.config == cfg and meta["config"]["action_fusion"] == "window"
+    # context_side_m came after the window: a window net without it has none.
+    assert ("context_side_m" in meta["config"]) == bool(context_side_m)
     assert torch.equal(loaded.forward_factored(images, actions), factored)
     with pytest.raises(ValueError, match="window"):
         m.action_offsets(actions)

@@ -107,6 +107,12 @@ def test_the_window_fusion_trains_from_the_cli(data, tmp_path, capsys):
     assert net.config.action_fusion == "window" and net.config.theta_unit == "deg"
     resolved = json.loads((tmp_path / "w" / "train_config.json").read_text())
     assert resolved["network"]["action_fusion"] == "window"
+    assert main(args + ["--out", str(tmp_path / "x"), "--context-side", "0.3"]) == 2
+    assert "--context-side: needs --action-fusion window" in capsys.readouterr().err
+    assert main(args + ["--out", str(tmp_path / "x"), "--action-fusion", "window",
+                        "--context-side", "-1"]) == 2
+    assert "context_side_m: expected a finite number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_resume_continues_from_the_saved_epoch(data, tmp_path):
