@@ -72,6 +72,7 @@ def main(argv=None) -> dict:
         for name, run in summary.items():
             epochs = [e["epoch"] for e in run["epochs"]]
             ax.plot(epochs, [e[key] for e in run["epochs"]], "o-", label=name)
+        ax.set_xticks(sorted({e["epoch"] for r in summary.values() for e in r["epochs"]}))
         ax.set_xlabel("epoch")
         ax.set_title(label, fontsize=9)
         ax.grid(alpha=0.3)
