@@ -803,7 +803,7 @@ class DistanceCNN(nn.Module):
                            device=feats.device)
         pixels = ((pts - cam) * (cfg.focal_px / ref[:, None, None, None, None])
                   + (cfg.image_size / 2.0 - 0.5))  # (u, v) in input pixels
-        # Conv2 output j sees input pixels centred at 2j + (k - 1) / 2 * 3 (k = 5: 2j + 6.5).
+        # Conv2 output j sees input pixels centred at 2j + 3 (k - 1) / 2 + 0.5 (k = 5: 2j + 6.5).
         k = cfg.kernel
         centre0 = (k - 1) / 2.0 + 2.0 * (k - 1) / 2.0 + 0.5
         grid = (pixels - centre0) / 2.0 * (2.0 / (side - 1)) - 1.0
