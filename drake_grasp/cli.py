@@ -150,7 +150,11 @@ def _cmd_train(args) -> int:
         learning_rate=args.lr, momentum=args.momentum, lr_decay_per_epoch=args.lr_decay,
         seed=args.seed, device=args.device, threads=args.threads,
         max_memory_gb=args.max_memory_gb, checkpoint_minutes=args.checkpoint_minutes,
-        ranking_images=args.ranking_images, init_weights=args.init_weights)
+        ranking_images=args.ranking_images, init_weights=args.init_weights,
+        loss=args.loss, loss_offset_m=args.loss_offset)
+    if args.loss_offset is not None and args.loss != "log-l1":
+        print("--loss-offset: needs --loss log-l1", file=sys.stderr)
+        return 2
     network = None  # the default net (or the --init-weights file's)
     if args.context_side and args.action_fusion != "window":
         print("--context-side: needs --action-fusion window", file=sys.stderr)
@@ -499,6 +503,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "models/cnn/weights.safetensors) instead of a fresh initialization, "
                         "with a fresh optimizer; their tensors' sha256 is part of the run's "
                         "identity")
+    p.add_argument("--loss", choices=("l1", "log-l1"), default=None,
+                   help="training loss: l1 (default, the paper's) or log-l1, the L1 of "
+                        "log(distance + c), whose weight falls as 1/(distance + c): errors "
+                        "near a grasp cost more than far ones (README *Near-weighted loss*)")
+    p.add_argument("--loss-offset", type=float, default=None, metavar="M",
+                   help="c of --loss log-l1, in metres (default 0.01)")
     p.add_argument("--action-fusion", choices=("tiled", "window"), default="tiled",
                    help="how the candidate action enters the net: tiled (default, the "
                         "paper's: IP(a) added to every Pool1 cell) or window (the net reads "
