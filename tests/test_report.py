@@ -227,6 +227,32 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
     assert "no Table 1 experiment" in capsys.readouterr().err
 
 
+def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys):
+    """analysis/paired_outcomes.py pairs two runs by trial id: 12 trials, 6 grasped by
+    both, 3 only by A, 1 only by B, exact McNemar p = 2 * P(X <= 1 | n = 4, 1/2) = 0.625;
+    runs without a shared trial are an error naming them."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    ok, miss = (True, 0.01, None), (False, 0.1, MISSED)
+    _fill(a, "isolation", {"ctr": [ok] * 6 + [ok] * 3 + [miss] + [miss] * 2})
+    _fill(b, "isolation", {"ctr": [ok] * 6 + [miss] * 3 + [ok] + [miss] * 2})
+    module = _script("paired_outcomes")
+    assert module.main([str(a), str(b), "--names", "old,new", "--out",
+                        str(tmp_path / "p.json")]) == 0
+    result = json.loads((tmp_path / "p.json").read_text())
+    assert (result["paired_trials"], result["both"], result["only_a"], result["only_b"],
+            result["neither"]) == (12, 6, 3, 1, 2)
+    assert (result["successes_a"], result["successes_b"]) == (9, 7)
+    assert result["mcnemar_exact_p"] == 0.625
+    assert result["only_b_trials"] == ["isolation/ctr/0009"]
+    assert module.mcnemar_exact_p(13, 6) == pytest.approx(0.1671, abs=1e-4)
+    assert module.mcnemar_exact_p(0, 0) == 1.0
+    capsys.readouterr()
+    other = tmp_path / "c"
+    _fill(other, "clutter", {"gpd": [ok]})
+    assert module.main([str(a), str(other)]) == 2
+    assert "no trial id in both" in capsys.readouterr().err
+
+
 def test_simulation_errors_have_their_own_column_and_are_not_attempts(tmp_path):
     d = tmp_path / "iso"
     error = (False, None, "simulation error: RuntimeError: solver diverged")

@@ -1,0 +1,79 @@
+"""Two `evaluate` runs of the same trials (same experiment, seed and trial count), compared
+trial by trial: how many only one of them grasped, and the exact McNemar test on those.
+
+Two policies (or two weights files for one policy) run on the same scenes differ by less
+than their two success rates' intervals suggest: most trials succeed or fail under both.
+The paired count says what the unpaired intervals cannot.
+
+    python analysis/paired_outcomes.py RUN_A RUN_B [--names A,B] [--out FILE.json]
+
+Each RUN is a results folder of `drake-grasp evaluate` (its `trials/`); trials are paired
+by trial id (experiment/condition/index), and only ids present in both count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from drake_grasp.results import load_records
+
+
+def mcnemar_exact_p(only_a: int, only_b: int) -> float:
+    """Two-sided exact McNemar p-value: the binomial test of the discordant pairs at 1/2."""
+    n = only_a + only_b
+    if n == 0:
+        return 1.0
+    k = min(only_a, only_b)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
+    return min(1.0, 2 * tail)
+
+
+def paired(run_a: Path, run_b: Path) -> dict:
+    """The paired outcome counts of two runs (see the module docstring)."""
+    a = {r.trial_id: r for r in load_records(run_a)}
+    b = {r.trial_id: r for r in load_records(run_b)}
+    ids = sorted(set(a) & set(b))
+    if not ids:
+        raise ValueError(f"{run_a} and {run_b}: no trial id in both (expected two runs of "
+                         "the same experiment, seed and trials)")
+    both = sum(a[i].success and b[i].success for i in ids)
+    only_a = sum(a[i].success and not b[i].success for i in ids)
+    only_b = sum(b[i].success and not a[i].success for i in ids)
+    return {"paired_trials": len(ids), "successes_a": both + only_a,
+            "successes_b": both + only_b, "both": both, "only_a": only_a, "only_b": only_b,
+            "neither": len(ids) - both - only_a - only_b,
+            "mcnemar_exact_p": round(mcnemar_exact_p(only_a, only_b), 4),
+            "only_a_trials": [i for i in ids if a[i].success and not b[i].success],
+            "only_b_trials": [i for i in ids if b[i].success and not a[i].success]}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_a", type=Path, help="an `evaluate` results folder")
+    parser.add_argument("run_b", type=Path, help="another one, of the same trials")
+    parser.add_argument("--names", default="a,b", help="names of the two runs (default a,b)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON file to write")
+    args = parser.parse_args(argv)
+    names = args.names.split(",")
+    if len(names) != 2:
+        parser.error(f"--names {args.names}: expected two names separated by a comma")
+    try:
+        result = {"runs": {names[0]: str(args.run_a), names[1]: str(args.run_b)},
+                  **paired(args.run_a, args.run_b)}
+    except (ValueError, OSError) as e:
+        print(f"paired_outcomes: error: {e}", file=sys.stderr)
+        return 2
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
