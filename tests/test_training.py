@@ -63,6 +63,13 @@ def test_training_reduces_the_l1_loss(data, tmp_path):
     assert (out / "weights.safetensors").is_file()
 
 
+def _cli_args(data):
+    """`drake-grasp train` on the synthetic task: Adam at 0.001, 6 epochs (no --out)."""
+    return ["train", "--data", str(data / "train"), "--test-data", str(data / "test"),
+            "--recipe", "fast", "--lr", "0.001", "--batch", "80", "--epochs", "6",
+            "--seed", "3", "--threads", "2", "--ranking-images", "0"]
+
+
 def test_init_weights_start_from_a_trained_net(data, tmp_path):
     """--init-weights: the run starts from the given net (at a learning rate too small to
     move it, its test L1 is the given net's, far below a fresh net's), its identity holds
@@ -94,9 +101,7 @@ def test_the_window_fusion_trains_from_the_cli(data, tmp_path, capsys):
     from drake_grasp.cli import main
     from drake_grasp.network import load_weights
 
-    args = ["train", "--data", str(data / "train"), "--test-data", str(data / "test"),
-            "--recipe", "fast", "--lr", "0.001", "--batch", "80", "--epochs", "6",
-            "--seed", "3", "--threads", "2", "--ranking-images", "0"]
+    args = _cli_args(data)
     with torch.random.fork_rng():
         assert main(args + ["--out", str(tmp_path / "w"), "--action-fusion", "window"]) == 0
     capsys.readouterr()
@@ -142,9 +147,7 @@ def test_the_log_l1_loss_trains_from_the_cli_and_l1_runs_keep_their_identity(
     fields, as runs made before the option; bad flags are refused before a folder is made."""
     from drake_grasp.cli import main
 
-    args = ["train", "--data", str(data / "train"), "--test-data", str(data / "test"),
-            "--recipe", "fast", "--lr", "0.001", "--batch", "80", "--epochs", "6",
-            "--seed", "3", "--threads", "2", "--ranking-images", "0"]
+    args = _cli_args(data)
     with torch.random.fork_rng():
         assert main(args + ["--out", str(tmp_path / "log"), "--loss", "log-l1"]) == 0
     capsys.readouterr()
