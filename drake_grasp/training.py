@@ -78,9 +78,9 @@ OPTIMIZERS = ("sgd", "adam")
 # is dominated by labels over 10 cm); any monotone transform keeps the net's output a
 # distance, so nothing downstream changes.
 LOSSES = ("l1", "log-l1")
-# Fields added after runs were made: left out of a run's identity at their default value,
-# so those runs resume (and keep their identity) as before.
-_LATER_FIELDS = {"loss": "l1", "loss_offset_m": 0.01}
+# Fields added after runs were made: left out of an L1 run's identity, so runs made before
+# them resume (and keep their identity) as before.
+_LATER_FIELDS = ("loss", "loss_offset_m")
 
 # Named recipes. `paper`: the paper's SGD (lr 0.001, momentum 0.9, batches of 1000), a
 # constant rate, for its 900k iterations. `fast` (the default): Adam with a rate that
@@ -162,8 +162,8 @@ class TrainConfig:
             raise ValueError(f"loss_offset_m: expected > 0 [m], got {self.loss_offset_m}")
 
     def identity_dict(self) -> dict:
-        """The settings as a dict, without the later fields at their defaults
-        (`_LATER_FIELDS`): a run made before they existed keeps its identity."""
+        """The settings as a dict; an L1 run's leaves out the loss fields
+        (`_LATER_FIELDS`), so a run made before they existed keeps its identity."""
         d = dataclasses.asdict(self)
         if d["loss"] == "l1":  # the offset means nothing without the log loss
             for key in _LATER_FIELDS:
