@@ -22,8 +22,18 @@ import time
 from pathlib import Path
 
 
+APPROXIMATIONS = ("lagged", "sap", "similar")
+
+
+def _parse_profile(profile: str) -> tuple[str, str, str]:
+    """NAME[@STEP][:APPROXIMATION] -> (name, step or "", approximation or "")."""
+    head, _, approximation = profile.partition(":")
+    name, _, step = head.partition("@")
+    return name, step, approximation
+
+
 def _scene_task(args) -> dict:
-    record_file, profile, out_file = args
+    record_file, profile, out_file, force_mode = args
     import numpy as np
 
     from drake_grasp.lab import check_grasp
@@ -33,10 +43,14 @@ def _scene_task(args) -> dict:
     from drake_grasp.scene import SceneSpec
 
     record = json.loads(Path(record_file).read_text())
-    name, _, step = profile.partition("@")
+    name, step, approximation = _parse_profile(profile)
     scenario = load_scenario(physics_profile=name)
     if step:
         scenario.plant.time_step = float(step)
+    if approximation:
+        scenario.plant.discrete_contact_approximation = approximation
+    if force_mode:
+        scenario.gripper.force_mode = force_mode
     library = load_library(None)
     scene = SceneSpec.from_dict(record["scene"])
     t0 = time.perf_counter()
@@ -90,7 +104,11 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", type=int, required=True, help="its first N scene records")
     p.add_argument("--profiles", default="reference,fast",
                    help="comma-separated physics profiles, each optionally with another plant "
-                        "step as NAME@SECONDS, e.g. fast@0.01 (default: reference,fast)")
+                        "step and discrete contact approximation as NAME[@SECONDS][:APPROX], "
+                        "e.g. fast@0.01 or fast@0.01:sap (default: reference,fast)")
+    p.add_argument("--force-mode", choices=("constant", "limit"), default=None,
+                   help="gripper.force_mode for every profile (default: the scenario's; "
+                        "label-check runs before that field existed ran with 'limit')")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--out", required=True, help="results folder (re-running resumes)")
     args = p.parse_args(argv)
@@ -100,9 +118,13 @@ def main(argv=None) -> int:
     from drake_grasp.scenario import PHYSICS_PROFILES
 
     profiles = [x for x in args.profiles.split(",") if x]
-    unknown = [x for x in profiles if x.partition("@")[0] not in PHYSICS_PROFILES]
+    unknown = [x for x in profiles if _parse_profile(x)[0] not in PHYSICS_PROFILES]
     if unknown:
         raise SystemExit(f"--profiles: unknown {unknown}; known: {list(PHYSICS_PROFILES)}")
+    bad = [x for x in profiles if _parse_profile(x)[2] not in ("",) + APPROXIMATIONS]
+    if bad:
+        raise SystemExit(f"--profiles: unknown contact approximation in {bad}; "
+                         f"expected one of {APPROXIMATIONS}")
     src, out = Path(args.label_check), Path(args.out)
     records = [record_path(src, i) for i in range(args.scenes)]
     missing = [str(r) for r in records if not r.is_file()]
@@ -114,7 +136,7 @@ def main(argv=None) -> int:
         for r in records:
             target = out / profile / r.name
             if not target.is_file():
-                todo.append((str(r), profile, str(target)))
+                todo.append((str(r), profile, str(target), args.force_mode))
     print(f"{len(todo)} scene checks to run ({args.scenes} scenes x {len(profiles)} profiles, "
           f"{args.scenes * len(profiles) - len(todo)} done)", flush=True)
     t0 = time.perf_counter()
@@ -130,6 +152,7 @@ def main(argv=None) -> int:
                for profile in profiles}
     summary = summarize(results)
     summary.update({"label_check": str(src), "scenes": args.scenes,
+                    "force_mode": args.force_mode or "scenario default",
                     "wall_s_this_call": round(time.perf_counter() - t0, 1),
                     "date": time.strftime("%Y-%m-%d")})
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))

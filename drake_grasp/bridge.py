@@ -3,7 +3,7 @@ in another, talking robot-driver messages (Drake's LCM message types) over TCP.
 
 Where the cut is. The station process is the simulated robot cell as a robot driver
 shows it: the plant, the UR5's joint PD with gravity feed-forward and its command
-interpolator, the 2F-85's force-limited position control, the wrist camera (and the GPD
+interpolator, the 2F-85's force-controlled position control, the wrist camera (and the GPD
 sensor), the sheet and its disturbance, and the grasp judge (the harness's observer; a
 real cell has none). The controller process is everything a robot PC runs: the policy
 (`GraspController` with its `ActionSampler` and `DistanceEvaluator`) and the arm's

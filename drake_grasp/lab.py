@@ -1,7 +1,7 @@
 """A grasp physics lab: does this grasp pose hold one object when a 2F-85 executes it?
 
 A small, fast Diagram (no arm, no camera): the station's Robotiq 2F-85 model with its
-compliant hydroelastic pads and the same force-limited `GripperController`, mounted on a
+compliant hydroelastic pads and the same force-controlled `GripperController`, mounted on a
 floating base, grasping ONE object that rests on the station's table and sheet
 (`scene.add_table_and_sheet`, `scene.add_scene_objects`; the object is settled first).
 
@@ -42,7 +42,7 @@ import numpy as np
 from drake_grasp.objects import ObjectLibrary
 from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision, table_collision
 from drake_grasp.scenario import Scenario
-from drake_grasp.systems.judge import pad_contacts
+from drake_grasp.systems.judge import pad_contacts, pad_squeeze_n
 from drake_grasp.scene import (
     OBJECT_BODY_NAME,
     ObjectPlacement,
@@ -279,7 +279,8 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     finger = plant.GetJointActuatorByName("left_finger_actuator", gripper)
     grip = builder.AddNamedSystem("gripper_controller", GripperController(
         kp=finger.get_controller_gains().p, closing_speed_m_s=scenario.gripper.closing_speed_m_s,
-        initial_width_m=scenario.gripper.open_width_m, time_step=plant.time_step()))
+        initial_width_m=scenario.gripper.open_width_m, time_step=plant.time_step(),
+        force_mode=scenario.gripper.force_mode))
     open_w = scenario.gripper.open_width_m
     t_end = phases["shake"] + 1.0
     command = PiecewisePolynomial.ZeroOrderHold(
@@ -315,6 +316,10 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
             pads = pad_contacts(plant, plant_context, body)
             rise = float(plant.EvalBodyPoseInWorld(plant_context, body).translation()[2]) - z_rest
             details[f"{phase}_pads"] = sorted(pads)
+            details[f"{phase}_width_m"] = round(
+                2.0 * float(plant.GetPositions(plant_context, gripper)[0]), 5)
+            details[f"{phase}_squeeze_n"] = {
+                k: round(v, 2) for k, v in sorted(pad_squeeze_n(plant, plant_context, body).items())}
             details[f"{phase}_rise_m"] = round(rise, 5)
             if len(pads) < 2 or (need_lift and rise < scenario.judge.min_lift_m):
                 failure = failure_name

@@ -859,7 +859,9 @@ def recorded_scenario(scenario_yaml: str):
     profiles existed has no `physics:` entry: it ran the reference settings (its
     `plant.time_step` is in the record), so it gets the `reference` profile. One written
     before `physics.table_collision` existed ran with the table's box (the `fast`
-    profile's half-space table came later), so it gets "box"."""
+    profile's half-space table came later), so it gets "box". One written before
+    `gripper.force_mode` existed pressed with at most the grip force, so it gets
+    "limit"."""
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.scenario import Scenario, apply_physics_profile
@@ -876,6 +878,9 @@ def recorded_scenario(scenario_yaml: str):
     elif not re.search(r"^physics:\n(?:  .*\n)*  table_collision:", scenario_yaml, re.MULTILINE):
         # Recorded before `physics.table_collision` existed: the table had its box.
         scenario.physics.table_collision = "box"
+    if not re.search(r"^gripper:\n(?:  .*\n)*  force_mode:", scenario_yaml, re.MULTILINE):
+        # Recorded before `gripper.force_mode` existed: the grip force was a limit.
+        scenario.gripper.force_mode = "limit"
     return scenario
 
 

@@ -104,6 +104,11 @@ class GripperConfig:
 
     # Normal force each pad presses on the object [N].
     grip_force_n: float = 60.0
+    # "constant": a finger blocked by the object presses with `grip_force_n` (the
+    # 2F-85's force control); "limit": `grip_force_n` only caps the squeeze, which is
+    # then kp (q - width/2) / 2 per pad, well below it on narrow objects (what every
+    # result before this field existed ran with). `systems.gripper.gripper_pd_target`.
+    force_mode: str = "constant"
     # Rate at which the commanded opening changes [m/s].
     closing_speed_m_s: float = 0.1
     # Opening commanded while approaching [m] (85 mm stroke).
@@ -454,7 +459,8 @@ class Scenario:
                            ("controller.profile", self.controller.profile),
                            ("physics.sheet_collision", self.physics.sheet_collision),
                            ("physics.table_collision", self.physics.table_collision),
-                           ("physics.profile", self.physics.profile)):
+                           ("physics.profile", self.physics.profile),
+                           ("gripper.force_mode", self.gripper.force_mode)):
             allowed = _CHOICES[key]
             if value not in allowed:
                 why = _CHOICE_REASONS.get(key, "")
@@ -705,6 +711,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "physics.sheet_collision": ("box", "halfspace", "auto"),
     "physics.table_collision": ("box", "halfspace"),
     "physics.profile": tuple(PHYSICS_PROFILES),
+    "gripper.force_mode": ("constant", "limit"),
 }
 _CHOICE_REASONS = {
     "plant.discrete_contact_approximation":

@@ -26,7 +26,7 @@ Output ports:
 Inside: MultibodyPlant + SceneGraph (hydroelastic with fallback, SAP-family solver),
 the UR5 held by its in-plant PD plus gravity feed-forward, a
 DifferentialInverseKinematicsIntegrator on a control plant (arm + lumped gripper), the
-force-limited gripper controller, the wrist RGB-D sensor (VTK) and its depth
+force-controlled gripper controller, the wrist RGB-D sensor (VTK) and its depth
 post-processor, and the GPD baseline's sensor (`gpd_camera`, on the `gpd_camera_mount`
 frame) with its own post-processor. Cameras render only when their outputs are
 evaluated: nothing renders the 640x480 GPD image unless a policy asks for it.
@@ -378,7 +378,8 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     kp = finger.get_controller_gains().p
     grip = builder.AddNamedSystem("gripper_controller", GripperController(
         kp=kp, closing_speed_m_s=scenario.gripper.closing_speed_m_s,
-        initial_width_m=scenario.gripper.open_width_m, time_step=plant.time_step()))
+        initial_width_m=scenario.gripper.open_width_m, time_step=plant.time_step(),
+        force_mode=scenario.gripper.force_mode))
     builder.Connect(plant.get_state_output_port(gripper), grip.GetInputPort("gripper_state"))
     builder.Connect(grip.GetOutputPort("desired_state"), plant.get_desired_state_input_port(gripper))
     builder.ExportInput(grip.GetInputPort("gripper_command"), "gripper_command")

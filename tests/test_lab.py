@@ -74,3 +74,30 @@ def test_grasp_check_cli_unknown_object_is_a_clean_error(tmp_path, capsys):
     assert main(["grasp-check", "--object", "no_such_thing", "--grasps", "1",
                  "--out", str(tmp_path)]) == 2
     assert "no_such_thing" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("force_mode", ["constant", "limit"])
+def test_pads_press_with_the_commanded_grip_force(can_scene, library, across_can, force_mode):
+    """The 2F-85's force control: once the fingers stop on the can, each pad presses with
+    the commanded grip force ("constant"); "limit" only caps it, and the PD's spring
+    then presses with kp (q - q_goal) / 2 per pad, a width-dependent force below it."""
+    from drake_grasp.lab import check_grasp
+    from drake_grasp.scenario import Scenario
+
+    scenario = Scenario()
+    scenario.gripper.force_mode = force_mode
+    result = check_grasp(None, across_can(can_scene, library), scene=can_scene,
+                         scenario=scenario, library=library, grip_force_n=60.0)
+    assert result.held, result.details
+    squeeze = result.details["hold_squeeze_n"]
+    assert sorted(squeeze) == ["left_finger", "right_finger"]
+    if force_mode == "constant":
+        assert squeeze["left_finger"] == pytest.approx(60.0, rel=0.05)
+        assert squeeze["right_finger"] == pytest.approx(60.0, rel=0.05)
+    else:
+        # The commanded width is 0, so q_goal = 0 and q = width / 2.
+        kp = 2000.0  # models/robotiq_2f85: left_finger_actuator's controller gain
+        expected = 0.5 * kp * 0.5 * result.details["hold_width_m"]
+        assert expected < 0.7 * 60.0
+        assert squeeze["left_finger"] == pytest.approx(expected, rel=0.1)
+        assert squeeze["right_finger"] == pytest.approx(expected, rel=0.1)

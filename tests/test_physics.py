@@ -126,6 +126,19 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
     assert old.plant.time_step == 0.002
 
 
+def test_a_record_made_before_the_grip_force_mode_replays_with_the_force_limit():
+    from drake_grasp.montecarlo import recorded_scenario
+    from drake_grasp.scenario import dump_scenario
+
+    now = load_scenario(scenario_name="isolation")
+    text = dump_scenario(now)
+    assert now.gripper.force_mode == "constant" and "  force_mode: constant\n" in text
+    assert recorded_scenario(text).gripper.force_mode == "constant"
+    old = recorded_scenario(text.replace("  force_mode: constant\n", ""))
+    assert old.gripper.force_mode == "limit"
+    assert old.gripper.grip_force_n == now.gripper.grip_force_n
+
+
 def test_a_record_made_before_the_table_collision_key_replays_with_the_box_table():
     from drake_grasp.montecarlo import recorded_scenario
     from drake_grasp.scenario import dump_scenario
@@ -156,3 +169,8 @@ def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"isolation/ctr/0000.*0\.0\.9\+git\.0123456789ab"
                                          r".*stop_window_fraction.*Replay it with that version"):
         replay_trial(tmp_path, trial_id="isolation/ctr/0000")
+
+
+def test_unknown_grip_force_mode_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"gripper.force_mode: got 'hard', expected one of"):
+        load_scenario(scenario_name="isolation", scenario_text="{gripper: {force_mode: hard}}")

@@ -10,13 +10,17 @@ from drake_grasp.systems.gripper import GripperController, gripper_pd_target
 from drake_grasp.systems.supervisor import Mode, ScriptedGraspSupervisor, interpolate_pose, min_jerk
 
 
-def test_gripper_target_caps_the_pad_force():
+@pytest.mark.parametrize("force_mode", ["constant", "limit"])
+def test_gripper_target_caps_the_pad_force(force_mode):
     kp = 2000.0
     # Open fingers, far from the commanded closed width: the target is only 2F/kp away.
-    q_d = gripper_pd_target(0.0, 0.03, kp, grip_force_n=10.0)
+    q_d = gripper_pd_target(0.0, 0.03, kp, grip_force_n=10.0, force_mode=force_mode)
     assert kp * (0.03 - q_d) == pytest.approx(2 * 10.0)
+
+
+def test_gripper_target_in_limit_mode_is_the_goal_near_it():
     # Close to the goal the cap is inactive and the target is the goal.
-    assert gripper_pd_target(0.05, 0.0251, kp, 100.0) == pytest.approx(0.025)
+    assert gripper_pd_target(0.05, 0.0251, 2000.0, 100.0, "limit") == pytest.approx(0.025)
 
 
 def test_gripper_controller_ramps_at_the_closing_speed():
@@ -385,3 +389,69 @@ def test_context_clone_keeps_its_own_controller_state():
     ctx.get_mutable_abstract_state(int(sys.idx)).set_value(ControllerState(iteration=7))
     assert clone.get_abstract_state(int(sys.idx)).get_value().iteration == 0
     assert ctx.get_abstract_state(int(sys.idx)).get_value().iteration == 7
+
+
+def test_gripper_target_in_constant_force_mode():
+    from drake_grasp.systems.gripper import FORCE_RISE_GAIN
+
+    kp, force = 2000.0, 60.0
+    # Blocked at 15 mm while the ramp went on to 0: full force (2F in all, F per pad).
+    q_d = gripper_pd_target(0.0, 0.015, kp, force, "constant")
+    assert kp * (0.015 - q_d) == pytest.approx(2 * force)
+    # "limit" presses with kp (q - q_goal) only: 30 N in all, 15 N per pad.
+    q_d = gripper_pd_target(0.0, 0.015, kp, force, "limit")
+    assert kp * (0.015 - q_d) == pytest.approx(30.0)
+    # Just after contact the squeeze rises with the ramp's lead, FORCE_RISE_GAIN times
+    # as steeply as the "limit" spring.
+    lead = 0.001
+    q_d = gripper_pd_target(2 * (0.015 - lead), 0.015, kp, force, "constant")
+    assert kp * (0.015 - q_d) == pytest.approx(kp * FORCE_RISE_GAIN * lead)
+    # Opening (the finger behind a wider ramp) is not pushed: the target is the ramp.
+    assert gripper_pd_target(0.08, 0.02, kp, force, "constant") == pytest.approx(0.04)
+    with pytest.raises(ValueError, match="force_mode"):
+        GripperController(kp=kp, closing_speed_m_s=0.1, initial_width_m=0.085, time_step=0.005,
+                          force_mode="hard")
+
+
+@pytest.mark.parametrize("time_step", [0.002, 0.005])
+def test_free_closing_fingers_follow_the_ramp(time_step):
+    """Closing on nothing, the constant-force mode does not slam the fingers: they follow
+    the ramp (the datasheet closing speed) within half a millimetre, i.e. under 5 N of
+    extra squeeze per pad."""
+    from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from drake_grasp.assets import make_parser
+    from drake_grasp.lab import GRIPPER_URI
+
+    builder = DiagramBuilder()
+    plant, _ = AddMultibodyPlant(MultibodyPlantConfig(
+        time_step=time_step, discrete_contact_approximation="lagged"), builder)
+    (gripper,) = make_parser(plant).AddModels(url=GRIPPER_URI)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("robotiq_base", gripper))
+    plant.Finalize()
+    kp = plant.GetJointActuatorByName("left_finger_actuator", gripper).get_controller_gains().p
+    grip = builder.AddSystem(GripperController(kp=kp, closing_speed_m_s=0.1, initial_width_m=0.085,
+                                               time_step=time_step))
+    command = builder.AddSystem(ConstantVectorSource([0.0, 60.0]))
+    builder.Connect(command.get_output_port(), grip.GetInputPort("gripper_command"))
+    builder.Connect(plant.get_state_output_port(gripper), grip.GetInputPort("gripper_state"))
+    builder.Connect(grip.GetOutputPort("desired_state"), plant.get_desired_state_input_port(gripper))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    plant_context = plant.GetMyContextFromRoot(context)
+    grip_context = grip.GetMyContextFromRoot(context)
+    plant.SetPositions(plant.GetMyMutableContextFromRoot(context), gripper, [0.0425, 0.0425])
+    lags = []
+    t = 0.0
+    while t < 0.8:  # 85 mm at 0.1 m/s: fully closed at 0.85 s
+        t += time_step
+        simulator.AdvanceTo(t)
+        q = float(plant.GetPositions(plant_context, gripper)[0])
+        ramp = float(grip_context.get_discrete_state(0).GetAtIndex(0))
+        lags.append(abs(q - 0.5 * ramp))
+    assert float(plant.GetPositions(plant_context, gripper)[0]) < 0.005  # it did close
+    assert max(lags) < 0.0005, max(lags)

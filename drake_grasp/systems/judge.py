@@ -106,6 +106,37 @@ def pad_contacts(plant, plant_context, object_body, pad_bodies=PAD_BODIES) -> se
     return {names[i] for i in touching(pairs, int(object_body.index()), names)}
 
 
+def pad_squeeze_n(plant, plant_context, object_body, pad_bodies=PAD_BODIES) -> dict[str, float]:
+    """Force each pad presses on the object along the pad's closing axis (its body x
+    axis) [N], summed over their hydroelastic contact surfaces and point contacts; pads
+    not touching it are left out. For code that holds the plant (the grasp lab)."""
+    results = plant.get_contact_results_output_port().Eval(plant_context)
+    bodies = geometry_bodies(plant)
+    target = int(object_body.index())
+    pads = {int(plant.GetBodyByName(name).index()): name for name in pad_bodies
+            if plant.HasBodyNamed(name)}
+    axes = {i: plant.EvalBodyPoseInWorld(plant_context, plant.get_body(BodyIndex(i)))
+            .rotation().matrix()[:, 0] for i in pads}
+    force = {}
+
+    def add(a: int, b: int, f_on_a) -> None:
+        # f_on_a: the force on body a; the pad's share is along its axis either way.
+        if a in pads and b == target:
+            force[pads[a]] = force.get(pads[a], 0.0) + abs(float(np.dot(f_on_a, axes[a])))
+        elif b in pads and a == target:
+            force[pads[b]] = force.get(pads[b], 0.0) + abs(float(np.dot(f_on_a, axes[b])))
+
+    for i in range(results.num_hydroelastic_contacts()):
+        info = results.hydroelastic_contact_info(i)
+        surface = info.contact_surface()
+        add(bodies[surface.id_M().get_value()], bodies[surface.id_N().get_value()],
+            info.F_Ac_W().translational())
+    for i in range(results.num_point_pair_contacts()):
+        info = results.point_pair_contact_info(i)
+        add(int(info.bodyA_index()), int(info.bodyB_index()), -info.contact_force())
+    return force
+
+
 # --------------------------------------------------------------------------- the judge
 
 @dataclass(frozen=True)
