@@ -118,13 +118,35 @@ def _cmd_objects_list(args) -> int:
     return 0
 
 
+def _torque_ratio(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def _add_torque_ratio_flag(p) -> None:
+    from drake_grasp.dataset import DatasetConfig
+
+    default = DatasetConfig().max_torque_ratio
+    p.add_argument("--max-torque-ratio", type=_torque_ratio, default=default, metavar="R",
+                   help="the ground truth's torque test: the largest torque about the "
+                   "contact axis under gravity and the lab's shake, per unit of the pads' "
+                   f"torsional friction lever, a true grasp may need (default {default:g}, "
+                   "README *Grip force*)")
+
+
 def _cmd_generate(args) -> int:
     from drake_grasp.dataset import DatasetConfig, generate_dataset
 
     scenario = _load(args, seed=args.seed)
     config = DatasetConfig(images_per_scene=args.images_per_scene,
                            offsets_per_image=args.offsets_per_image,
-                           scenes_per_shard=args.scenes_per_shard)
+                           scenes_per_shard=args.scenes_per_shard,
+                           max_torque_ratio=args.max_torque_ratio)
     manifest = generate_dataset(out=args.out, num_scenes=args.scenes, split=args.split,
                                 seed=args.seed, scenario=scenario, config=config,
                                 workers=args.workers, scheduler=args.scheduler,
@@ -302,7 +324,8 @@ def _cmd_label_check(args) -> int:
     scenario = _load(args)
     library = load_library(args.objects)
     config = LabelCheckConfig(grasps_per_scene=args.grasps_per_scene,
-                              rejected_per_scene=args.rejected_per_scene, split=args.split)
+                              rejected_per_scene=args.rejected_per_scene, split=args.split,
+                              max_torque_ratio=args.max_torque_ratio)
     summary = run_label_check(num_scenes=args.scenes, seed=args.seed, out=args.out,
                               scenario=scenario, library=library, config=config,
                               workers=args.workers, objects_dir=args.objects or "")
@@ -444,6 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="dataset folder")
     p.add_argument("--images-per-scene", type=int, default=40,
                    help="camera poses per scene (paper: 40)")
+    _add_torque_ratio_flag(p)
     p.add_argument("--offsets-per-image", type=int, default=10,
                    help="labelled offsets per image (paper: 10)")
     p.add_argument("--scenes-per-shard", type=int, default=4,
@@ -672,6 +696,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rejected candidates executed per scene (default: 1)")
     p.add_argument("--split", choices=("train", "test"), default="train",
                    help="object split of the scenes (default: train)")
+    _add_torque_ratio_flag(p)
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
     p.set_defaults(func=_cmd_label_check)
 

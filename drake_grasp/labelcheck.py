@@ -47,6 +47,9 @@ class LabelCheckConfig:
     split: str = "train"
     # The scene's other objects are loaded in the lab (they can block or disturb).
     neighbours: bool = True
+    # The ground truth's torque limit (`dataset.DatasetConfig.max_torque_ratio`) the
+    # grasps checked are labelled with.
+    max_torque_ratio: float = 0.12
 
     def validate(self) -> None:
         if self.grasps_per_scene < 0 or self.rejected_per_scene < 0:
@@ -56,6 +59,9 @@ class LabelCheckConfig:
             raise ValueError("grasps_per_scene + rejected_per_scene: expected >= 1 check per scene")
         if self.split not in ("train", "test"):
             raise ValueError(f"split: got {self.split!r}, expected 'train' or 'test'")
+        if not 0 < self.max_torque_ratio < float("inf"):
+            raise ValueError(f"max_torque_ratio: expected a finite number > 0, got "
+                             f"{self.max_torque_ratio}")
 
 
 def record_path(out: Path, scene_index: int) -> Path:
@@ -73,7 +79,8 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     from drake_grasp.lab import check_grasp
     from drake_grasp.scene import settle_scene
 
-    dataset_config = dataset_config if dataset_config is not None else DatasetConfig()
+    dataset_config = dataset_config if dataset_config is not None else DatasetConfig(
+        max_torque_ratio=config.max_torque_ratio)
     t0 = time.perf_counter()
     # As `dataset.generate_scene`: the profile's sheet, the dataset config's settling step.
     physics = dataclasses.replace(scenario.physics,
@@ -152,7 +159,7 @@ def _identity(*, seed, scenario, library, config, lab) -> dict:
 
     return {"format": FORMAT, "seed": int(seed), "scenario": dump_scenario(scenario),
             "label_check": dataclasses.asdict(config), "lab": dataclasses.asdict(lab),
-            "dataset": dataclasses.asdict(DatasetConfig()),
+            "dataset": dataclasses.asdict(DatasetConfig(max_torque_ratio=config.max_torque_ratio)),
             "object_library_hash": library.content_hash(), "code_version": code_version()}
 
 

@@ -182,3 +182,64 @@ def test_label_check_samples_scenes_as_the_dataset_does(monkeypatch, library):
         check_scene(7, seed=4, scenario=scenario, library=library, config=LabelCheckConfig())
     kwargs = info.value.args[0]
     assert (kwargs["seed"], kwargs["scene_index"], kwargs["attempt"]) == (4, 7, 0)
+
+
+def test_label_check_labels_with_its_torque_limit(monkeypatch, library):
+    """`LabelCheckConfig.max_torque_ratio` (`label-check --max-torque-ratio`) is the limit
+    the scene's grasps are labelled with, as `generate --max-torque-ratio` labels them."""
+    import dataclasses
+
+    import drake_grasp.grasps as grasps_module
+    import drake_grasp.scene as scene_module
+    from drake_grasp.labelcheck import LabelCheckConfig, check_scene
+    from drake_grasp.scenario import load_scenario
+
+    class Labelled(Exception):
+        pass
+
+    def find_grasps(*args, **kwargs):
+        raise Labelled(kwargs)
+
+    monkeypatch.setattr(scene_module, "settle_scene",
+                        lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
+    monkeypatch.setattr(grasps_module, "find_grasps", find_grasps)
+    scenario = load_scenario(scenario_name="isolation")
+    for ratio in (0.12, 0.5):
+        with pytest.raises(Labelled) as info:
+            check_scene(3, seed=4, scenario=scenario, library=library,
+                        config=LabelCheckConfig(max_torque_ratio=ratio))
+        assert info.value.args[0]["max_torque_ratio"] == ratio
+    with pytest.raises(ValueError, match="max_torque_ratio"):
+        LabelCheckConfig(max_torque_ratio=0.0).validate()
+
+
+@pytest.mark.parametrize("command", ["label-check", "generate"])
+@pytest.mark.parametrize("value", ["0", "-1", "inf", "abc"])
+def test_a_bad_max_torque_ratio_is_refused_before_anything_runs(command, value, tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    out = tmp_path / "out"
+    args = {"label-check": ["label-check", "--scenes", "1", "--seed", "0"],
+            "generate": ["generate", "--scenes", "1", "--split", "train"]}[command]
+    with pytest.raises(SystemExit) as info:
+        main(args + ["--out", str(out), "--max-torque-ratio", value])
+    assert info.value.code == 2
+    assert "--max-torque-ratio" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_generate_labels_with_the_torque_limit_given(monkeypatch, tmp_path):
+    import drake_grasp.dataset as dataset_module
+    from drake_grasp.cli import main
+
+    seen = {}
+
+    def generate_dataset(**kwargs):
+        seen.update(kwargs)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(dataset_module, "generate_dataset", generate_dataset)
+    for argv, ratio in (([], 0.12), (["--max-torque-ratio", "0.5"], 0.5)):
+        with pytest.raises(SystemExit):
+            main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
+        assert seen["config"].max_torque_ratio == ratio
