@@ -126,30 +126,26 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
     assert old.plant.time_step == 0.002
 
 
-def test_a_record_made_before_the_grip_force_mode_replays_with_the_force_limit():
+@pytest.mark.parametrize("scenario_name, key, value_now, value_before", [
+    ("clutter_shift", "physics.table_collision", "halfspace", "box"),
+    ("isolation", "gripper.force_mode", "constant", "limit"),
+])
+def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
+        scenario_name, key, value_now, value_before):
     from drake_grasp.montecarlo import recorded_scenario
     from drake_grasp.scenario import dump_scenario
 
-    now = load_scenario(scenario_name="isolation")
+    section, name = key.split(".")
+    now = load_scenario(scenario_name=scenario_name)
     text = dump_scenario(now)
-    assert now.gripper.force_mode == "constant" and "  force_mode: constant\n" in text
-    assert recorded_scenario(text).gripper.force_mode == "constant"
-    old = recorded_scenario(text.replace("  force_mode: constant\n", ""))
-    assert old.gripper.force_mode == "limit"
-    assert old.gripper.grip_force_n == now.gripper.grip_force_n
-
-
-def test_a_record_made_before_the_table_collision_key_replays_with_the_box_table():
-    from drake_grasp.montecarlo import recorded_scenario
-    from drake_grasp.scenario import dump_scenario
-
-    fast = load_scenario(scenario_name="clutter_shift")
-    text = dump_scenario(fast)
-    assert fast.physics.table_collision == "halfspace" and "  table_collision: halfspace\n" in text
-    assert recorded_scenario(text).physics.table_collision == "halfspace"
-    old = recorded_scenario(text.replace("  table_collision: halfspace\n", ""))
-    assert old.physics.table_collision == "box"
-    assert old.physics.sheet_collision == fast.physics.sheet_collision
+    line = f"  {name}: {value_now}\n"
+    assert getattr(getattr(now, section), name) == value_now and line in text
+    assert getattr(getattr(recorded_scenario(text), section), name) == value_now
+    old = recorded_scenario(text.replace(line, ""))
+    assert getattr(getattr(old, section), name) == value_before
+    # Nothing else differs from the record.
+    setattr(getattr(old, section), name, value_now)
+    assert dump_scenario(old) == text
 
 
 def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
