@@ -106,7 +106,9 @@ def main(argv=None) -> int:
                    help="comma-separated physics profiles, each optionally with another plant "
                         "step and discrete contact approximation as NAME[@SECONDS][:APPROX], "
                         "e.g. fast@0.01 or fast@0.01:sap (default: reference,fast)")
-    p.add_argument("--force-mode", choices=("constant", "limit"), default=None,
+    from drake_grasp.scenario import GRIP_FORCE_MODES
+
+    p.add_argument("--force-mode", choices=GRIP_FORCE_MODES, default=None,
                    help="gripper.force_mode for every profile (default: the scenario's; "
                         "label-check runs before that field existed ran with 'limit')")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_grasp.grasps import MAX_TORQUE_RATIO
 from drake_grasp.results import atomic_write_bytes, atomic_write_text, wilson_interval
 
 FORMAT = "drake_grasp.label_check/1"
@@ -49,7 +50,7 @@ class LabelCheckConfig:
     neighbours: bool = True
     # The ground truth's torque limit (`dataset.DatasetConfig.max_torque_ratio`) the
     # grasps checked are labelled with.
-    max_torque_ratio: float = 0.12
+    max_torque_ratio: float = MAX_TORQUE_RATIO
 
     def validate(self) -> None:
         if self.grasps_per_scene < 0 or self.rejected_per_scene < 0:

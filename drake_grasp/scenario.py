@@ -98,6 +98,10 @@ class GpdConfig:
     weights: str = ""
 
 
+# `GripperConfig.force_mode`'s values (`systems.gripper.gripper_pd_target`).
+GRIP_FORCE_MODES = ("constant", "limit")
+
+
 @dataclass
 class GripperConfig:
     """Robotiq 2F-85 command defaults (datasheet: 20-235 N, 20-150 mm/s)."""
@@ -711,7 +715,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "physics.sheet_collision": ("box", "halfspace", "auto"),
     "physics.table_collision": ("box", "halfspace"),
     "physics.profile": tuple(PHYSICS_PROFILES),
-    "gripper.force_mode": ("constant", "limit"),
+    "gripper.force_mode": GRIP_FORCE_MODES,
 }
 _CHOICE_REASONS = {
     "plant.discrete_contact_approximation":

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from drake_grasp.scenario import GRIP_FORCE_MODES
 
-FORCE_MODES = ("constant", "limit")
 # "constant": how many times the ramp's lead past a blocked finger its PD target is set
 # beyond it. At the default closing speed (0.1 m/s, 0.05 m/s per finger) and kp 2000 N/m
 # the squeeze rises at about 1000 N/s, reaching 60 N per pad about 0.12 s after contact.
@@ -65,8 +65,8 @@ class GripperController(LeafSystem):
         super().__init__()
         if kp <= 0:
             raise ValueError(f"kp: expected > 0, got {kp}")
-        if force_mode not in FORCE_MODES:
-            raise ValueError(f"force_mode: expected one of {FORCE_MODES}, got {force_mode!r}")
+        if force_mode not in GRIP_FORCE_MODES:
+            raise ValueError(f"force_mode: expected one of {GRIP_FORCE_MODES}, got {force_mode!r}")
         self._force_mode = force_mode
         self._kp = float(kp)
         self._speed = float(closing_speed_m_s)
