@@ -33,10 +33,10 @@ def _parse_profile(profile: str) -> tuple[str, str, str]:
 
 
 def _scene_task(args) -> dict:
-    record_file, profile, out_file, force_mode = args
+    record_file, profile, out_file, force_mode, close = args
     import numpy as np
 
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.lab import LabConfig, check_grasp
     from drake_grasp.objects import load_library
     from drake_grasp.results import atomic_write_text
     from drake_grasp.scenario import load_scenario
@@ -54,12 +54,15 @@ def _scene_task(args) -> dict:
     library = load_library(None)
     scene = SceneSpec.from_dict(record["scene"])
     t0 = time.perf_counter()
+    lab = LabConfig(close_settle_s=None) if close == "fixed" else LabConfig()
     checks = []
     for c in record["checks"]:
         r = check_grasp(None, np.asarray(c["X_WG"]), scene=scene, scenario=scenario,
-                        library=library, object_index=c["object_index"], neighbours=True)
+                        library=library, object_index=c["object_index"], neighbours=True,
+                        lab=lab)
         checks.append({"kind": c["kind"], "category": c["category"], "held": bool(r.held),
-                       "failure": r.failure, "recorded_held": bool(c["held"])})
+                       "failure": r.failure, "recorded_held": bool(c["held"]),
+                       "sim_time_s": r.details["sim_time_s"]})
     out = {"scene_index": record["scene_index"], "profile": profile, "checks": checks,
            "wall_s": round(time.perf_counter() - t0, 2)}
     atomic_write_text(out_file, json.dumps(out))
@@ -82,6 +85,8 @@ def summarize(results: dict[str, list[dict]]) -> dict:
             "rejected_checked": base["rejected_checked"], "rejected_held": base["rejected_held"],
             "agree_with_recorded": sum(c["held"] == c["recorded_held"] for c in checks),
             "checks": len(checks),
+            "sim_s_per_check": round(sum(c.get("sim_time_s", float("nan")) for c in checks)
+                                     / max(len(checks), 1), 3),
             "wall_s_per_check": round(sum(s["wall_s"] for s in scenes) / max(len(checks), 1), 3)}
     names = list(results)
     pairs = {}
@@ -111,6 +116,10 @@ def main(argv=None) -> int:
     p.add_argument("--force-mode", choices=GRIP_FORCE_MODES, default=None,
                    help="gripper.force_mode for every profile (default: the scenario's; "
                         "label-check runs before that field existed ran with 'limit')")
+    p.add_argument("--close", choices=("settled", "fixed"), default="settled",
+                   help="the lab's closing phase: ends once the grasp has settled (the "
+                        "default, `LabConfig.close_settle_s`) or lasts the fixed `close_s` "
+                        "(every check before 2026-11-25)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--out", required=True, help="results folder (re-running resumes)")
     args = p.parse_args(argv)
@@ -138,7 +147,7 @@ def main(argv=None) -> int:
         for r in records:
             target = out / profile / r.name
             if not target.is_file():
-                todo.append((str(r), profile, str(target), args.force_mode))
+                todo.append((str(r), profile, str(target), args.force_mode, args.close))
     print(f"{len(todo)} scene checks to run ({args.scenes} scenes x {len(profiles)} profiles, "
           f"{args.scenes * len(profiles) - len(todo)} done)", flush=True)
     t0 = time.perf_counter()
@@ -155,6 +164,7 @@ def main(argv=None) -> int:
     summary = summarize(results)
     summary.update({"label_check": str(src), "scenes": args.scenes,
                     "force_mode": args.force_mode or "scenario default",
+                    "close": args.close,
                     "wall_s_this_call": round(time.perf_counter() - t0, 1),
                     "date": time.strftime("%Y-%m-%d")})
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))

@@ -83,6 +83,13 @@ class LabConfig:
     # not-held verdict as 2 ms on 15 of 15 sampled grasps (can, mug, hammer) at 2.5x less
     # wall time; 10 ms disagreed on 3 of 15.
     time_step_s: float | None = None
+    # The closing phase ends early once the grasp has settled: both pads touch the object
+    # and, over the last `close_settle_s`, the opening changed by less than 0.1 mm and each
+    # pad's squeeze by less than 2% (checked every `close_check_s`). The base then lifts
+    # from there on the same schedule; up to that moment the check is the fixed one's.
+    # None keeps the fixed `close_s` (the closing time of every check before 2026-11-25).
+    close_settle_s: float | None = 0.1
+    close_check_s: float = 0.025
 
 
 @dataclass
@@ -312,6 +319,12 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     try:
         simulator.Initialize()
         for phase, failure_name, need_lift in checks:
+            if phase == "close" and lab.close_settle_s is not None:
+                settled_at = _close_until_settled(simulator, plant, plant_context, gripper, body,
+                                                  lab, phases)
+                if settled_at is not None and settled_at < phases["close"] - 1e-9:
+                    traj, _, phases = _base_trajectory(X_WB, lab, settled_at - phases["descend"])
+                    base_source.UpdateTrajectory(traj)
             simulator.AdvanceTo(phases[phase])
             pads = pad_contacts(plant, plant_context, body)
             rise = float(plant.EvalBodyPoseInWorld(plant_context, body).translation()[2]) - z_rest
@@ -327,9 +340,36 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     except RuntimeError as e:
         failure = "simulation-error"
         details["error"] = str(e)
+    details["close_end_s"] = round(phases["close"], 4)
     details["sim_time_s"] = round(context.get_time(), 4)
     details["wall_s"] = round(time.perf_counter() - t_wall, 3)
     return GraspCheckResult(held=failure == "", failure=failure, details=details)
+
+
+def _close_until_settled(simulator, plant, plant_context, gripper, body, lab: LabConfig,
+                         phases: dict) -> float | None:
+    """Advances through the closing phase in `lab.close_check_s` steps until the grasp has
+    settled (`LabConfig.close_settle_s`); returns that time, or None if it did not settle
+    before the fixed phase end `phases["close"]`."""
+    window = max(1, round(lab.close_settle_s / lab.close_check_s))
+    history = []  # (opening, squeeze per pad) at each check
+    t = simulator.get_context().get_time()
+    while t + lab.close_check_s < phases["close"] - 1e-9:
+        t += lab.close_check_s
+        simulator.AdvanceTo(t)
+        squeeze = pad_squeeze_n(plant, plant_context, body)
+        width = 2.0 * float(plant.GetPositions(plant_context, gripper)[0])
+        history.append((width, squeeze) if len(squeeze) >= 2 else None)
+        recent = history[-(window + 1):]
+        if len(recent) < window + 1 or any(h is None for h in recent):
+            continue
+        w0, f0 = recent[0]
+        calm = all(abs(w - w0) < 1e-4 and f.keys() == f0.keys()
+                   and all(abs(f[k] - f0[k]) <= 0.02 * max(f0[k], 1e-6) for k in f0)
+                   for w, f in recent[1:])
+        if calm:
+            return t
+    return None
 
 
 def check_grasps(object_id: str | None, poses, *, scene: SceneSpec | None = None,

@@ -101,3 +101,29 @@ def test_pads_press_with_the_commanded_grip_force(can_scene, library, across_can
         assert expected < 0.7 * 60.0
         assert squeeze["left_finger"] == pytest.approx(expected, rel=0.1)
         assert squeeze["right_finger"] == pytest.approx(expected, rel=0.1)
+
+
+def test_closing_ends_once_the_grasp_has_settled(can_scene, library, across_can):
+    """The closing phase ends when the pads have stopped on the can and their squeeze has
+    levelled off (well before the fixed closing time, 1.2 s after the descent); the
+    lift then follows the same schedule, and the pads still press with the grip force."""
+    from drake_grasp.lab import LabConfig, check_grasp
+
+    X = across_can(can_scene, library)
+    fixed = check_grasp(None, X, scene=can_scene, library=library,
+                        lab=LabConfig(close_settle_s=None))
+    early = check_grasp(None, X, scene=can_scene, library=library)
+    assert fixed.held and early.held, (fixed.details, early.details)
+    lab = LabConfig()
+    assert fixed.details["close_end_s"] == pytest.approx(lab.descend_s + lab.close_s)
+    # The can is ~57 mm wide: the fingers travel ~14 mm each at 50 mm/s, then the
+    # squeeze rises at ~1000 N/s to 60 N.
+    assert lab.descend_s + 0.3 < early.details["close_end_s"] < lab.descend_s + 0.8
+    saved = fixed.details["close_end_s"] - early.details["close_end_s"]
+    assert early.details["sim_time_s"] == pytest.approx(fixed.details["sim_time_s"] - saved)
+    for phase in ("close", "shake"):
+        squeeze = early.details[f"{phase}_squeeze_n"]
+        assert squeeze["left_finger"] == pytest.approx(60.0, rel=0.05), phase
+        assert squeeze["right_finger"] == pytest.approx(60.0, rel=0.05), phase
+    assert early.details["close_width_m"] == pytest.approx(fixed.details["close_width_m"],
+                                                           abs=5e-4)
