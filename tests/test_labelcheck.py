@@ -1,6 +1,7 @@
 """Label check: summary arithmetic, resume, a refused different run, and the gravity-torque
 test of the ground truth."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -243,3 +244,60 @@ def test_generate_labels_with_the_torque_limit_given(monkeypatch, tmp_path):
         with pytest.raises(SystemExit):
             main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
         assert seen["config"].max_torque_ratio == ratio
+
+
+def test_generate_searches_grasps_with_the_sample_count_given(monkeypatch, tmp_path, capsys):
+    """`generate --grasp-samples N` reaches the ground-truth search of every scene; a bad
+    N is refused before anything runs; the default keeps the identity (config hash) that
+    datasets made before the flag existed have."""
+    import drake_grasp.dataset as dataset_module
+    from drake_grasp.cli import main
+    from drake_grasp.dataset import DatasetConfig, _config_dict
+    from drake_grasp.scenario import load_scenario
+
+    seen = {}
+
+    def generate_dataset(**kwargs):
+        seen.update(kwargs)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(dataset_module, "generate_dataset", generate_dataset)
+    for argv, samples in (([], 400), (["--grasp-samples", "2000"], 2000)):
+        with pytest.raises(SystemExit):
+            main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
+        assert seen["config"].grasp_samples == samples
+    for bad in ("0", "-5", "many"):
+        with pytest.raises(SystemExit) as info:
+            main(["generate", "--scenes", "1", "--split", "train", "--out",
+                  str(tmp_path / "bad"), "--grasp-samples", bad])
+        assert info.value.code == 2
+        assert "--grasp-samples" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    scenario = load_scenario(scenario_name="random")
+    assert "grasp_samples" not in _config_dict(scenario, DatasetConfig(), "train", 0)["dataset"]
+    assert _config_dict(scenario, DatasetConfig(grasp_samples=2000), "train", 0)[
+        "dataset"]["grasp_samples"] == 2000
+    with pytest.raises(ValueError, match="grasp_samples"):
+        DatasetConfig(grasp_samples=0).validate()
+
+
+def test_the_scene_search_uses_the_configured_sample_count(monkeypatch, library):
+    import drake_grasp.grasps as grasps_module
+    import drake_grasp.scene as scene_module
+    from drake_grasp.dataset import DatasetConfig, generate_scene
+    from drake_grasp.scenario import load_scenario
+
+    class Searched(Exception):
+        pass
+
+    def find_grasps(*args, **kwargs):
+        raise Searched(kwargs)
+
+    monkeypatch.setattr(grasps_module, "find_grasps", find_grasps)
+    monkeypatch.setattr(scene_module, "settle_world",
+                        lambda world, spec, **k: dataclasses.replace(spec, settled=True))
+    scenario = load_scenario(scenario_name="random")
+    with pytest.raises(Searched) as info:
+        generate_scene(0, seed=0, split="train", scenario=scenario,
+                       config=DatasetConfig(grasp_samples=1234), library=library)
+    assert info.value.args[0]["num_samples"] == 1234
