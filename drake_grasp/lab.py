@@ -152,25 +152,29 @@ def _base_trajectory(X_WB_grasp, lab: LabConfig, t_close_end: float):
         return u * u * (3 - 2 * u)
 
     def q_of(t):
-        if t <= t_descend:
-            return q_start + smooth(t / t_descend) * (q_grasp - q_start)
-        if t <= t_close:
-            return q_grasp
-        if t <= t_lift:
-            return q_grasp + smooth((t - t_close) / lab.lift_s) * (q_lift - q_grasp)
-        q = q_lift.copy()
+        """(6, N) joint positions at the N times `t` (vectorized: built twice per check)."""
+        t = np.asarray(t, dtype=float)
+        q = np.empty((len(t), 6))
+        descend = t <= t_descend
+        close = ~descend & (t <= t_close)
+        lift = ~descend & ~close & (t <= t_lift)
+        after = ~(descend | close | lift)
+        q[descend] = q_start + smooth(t[descend] / t_descend)[:, None] * (q_grasp - q_start)
+        q[close] = q_grasp
+        q[lift] = q_grasp + smooth((t[lift] - t_close) / lab.lift_s)[:, None] * (q_lift - q_grasp)
+        q[after] = q_lift
         t0 = t_hold
         for i, amplitude, period in shakes:
-            if t0 <= t < t0 + period:
-                q[i] += amplitude * np.sin(2 * np.pi * (t - t0) / period)
+            m = after & (t >= t0) & (t < t0 + period)
+            q[m, i] += amplitude * np.sin(2 * np.pi * (t[m] - t0) / period)
             t0 += period
-        return q
+        return q.T
 
     times = np.arange(0.0, t_shake + 0.1, 0.005)
-    Q = np.stack([q_of(t) for t in times], axis=1)
+    Q = q_of(times)
     h = 1e-5
-    V = np.stack([(q_of(t + h) - q_of(t - h)) / (2 * h) if t > h else np.zeros(6)
-                  for t in times], axis=1)
+    V = (q_of(times + h) - q_of(times - h)) / (2 * h)
+    V[:, times <= h] = 0.0
     traj = PiecewisePolynomial.CubicHermite(times, Q, V)
     phases = {"descend": t_descend, "close": t_close, "lift": t_lift, "hold": t_hold,
               "shake": t_shake}
