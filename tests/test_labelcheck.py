@@ -229,7 +229,9 @@ def test_a_bad_max_torque_ratio_is_refused_before_anything_runs(command, value, 
     assert not out.exists()
 
 
-def test_generate_labels_with_the_torque_limit_given(monkeypatch, tmp_path):
+def _generate_config(monkeypatch, tmp_path, argv):
+    """The `DatasetConfig` that `drake-grasp generate ... ARGV` hands to the generator
+    (which is replaced, so nothing is generated)."""
     import drake_grasp.dataset as dataset_module
     from drake_grasp.cli import main
 
@@ -240,32 +242,26 @@ def test_generate_labels_with_the_torque_limit_given(monkeypatch, tmp_path):
         raise SystemExit(0)
 
     monkeypatch.setattr(dataset_module, "generate_dataset", generate_dataset)
+    with pytest.raises(SystemExit):
+        main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
+    return seen["config"]
+
+
+def test_generate_labels_with_the_torque_limit_given(monkeypatch, tmp_path):
     for argv, ratio in (([], 0.12), (["--max-torque-ratio", "0.5"], 0.5)):
-        with pytest.raises(SystemExit):
-            main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
-        assert seen["config"].max_torque_ratio == ratio
+        assert _generate_config(monkeypatch, tmp_path, argv).max_torque_ratio == ratio
 
 
 def test_generate_searches_grasps_with_the_sample_count_given(monkeypatch, tmp_path, capsys):
     """`generate --grasp-samples N` reaches the ground-truth search of every scene; a bad
     N is refused before anything runs; the default keeps the identity (config hash) that
     datasets made before the flag existed have."""
-    import drake_grasp.dataset as dataset_module
     from drake_grasp.cli import main
     from drake_grasp.dataset import DatasetConfig, _config_dict
     from drake_grasp.scenario import load_scenario
 
-    seen = {}
-
-    def generate_dataset(**kwargs):
-        seen.update(kwargs)
-        raise SystemExit(0)
-
-    monkeypatch.setattr(dataset_module, "generate_dataset", generate_dataset)
     for argv, samples in (([], 400), (["--grasp-samples", "2000"], 2000)):
-        with pytest.raises(SystemExit):
-            main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
-        assert seen["config"].grasp_samples == samples
+        assert _generate_config(monkeypatch, tmp_path, argv).grasp_samples == samples
     for bad in ("0", "-5", "many"):
         with pytest.raises(SystemExit) as info:
             main(["generate", "--scenes", "1", "--split", "train", "--out",
