@@ -479,10 +479,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images-per-scene", type=int, default=40,
                    help="camera poses per scene (paper: 40)")
     _add_torque_ratio_flag(p)
-    p.add_argument("--grasp-samples", type=_positive_int, default=400, metavar="N",
+    from drake_grasp.dataset import DatasetConfig
+
+    p.add_argument("--grasp-samples", type=_positive_int, default=DatasetConfig().grasp_samples,
+                   metavar="N",
                    help="surface points of the ground-truth grasp search per scene (default "
-                        "400, ~0.12 s; more gives less noisy labels at proportional cost: "
-                        "README *How exact the labels are*)")
+                        f"{DatasetConfig().grasp_samples}, ~0.12 s; more gives less noisy labels "
+                        "at proportional cost: README *How exact the labels are*)")
     p.add_argument("--offsets-per-image", type=int, default=10,
                    help="labelled offsets per image (paper: 10)")
     p.add_argument("--scenes-per-shard", type=int, default=4,

@@ -90,6 +90,11 @@ MANIFEST = "manifest.json"
 LOCK = "generate.lock"
 
 
+# `DatasetConfig` fields added after datasets were made, with the value those datasets used
+# (`DatasetConfig.identity` leaves them out at that value).
+_LATER_FIELD_DEFAULTS = {"grasp_samples": 400}
+
+
 @dataclass
 class DatasetConfig:
     """How the training set is sampled (defaults from the paper)."""
@@ -124,6 +129,22 @@ class DatasetConfig:
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
 
+    def grasp_search(self) -> dict:
+        """The keywords of `grasps.find_grasps` that make this config's ground truth
+        (also what `label-check` labels with)."""
+        return {"mu": self.friction_coefficient, "max_torque_ratio": self.max_torque_ratio,
+                "num_samples": self.grasp_samples}
+
+    def identity(self) -> dict:
+        """The fields as a dict for run identities; fields added after datasets were made
+        are left out at their default, so that those datasets keep their identity (and
+        resume)."""
+        out = dataclasses.asdict(self)
+        for name, default in _LATER_FIELD_DEFAULTS.items():
+            if out[name] == default:
+                del out[name]
+        return out
+
     def validate(self) -> None:
         for name in ("images_per_scene", "offsets_per_image", "scenes_per_shard",
                      "max_attempts_per_scene", "grasp_samples"):
@@ -136,18 +157,9 @@ class DatasetConfig:
 def _config_dict(scenario, config: DatasetConfig, split: str, seed: int) -> dict:
     from drake_grasp.scenario import dump_scenario
 
-    dataset = dataclasses.asdict(config)
-    # Fields added after datasets were made with their default left out, so that those
-    # datasets keep their identity (and resume).
-    for name, default in _LATER_FIELD_DEFAULTS.items():
-        if dataset[name] == default:
-            del dataset[name]
     return {"format_version": FORMAT_VERSION, "scene_version": SCENE_VERSION,
             "split": split, "seed": int(seed),
-            "dataset": dataset, "scenario": dump_scenario(scenario)}
-
-
-_LATER_FIELD_DEFAULTS = {"grasp_samples": 400}
+            "dataset": config.identity(), "scenario": dump_scenario(scenario)}
 
 
 def config_hash(cfg: dict) -> str:
@@ -485,9 +497,7 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     if not settled.settled:
         return SceneRejected(scene_index, attempt, s_seed, "unsettled", timings)
     rng = np.random.default_rng([s_seed, 1])
-    grasps = find_grasps(settled, library, rng, mu=config.friction_coefficient,
-                         max_torque_ratio=config.max_torque_ratio,
-                         num_samples=config.grasp_samples)
+    grasps = find_grasps(settled, library, rng, **config.grasp_search())
     lap("grasps")
     if len(grasps.xy_theta) == 0:
         return SceneRejected(scene_index, attempt, s_seed, "no_grasp", timings)

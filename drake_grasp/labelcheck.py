@@ -101,9 +101,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
             continue
         # The dataset's random stream for this scene: the same grasps it would label with.
         accepted, rejected = find_grasps(spec, library, np.random.default_rng([s_seed, 1]),
-                                         mu=dataset_config.friction_coefficient,
-                                         max_torque_ratio=dataset_config.max_torque_ratio,
-                                         return_rejected=True)
+                                         return_rejected=True, **dataset_config.grasp_search())
         if len(accepted) == 0:
             attempts.append({"seed": s_seed, "rejected": "no_grasp"})
             continue
@@ -160,7 +158,7 @@ def _identity(*, seed, scenario, library, config, lab) -> dict:
 
     return {"format": FORMAT, "seed": int(seed), "scenario": dump_scenario(scenario),
             "label_check": dataclasses.asdict(config), "lab": dataclasses.asdict(lab),
-            "dataset": dataclasses.asdict(DatasetConfig(max_torque_ratio=config.max_torque_ratio)),
+            "dataset": DatasetConfig(max_torque_ratio=config.max_torque_ratio).identity(),
             "object_library_hash": library.content_hash(), "code_version": code_version()}
 
 
