@@ -636,10 +636,18 @@ def read_shard_counts(path: Path) -> dict:
         raise ValueError(f"corrupt dataset shard {path}: {e}; delete it and re-run to regenerate it") from None
 
 
+# Whether this process has run a shard task yet: its first one pays the imports and the
+# first meshes' loading (a long run's rate leaves it out: `bench`'s labels_per_s_sustained).
+_TASKS_RUN_HERE = 0
+
+
 def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml: str,
                 config: dict, objects_dir: str | None, attrs: dict, num_scenes: int,
                 tmp_tag: str) -> dict:
     """One worker task: generate the shard's scenes and write the shard."""
+    global _TASKS_RUN_HERE
+    first_here = _TASKS_RUN_HERE == 0
+    _TASKS_RUN_HERE += 1
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.objects import load_library
@@ -666,6 +674,7 @@ def _shard_task(shard_index: int, out: str, seed: int, split: str, scenario_yaml
     write_shard(path, samples, attrs=shard_attrs, tmp_tag=tmp_tag)
     counts = read_shard_counts(path)
     counts["seconds"] = time.perf_counter() - t0
+    counts["first_in_process"] = first_here
     timings: dict = {"write": time.perf_counter() - t_write}
     for s in [*samples, *rejected]:
         for k, v in s.timings.items():
@@ -847,30 +856,37 @@ def _generate_locked(out: Path, *, cfg: dict, chash: str, num_scenes: int, split
                 config=dataclasses.asdict(config),
                 objects_dir=str(objects_dir) if objects_dir else None, attrs=attrs,
                 num_scenes=int(num_scenes), tmp_tag=token)
-    timings = _run_tasks(todo, args, workers=workers, scheduler=scheduler, progress=progress,
-                         total=num_shards, done=num_shards - len(todo))
+    timings, steady = _run_tasks(todo, args, workers=workers, scheduler=scheduler,
+                                         progress=progress, total=num_shards,
+                                         done=num_shards - len(todo))
     manifest = write_manifest(out, cfg, tmp_tag=token)
     if manifest["num_scenes"] != num_scenes:  # a bookkeeping error, never expected
         raise RuntimeError(f"{out}: holds {manifest['num_scenes']} scenes, expected {num_scenes}")
-    # Summed worker seconds per stage of this run (returned, not written).
+    # Summed worker seconds per stage of this run's shard tasks, and the labels and seconds
+    # of the tasks that were not their process's first (returned, not written).
     manifest["run_timings_s"] = timings
+    manifest["run_steady_labels"], manifest["run_steady_seconds"] = steady
     return manifest
 
 
 def _run_tasks(todo: list[int], args: dict, *, workers: int, scheduler: str | None,
-               progress: bool, total: int, done: int) -> dict:
-    """Runs the shard tasks; returns the summed per-stage worker seconds."""
+               progress: bool, total: int, done: int) -> tuple[dict, tuple[int, float]]:
+    """Runs the shard tasks; returns the summed per-stage worker seconds, and the labels
+    and summed seconds of the tasks that were not the first of their process."""
     from tqdm import tqdm
 
     bar = tqdm(total=total, initial=done, unit="shard", disable=not progress,
                desc="generate", dynamic_ncols=True)
-    labels = 0
+    labels, steady_labels, steady_seconds = 0, 0, 0.0
     t0 = time.perf_counter()
     timings: dict = {}
 
     def tick(counts):
-        nonlocal labels
+        nonlocal labels, steady_labels, steady_seconds
         labels += counts["num_labels"]
+        if not counts["first_in_process"]:
+            steady_labels += counts["num_labels"]
+            steady_seconds += counts["seconds"]
         for k, v in counts.get("timings", {}).items():
             timings[k] = timings.get(k, 0.0) + v
         bar.update(1)
@@ -878,7 +894,7 @@ def _run_tasks(todo: list[int], args: dict, *, workers: int, scheduler: str | No
 
     try:
         if not todo:
-            return timings
+            return timings, (steady_labels, steady_seconds)
         if scheduler:
             from dask.distributed import Client, as_completed
 
@@ -900,7 +916,7 @@ def _run_tasks(todo: list[int], args: dict, *, workers: int, scheduler: str | No
                     tick(fut.result())
     finally:
         bar.close()
-    return timings
+    return timings, (steady_labels, steady_seconds)
 
 
 # ----------------------------------------------------------------------------
