@@ -128,6 +128,16 @@ def _torque_ratio(text: str) -> float:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -204,6 +214,27 @@ def _cmd_train(args) -> int:
                     network=network)
     print(json.dumps({"test_l1_m": metrics.get("test_l1_m"), "epochs": len(metrics["epochs"]),
                       "device": metrics["device"], "out": str(args.out)}))
+    return 0
+
+
+def _cmd_dense_labels(args) -> int:
+    from drake_grasp.dense_training import build_labels
+
+    images = build_labels(args.data, args.out, workers=args.workers)
+    print(json.dumps({"out": str(args.out), "images_labelled_now": images}))
+    return 0
+
+
+def _cmd_train_grid(args) -> int:
+    from drake_grasp.dense_training import train as train_grid
+
+    metrics = train_grid([f for f in args.labels.split(",") if f], args.out,
+                         test_data=args.test_data, init=args.init_weights, epochs=args.epochs,
+                         batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
+                         threads=args.threads, checkpoint_minutes=args.checkpoint_minutes)
+    last = metrics["epochs"][-1] if metrics["epochs"] else {}
+    print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
+                      **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
     return 0
 
 
@@ -561,6 +592,35 @@ def build_parser() -> argparse.ArgumentParser:
                         "window around the candidate (as many samples as the 12 cm one), "
                         "so the net sees what lies beyond it; 0 (default): none")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("dense-labels", help="label every node of the grid head's action grid "
+                       "on every image of a dataset (for train-grid); re-running skips the "
+                       "shards already done")
+    p.add_argument("--data", required=True, help="dataset folder (generate --out)")
+    p.add_argument("--out", required=True, help="folder for the labels (one .npz per shard)")
+    p.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
+    p.set_defaults(func=_cmd_dense_labels)
+
+    p = sub.add_parser("train-grid", help="train the grid-head distance CNN on dense labels "
+                       "(L1 over every in-view grid node); re-running resumes")
+    p.add_argument("--labels", required=True,
+                   help="dense-labels folders, comma-separated (the same grid)")
+    p.add_argument("--out", required=True, help="run folder: epochN.safetensors, metrics.json, "
+                   "checkpoint.pt")
+    p.add_argument("--test-data", default=None, help="dataset folder for the test L1 and "
+                   "ranking metrics after every epoch (e.g. a generate --split test folder)")
+    p.add_argument("--init-weights", default=None, metavar="FILE",
+                   help="start from these weights: a paper (tiled) net's Conv1, Conv2 and "
+                        "IP1 with its distance for staying put on every node, or a grid net")
+    p.add_argument("--epochs", type=_positive_int, default=3)
+    p.add_argument("--batch", type=_positive_int, default=50, help="images per batch")
+    p.add_argument("--lr", type=_positive_float, default=2e-4, help="Adam's learning rate")
+    p.add_argument("--lr-decay", type=_positive_float, default=0.7,
+                   help="learning-rate factor after every epoch")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=_positive_int, default=2)
+    p.add_argument("--checkpoint-minutes", type=_positive_float, default=5.0)
+    p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "
                        "latest checkpoint (an unfinished run) as a weights file for the "

@@ -113,3 +113,33 @@ def ranking_metrics(model: DistanceCNN, data_dir: str | Path, *, images: int = 5
         "l1_m": float(np.abs(pred - true).mean()),
         "best_true_mean_m": float(best.mean()),
     }
+
+
+# Bins of the true distance [mm] for the L1 breakdown: near a grasp (what the controller's
+# last steps need), the middle, and far from every grasp (most of the labels).
+LABEL_BINS_MM = (0, 30, 60, 100, 150, float("inf"))
+
+
+def l1_by_label(model, data, *, batch_images: int = 200) -> tuple[float, list[dict]]:
+    """One pass over every labelled offset of `data` (a `training.ShardSet`): the mean absolute error [m] (what `train`'s
+    `evaluate_l1` reports), and the error [mm] and label count per bin of the true
+    distance."""
+    edges = np.array(LABEL_BINS_MM) / 1000.0
+    total = np.zeros(len(edges) - 1)
+    count = np.zeros(len(edges) - 1, dtype=np.int64)
+    model.eval()
+    with torch.no_grad():
+        for start in range(0, len(data), batch_images):
+            depth, offsets, labels = data.gather(np.arange(start, min(start + batch_images,
+                                                                      len(data))))
+            pred = model.forward_factored(model.preprocess(depth),
+                                          torch.as_tensor(offsets, dtype=model.dtype))
+            err = (pred.double().numpy() - labels).ravel()
+            k = np.digitize(labels.ravel(), edges[1:-1])
+            np.add.at(total, k, np.abs(err))
+            np.add.at(count, k, 1)
+    upper = [b if np.isfinite(b) else None for b in LABEL_BINS_MM]  # None: no upper bound
+    bins = [{"label_mm": [upper[i], upper[i + 1]], "labels": int(count[i]),
+             "l1_mm": float(1000 * total[i] / count[i]) if count[i] else None}
+            for i in range(len(count))]
+    return float(total.sum() / max(count.sum(), 1)), bins

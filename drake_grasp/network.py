@@ -82,13 +82,15 @@ _RESERVED_USER_KEYS = ("config", "code_version", "format")
 _DEPTH_REFERENCES = ("fixed", "median")
 _THETA_UNITS = ("rad", "deg")
 _THETA_ENCODINGS = ("double_angle",)
-_ACTION_FUSIONS = ("tiled", "window")
+_ACTION_FUSIONS = ("tiled", "window", "grid")
 # Fields that only the window fusion uses: absent from a "tiled" net's dict.
 _WINDOW_FIELDS = ("action_fusion", "window_side_m", "window_samples", "camera_fov_deg",
                   "camera_x_G_m", "camera_y_G_m", "context_side_m")
 # Fields added after the window fusion, with the value that means "as before": left out
 # of the dict at that value, read as it when missing.
 _LATER_FIELDS = {"context_side_m": 0.0}
+# The grid head's fields: in the dict of "grid" nets only (older files have none).
+_GRID_FIELDS = ("grid_half_m", "grid_step_m", "grid_theta_step_deg")
 
 
 @dataclass
@@ -162,6 +164,12 @@ class NetworkConfig:
         camera_fov_deg: The wrist camera's field of view (square image) [deg].
         camera_x_G_m, camera_y_G_m: The camera's centre in the grasp frame G [m]
             (the camera looks along z_G with its axes parallel to G's).
+        grid_half_m, grid_step_m, grid_theta_step_deg: The "grid" head (see
+            `DistanceCNN`, "Grid head"): IP2 predicts the distance at every node of a
+            grid of actions, x and y within `grid_half_m` of the camera's centre (the
+            widest view in the data: 0.156 m at 0.30 m) every `grid_step_m`, theta
+            over 180 degrees every `grid_theta_step_deg`; a candidate's distance is the
+            grid's trilinear interpolation (periodic in theta).
     """
 
     image_size: int = 64
@@ -186,6 +194,9 @@ class NetworkConfig:
     camera_x_G_m: float = 0.0
     camera_y_G_m: float = -0.05
     context_side_m: float = 0.0
+    grid_half_m: float = 0.16
+    grid_step_m: float = 0.01
+    grid_theta_step_deg: float = 10.0
 
     def __post_init__(self) -> None:
         for name in ("image_size", "conv1_channels", "conv2_channels", "kernel", "ip1",
@@ -250,10 +261,28 @@ class NetworkConfig:
                 raise ValueError(
                     f"NetworkConfig.{name}: expected one of {allowed}, got {getattr(self, name)!r}"
                 )
+        for name in _GRID_FIELDS:
+            value = getattr(self, name)
+            if not _is_real(value) or not (math.isfinite(value) and value > 0.0):
+                raise ValueError(
+                    f"NetworkConfig.{name}: expected a finite number > 0, got {value!r}")
+        if self.action_fusion == "grid":
+            half = self.grid_half_m / self.grid_step_m
+            bins = 180.0 / self.grid_theta_step_deg
+            if abs(half - round(half)) > 1e-6 or abs(bins - round(bins)) > 1e-6:
+                raise ValueError(
+                    "NetworkConfig.grid_half_m / grid_step_m and 180 / grid_theta_step_deg: "
+                    f"expected whole numbers, got {half:g} and {bins:g}")
         self.feature_shape()  # raises if the image is too small for the two conv/pools
 
+    def grid_shape(self) -> tuple[int, int, int]:
+        """(theta bins, y nodes, x nodes) of the "grid" head's output."""
+        n = 2 * round(self.grid_half_m / self.grid_step_m) + 1
+        return (round(180.0 / self.grid_theta_step_deg), n, n)
+
     def feature_shape(self) -> tuple[int, int, int]:
-        """Shape (C, H, W) of Pool2's output, i.e. of `DistanceCNN.image_features`.
+        """Shape (C, H, W) of `DistanceCNN.image_features`: Pool2's output (the grid
+        head: its distance grid, `grid_shape`).
 
         Raises:
             ValueError: The image is too small for two conv + pool stages.
@@ -271,6 +300,8 @@ class NetworkConfig:
         if self.action_fusion == "window":
             # lrelu(Conv2) before pooling, plus one channel holding the reference depth.
             return (self.conv2_channels + 1, conv2, conv2)
+        if self.action_fusion == "grid":
+            return self.grid_shape()
         return (self.conv2_channels, pool2, pool2)
 
     @property
@@ -285,8 +316,8 @@ class NetworkConfig:
         if self.action_fusion == "window":
             windows = 2 if self.context_side_m > 0 else 1
             return windows * self.conv2_channels * (self.window_samples // 2) ** 2
-        c, h, w = self.feature_shape()
-        return c * h * w
+        pool2 = ((self.image_size - self.kernel + 1) // 2 - self.kernel + 1) // 2
+        return self.conv2_channels * pool2 * pool2
 
     @property
     def focal_px(self) -> float:
@@ -299,6 +330,9 @@ class NetworkConfig:
         d = dataclasses.asdict(self)
         if self.action_fusion == "tiled":
             for name in _WINDOW_FIELDS:
+                d.pop(name)
+        if self.action_fusion != "grid":
+            for name in _GRID_FIELDS:
                 d.pop(name)
         for name, before in _LATER_FIELDS.items():
             if d.get(name, None) == before:
@@ -326,6 +360,8 @@ class NetworkConfig:
         if "action_fusion" not in data:  # a "tiled" net's dict (`to_dict`)
             missing = [n for n in missing if n not in _WINDOW_FIELDS]
         missing = [n for n in missing if n not in _LATER_FIELDS]
+        if data.get("action_fusion") != "grid":
+            missing = [n for n in missing if n not in _GRID_FIELDS]
         if missing:
             raise ValueError(f"{source}: missing NetworkConfig field(s) {missing}")
         try:
@@ -530,14 +566,18 @@ class DistanceCNN(nn.Module):
         cfg = self.config
         meta = {"device": "meta", "dtype": dtype}
         self.window = cfg.action_fusion == "window"
+        self.grid = cfg.action_fusion == "grid"
         self.conv1 = nn.Conv2d(1, cfg.conv1_channels, cfg.kernel, **meta)
         # Window fusion: the action's angle and the reference depth go to IP1's output
-        # (not x, y: where the candidate lies is where the window lies).
+        # (not x, y: where the candidate lies is where the window lies). The grid head
+        # has no action input.
         self.ip_action = (nn.Linear(3, cfg.ip1, **meta) if self.window
+                          else None if self.grid
                           else nn.Linear(4, cfg.conv1_channels, **meta))
         self.conv2 = nn.Conv2d(cfg.conv1_channels, cfg.conv2_channels, cfg.kernel, **meta)
         self.ip1 = nn.Linear(cfg.num_features, cfg.ip1, **meta)
-        self.ip2 = nn.Linear(cfg.ip1, 1, **meta)
+        outputs = math.prod(cfg.grid_shape()) if self.grid else 1
+        self.ip2 = nn.Linear(cfg.ip1, outputs, **meta)
         # Module.to_empty would do the same, but its first call imports torch's symbolic
         # shape machinery (~0.4 s of every worker process's start).
         for layer in self.children():
@@ -554,6 +594,8 @@ class DistanceCNN(nn.Module):
         """
         g = generator if generator is not None else torch.Generator().manual_seed(0)
         for layer in (self.conv1, self.ip_action, self.conv2, self.ip1, self.ip2):
+            if layer is None:
+                continue
             nn.init.kaiming_uniform_(
                 layer.weight, a=self.config.leaky_slope, nonlinearity="leaky_relu", generator=g
             )
@@ -713,6 +755,8 @@ class DistanceCNN(nn.Module):
             )
         if self.window:
             return self._window_scores(self.image_features(images), feats[:, None])[:, 0]
+        if self.grid:
+            return self._grid_scores(self.image_features(images), feats[:, None])[:, 0]
         x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
         x = x + self.ip_action(feats)[:, :, None, None]  # tiled over Pool1's H, W
         x = F.max_pool2d(self._lrelu(self.conv2(x)), 2)
@@ -742,6 +786,11 @@ class DistanceCNN(nn.Module):
             fmap = self._lrelu(self.conv2(x))
             ref = self._reference_depth(images)[:, None, None, None]
             return torch.cat((fmap, ref.expand(-1, 1, *fmap.shape[2:])), dim=1)
+        if self.grid:
+            h = F.max_pool2d(self._lrelu(self.conv2(x)), 2).flatten(1)
+            z = self.ip2(self._lrelu(self.ip1(h)))
+            return (self.config.output_scale_m * F.softplus(z)).reshape(
+                -1, *self.config.grid_shape())
         return F.max_pool2d(self.conv2(x), 2)
 
     def action_offsets(self, actions: ArrayLike) -> torch.Tensor:
@@ -756,9 +805,9 @@ class DistanceCNN(nn.Module):
         Returns:
             (..., C2).
         """
-        if self.window:
-            raise ValueError("action_offsets: a window-fusion net has no per-channel "
-                             "action shift (the action chooses where the net looks)")
+        if self.window or self.grid:
+            raise ValueError(f"action_offsets: a {self.config.action_fusion!r} net has no "
+                             "per-channel action shift")
         feats = self._features(actions)
         tap_sums = self.conv2.weight.sum(dim=(2, 3))  # (C2, C1)
         weight = tap_sums @ self.ip_action.weight  # (C2, 4)
@@ -846,6 +895,46 @@ class DistanceCNN(nn.Module):
         y = self.ip1(h) + self.ip_action(extra)
         return self._after_ip1(y).reshape(b, m)
 
+    # -- grid head ---------------------------------------------------------------------
+
+    def _grid_scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """Distances for M actions on each of B images from their distance grids: the
+        trilinear interpolation between the 8 grid nodes around each action, periodic in
+        theta (a parallel jaw turned by 180 degrees is the same grasp); x and y beyond
+        the grid are clamped to its edge.
+
+        Args:
+            grids: (B, T, N, N) from `image_features` (theta, y, x).
+            feats: (B, M, 4) action features.
+
+        Returns:
+            (B, M).
+        """
+        cfg = self.config
+        t_bins, n, _ = cfg.grid_shape()
+        b, m = feats.shape[:2]
+        half = (n - 1) / 2.0
+        # Node coordinates: x = camera_x + (i - half) step, theta = -90 + k step.
+        u = (feats[..., 0] * cfg.action_xy_scale_m - cfg.camera_x_G_m) / cfg.grid_step_m + half
+        v = (feats[..., 1] * cfg.action_xy_scale_m - cfg.camera_y_G_m) / cfg.grid_step_m + half
+        theta_deg = torch.rad2deg(0.5 * torch.atan2(feats[..., 3], feats[..., 2]))
+        w = torch.remainder((theta_deg + 90.0) / cfg.grid_theta_step_deg, float(t_bins))
+        u = u.clamp(0.0, n - 1.0)
+        v = v.clamp(0.0, n - 1.0)
+        iu = u.detach().floor().clamp(max=n - 2).long()
+        iv = v.detach().floor().clamp(max=n - 2).long()
+        iw = w.detach().floor().long().clamp(0, t_bins - 1)
+        fu, fv, fw = u - iu, v - iv, w - iw
+        iw1 = torch.remainder(iw + 1, t_bins)
+        flat = grids.reshape(b, -1)
+        out = 0.0
+        for kw, gw in ((iw, 1.0 - fw), (iw1, fw)):
+            for kv, gv in ((iv, 1.0 - fv), (iv + 1, fv)):
+                for ku, gu in ((iu, 1.0 - fu), (iu + 1, fu)):
+                    idx = (kw * n + kv) * n + ku
+                    out = out + torch.gather(flat, 1, idx) * (gw * gv * gu)
+        return out
+
     def _score_features(self, features: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
         # features (..., C2, P, P) broadcast against offsets (..., C2): one row of IP1
         # input per action, then the head as a single (N, 8450) @ (8450, 500) product.
@@ -881,12 +970,13 @@ class DistanceCNN(nn.Module):
                 f"features: expected shape {expected} or (1, *{expected}) "
                 f"(image_features of one image), got {tuple(features.shape)}"
             )
-        if self.window:
+        if self.window or self.grid:
             feats = self._features(actions)
             if feats.ndim != 2:
                 raise ValueError(
                     f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
-            return self._window_scores(features[None], feats[None])[0]
+            scores = self._grid_scores if self.grid else self._window_scores
+            return scores(features[None], feats[None])[0]
         offsets = self.action_offsets(actions)
         if offsets.ndim != 2:
             raise ValueError(
@@ -910,13 +1000,14 @@ class DistanceCNN(nn.Module):
             Distances [m], (B, M).
         """
         features = self.image_features(images)
-        if self.window:
+        if self.window or self.grid:
             feats = self._features(actions)
             if feats.ndim != 3 or feats.shape[0] != images.shape[0]:
                 raise ValueError(
                     f"actions: expected shape ({images.shape[0]}, M, 3 or 4) to match "
                     f"{images.shape[0]} images, got {tuple(torch.as_tensor(actions).shape)}")
-            return self._window_scores(features, feats)
+            scores = self._grid_scores if self.grid else self._window_scores
+            return scores(features, feats)
         offsets = self.action_offsets(actions)
         if offsets.ndim != 3 or offsets.shape[0] != images.shape[0]:
             raise ValueError(

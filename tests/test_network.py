@@ -581,3 +581,78 @@ def test_window_is_placed_where_the_candidate_grasp_is_seen():
                             torch.tensor([0.25], dtype=torch.float64))
     du, dv = (turned[0, 0, 1] - turned[0, 0, 0]).tolist()
     assert du > 0 and abs(dv / du - math.sqrt(3)) < 1e-5
+
+
+# -- the grid head ---------------------------------------------------------------------
+
+GRID = NetworkConfig(action_fusion="grid", theta_unit="deg")
+
+
+def _node_action(cfg: NetworkConfig, k: int, iy: int, ix: int) -> list[float]:
+    half = (cfg.grid_shape()[1] - 1) // 2
+    return [cfg.camera_x_G_m + (ix - half) * cfg.grid_step_m,
+            cfg.camera_y_G_m + (iy - half) * cfg.grid_step_m,
+            -90.0 + k * cfg.grid_theta_step_deg]
+
+
+def test_grid_config_and_dicts():
+    """A grid net's dict names the grid; other nets' dicts do not (older files unchanged)."""
+    assert GRID.grid_shape() == (18, 33, 33) and GRID.feature_shape() == (18, 33, 33)
+    assert GRID.num_features == CFG.num_features == 8450
+    assert NetworkConfig.from_dict(GRID.to_dict()) == GRID
+    for cfg in (CFG, WIN):
+        assert not any(k.startswith("grid_") for k in cfg.to_dict())
+    d = GRID.to_dict()
+    del d["grid_step_m"]
+    with pytest.raises(ValueError, match="missing.*grid_step_m"):
+        NetworkConfig.from_dict(d)
+    with pytest.raises(ValueError, match="whole numbers"):
+        NetworkConfig(action_fusion="grid", grid_step_m=0.015)
+    with pytest.raises(ValueError, match="grid_theta_step_deg"):
+        NetworkConfig(action_fusion="grid", grid_theta_step_deg=0.0)
+
+
+def test_grid_interpolates_its_nodes_periodically_and_its_forms_agree(tmp_path):
+    m = _model(config=GRID)
+    images = _images(2, seed=3) * 0.3
+    grids = m.image_features(images)
+    assert grids.shape == (2, 18, 33, 33) and (grids > 0).all()
+    nodes = [(0, 0, 0), (3, 7, 20), (17, 32, 32), (9, 16, 16)]
+    actions = torch.tensor([_node_action(GRID, *n) for n in nodes], dtype=torch.float64)
+    at_nodes = m.score_actions(grids[0], actions)
+    expected = torch.stack([grids[0][n] for n in nodes])
+    assert _max_rel(at_nodes, expected) < 1e-9
+    # A parallel jaw turned by 180 degrees is the same grasp: theta wraps.
+    turned = actions + torch.tensor([0.0, 0.0, 180.0], dtype=torch.float64)
+    assert _max_rel(m.score_actions(grids[0], turned), expected) < 1e-9
+    # Half way between two theta nodes across the wrap (80 and -90 = 90 degrees).
+    mid = torch.tensor([_node_action(GRID, 17, 5, 6)], dtype=torch.float64)
+    mid[0, 2] += 5.0
+    assert torch.allclose(m.score_actions(grids[0], mid)[0],
+                          0.5 * (grids[0, 17, 5, 6] + grids[0, 0, 5, 6]))
+    # Beyond the grid: clamped to its edge.
+    far = torch.tensor([[1.0, -1.0, -90.0]], dtype=torch.float64)
+    assert torch.allclose(m.score_actions(grids[0], far)[0], grids[0, 0, 0, 32])
+    acts = _raw_actions((2, 6), seed=4) * torch.tensor([1.0, 1.0, 180 / math.pi],
+                                                       dtype=torch.float64)
+    factored = m.forward_factored(images, acts)
+    direct = torch.stack([m.forward(images, acts[:, j]) for j in range(6)], dim=1)
+    assert _max_rel(direct, factored) < 1e-12
+    save_weights(m, tmp_path / "g.safetensors", metadata={})
+    loaded, meta = load_weights(tmp_path / "g.safetensors")
+    assert loaded.config == GRID and meta["config"]["grid_step_m"] == GRID.grid_step_m
+    assert torch.equal(loaded.forward_factored(images, acts), factored)
+    with pytest.raises(ValueError, match="grid"):
+        m.action_offsets(acts)
+
+
+def test_grid_starts_from_a_tiled_net_at_its_zero_action():
+    from drake_grasp.dense_training import init_from_tiled
+
+    tiled = _model(seed=5, config=dataclasses.replace(CFG, theta_unit="deg"))
+    grid = _model(seed=6, config=GRID)
+    init_from_tiled(grid, tiled)
+    images = _images(2, seed=7) * 0.3
+    at_zero = tiled.forward(images, torch.zeros(2, 3, dtype=torch.float64))
+    grids = grid.image_features(images)
+    assert _max_rel(grids, at_zero[:, None, None, None].expand_as(grids)) < 1e-12

@@ -1,0 +1,375 @@
+"""Training the grid head (`NetworkConfig(action_fusion="grid")`) on dense labels.
+
+The paper's net takes the action as an input, so every labelled offset costs a pass
+through IP1: the dataset stores 10 per image. The grid head predicts the distance at
+every node of a fixed grid of actions (18 x 33 x 33 for the defaults) from one pass per
+image, so every image can be labelled at every node: the label of an action is the
+distance from the hand pose it leads to, to the nearest ground-truth grasp of the scene
+(the dataset's own label function, `grasps.distance_to_nearest_grasp`), and the shards
+store each scene's grasps. A k-d tree over a scene's grasps in the metric's coordinates
+(x, y, 0.001 m/deg x theta, theta periodic over 180 degrees) gives those distances
+exactly (to float rounding) and fast.
+
+    python -m drake_grasp.dense_training labels --data data/ft_dense --out data/ft_dense_grid
+    python -m drake_grasp.dense_training train --labels data/ft_dense_grid \
+        --test-data data/paper_test --init models/cnn/weights.safetensors --out data/grid_run
+
+Only the nodes inside the image's view (the camera's footprint on the table at the image's
+camera height) count in the loss: beyond it the net cannot see what decides the label.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG
+from drake_grasp.network import DistanceCNN, NetworkConfig, load_weights, save_weights
+
+GRID_CONFIG = NetworkConfig(theta_unit="deg", action_fusion="grid")
+_THETA_PERIOD_M = 180.0 * ANGLE_WEIGHT_M_PER_DEG
+_SHIFT_M = 50.0  # x, y moved into the k-d tree's positive box
+_BOX_M = 1000.0
+
+
+def grid_node_actions(cfg: NetworkConfig) -> np.ndarray:
+    """The grid head's node actions (T * N * N, 3) = (x [m], y [m], theta [deg]) in the
+    order of its output (theta, y, x)."""
+    t_bins, n, _ = cfg.grid_shape()
+    half = (n - 1) // 2
+    xs = cfg.camera_x_G_m + (np.arange(n) - half) * cfg.grid_step_m
+    ys = cfg.camera_y_G_m + (np.arange(n) - half) * cfg.grid_step_m
+    ts = -90.0 + np.arange(t_bins) * cfg.grid_theta_step_deg
+    T, Y, X = np.meshgrid(ts, ys, xs, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), T.ravel()], axis=1)
+
+
+def _tree_coords(xy_theta: np.ndarray) -> np.ndarray:
+    return np.column_stack([xy_theta[:, 0] + _SHIFT_M, xy_theta[:, 1] + _SHIFT_M,
+                            np.mod(xy_theta[:, 2], 180.0) * ANGLE_WEIGHT_M_PER_DEG])
+
+
+def nearest_grasp_tree(grasps_xy_theta: np.ndarray):
+    """A k-d tree for `distance_to_nearest_grasp` against these grasps (N >= 1)."""
+    from scipy.spatial import cKDTree
+
+    # The periodic box wraps theta; x and y never come near their (huge) box's edge.
+    return cKDTree(_tree_coords(np.asarray(grasps_xy_theta, float)),
+                   boxsize=[_BOX_M, _BOX_M, _THETA_PERIOD_M])
+
+
+def tree_distances(tree, poses_xy_theta: np.ndarray) -> np.ndarray:
+    """Distances from planar poses (M, 3) to the nearest grasp of `tree` [m]."""
+    return tree.query(_tree_coords(np.asarray(poses_xy_theta, float)))[0]
+
+
+def _label_shard(path: str, cfg_dict: dict) -> dict:
+    """Dense labels of one shard's images (float16 grids), with what training needs."""
+    import h5py
+
+    from drake_grasp.actions import apply_actions
+
+    from drake_grasp.station import gripper_frame_offsets
+
+    cfg = NetworkConfig.from_dict(cfg_dict)
+    nodes = grid_node_actions(cfg)
+    camera_z = float(gripper_frame_offsets()[2].translation()[2])
+    with h5py.File(path, "r") as f:
+        depth = f["depth"][:]
+        hand = f["hand_pose"][:]
+        image_scene = f["image_scene"][:]
+        grasp_scene = f["grasp_scene"][:]
+        grasps = f["grasp_xy_theta"][:]
+    # Only the nodes in the image's view are labelled (the loss uses no others), NaN
+    # elsewhere; the view is taken a hair wider than `view_masks` takes it.
+    grids = np.full((len(depth), *cfg.grid_shape()), np.nan, np.float16)
+    n = cfg.grid_shape()[1]
+    offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
+    half_view = (hand[:, 2] - camera_z) * math.tan(math.radians(cfg.camera_fov_deg) / 2.0)
+    keep = np.ones(len(depth), bool)
+    for scene in np.unique(image_scene):
+        rows = np.flatnonzero(image_scene == scene)
+        g = grasps[grasp_scene == scene]
+        if len(g) == 0:
+            keep[rows] = False
+            continue
+        tree = nearest_grasp_tree(g)
+        for i in rows:
+            inside = np.abs(offsets) <= half_view[i] + 1e-6
+            node_in = (inside[None, :, None] & inside[None, None, :]).repeat(
+                cfg.grid_shape()[0], axis=0).ravel()
+            moved = apply_actions(hand[i, [0, 1, 3]], nodes[node_in])
+            grids[i].reshape(-1)[node_in] = tree_distances(tree, moved)
+    return {"depth": depth[keep].astype(np.float16), "grid": grids[keep],
+            "hand_z": hand[keep, 2].astype(np.float32)}
+
+
+def build_labels(data_dir: str | Path, out: str | Path, *, cfg: NetworkConfig = GRID_CONFIG,
+                 workers: int = 2, progress: bool = True) -> int:
+    """Dense labels of every shard of `data_dir` into `out`/<shard>.npz (one file per
+    shard, written atomically; a re-run skips the shards already done). Returns the
+    number of images."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    data_dir, out = Path(data_dir), Path(out)
+    shards = sorted(data_dir.glob("shard-*.h5"))
+    if not shards:
+        raise ValueError(f"{data_dir}: no shard-*.h5 files (a `drake-grasp generate` folder?)")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    todo = [s for s in shards if not (out / f"{s.stem}.npz").exists()]
+    images = 0
+    with ProcessPoolExecutor(max_workers=workers) as pool, \
+            tqdm(total=len(shards), initial=len(shards) - len(todo), disable=not progress,
+                 desc="dense labels", unit="shard") as bar:
+        futures = {pool.submit(_label_shard, str(s), cfg.to_dict()): s for s in todo}
+        for fut, shard in futures.items():
+            part = fut.result()
+            tmp = out / f"{shard.stem}.tmp.npz"
+            np.savez(tmp, **part)
+            tmp.replace(out / f"{shard.stem}.npz")
+            images += len(part["depth"])
+            bar.update(1)
+    return images
+
+
+def load_labels(folders) -> dict:
+    """All parts of one or more `build_labels` folders, concatenated."""
+    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
+    parts = []
+    for folder in folders:
+        found = sorted(Path(folder).glob("shard-*.npz"))
+        if not found:
+            raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
+        parts += found
+    data = {k: [] for k in ("depth", "grid", "hand_z")}
+    for p in parts:
+        with np.load(p) as z:
+            for k in data:
+                data[k].append(z[k])
+    return {k: np.concatenate(v) for k, v in data.items()}
+
+
+def view_masks(hand_z: torch.Tensor, cfg: NetworkConfig, camera_z_G_m: float) -> torch.Tensor:
+    """(B, N) mask of the grid's x (and, by symmetry of the square view, y) nodes inside
+    the camera's footprint on the table at each image's camera height."""
+    n = cfg.grid_shape()[1]
+    half_view = (hand_z - camera_z_G_m) * math.tan(math.radians(cfg.camera_fov_deg) / 2.0)
+    offsets = (torch.arange(n, dtype=hand_z.dtype) - (n - 1) / 2.0) * cfg.grid_step_m
+    return offsets.abs()[None, :] <= half_view[:, None] + 1e-9
+
+
+def init_from_tiled(grid_net: DistanceCNN, tiled: DistanceCNN) -> None:
+    """Starts a grid net from a trained paper ("tiled") net: the same Conv1, Conv2 (its
+    bias taking the tiled action shift of the zero action) and IP1, and IP2's single
+    output copied to every grid node (the grid starts flat at the tiled net's
+    distance for staying put)."""
+    with torch.no_grad():
+        grid_net.conv1.load_state_dict(tiled.conv1.state_dict())
+        grid_net.conv2.weight.copy_(tiled.conv2.weight)
+        zero = torch.zeros(1, 3, dtype=tiled.dtype)
+        grid_net.conv2.bias.copy_(tiled.conv2.bias + tiled.action_offsets(zero)[0])
+        grid_net.ip1.load_state_dict(tiled.ip1.state_dict())
+        grid_net.ip2.weight.copy_(tiled.ip2.weight.expand_as(grid_net.ip2.weight))
+        grid_net.ip2.bias.fill_(float(tiled.ip2.bias[0]))
+
+
+def _fingerprint(folder) -> str:
+    """A label folder's content, not its place: the sha256 of its parts' names and sizes
+    (a moved folder still resumes its run)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for part in sorted(Path(folder).glob("shard-*.npz")):
+        h.update(f"{part.name}:{part.stat().st_size};".encode())
+    return h.hexdigest()
+
+
+def _identity(folders, n_images, cfg, init, *, batch, lr, lr_decay, seed) -> dict:
+    from drake_grasp.network import tensors_sha256
+
+    init_sha = None
+    if init:
+        start, _ = load_weights(init)
+        init_sha = tensors_sha256(start.state_dict())
+    return {"labels": [_fingerprint(f) for f in folders], "images": int(n_images),
+            "config": cfg.to_dict(), "init_sha256": init_sha, "batch": int(batch),
+            "lr": float(lr), "lr_decay": float(lr_decay), "seed": int(seed)}
+
+
+def _save_checkpoint(path: Path, state: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
+          init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
+          lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
+          checkpoint_minutes: float = 5.0, progress: bool = True,
+          _stop_after_batches: int | None = None) -> dict:
+    """Adam on the masked L1 over every in-view grid node, the learning rate times
+    `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
+    `out`/checkpoint.pt every `checkpoint_minutes` and after every epoch: re-running the
+    same command resumes where it stopped (the batches of epoch e are a permutation
+    seeded by (seed, e), so a resumed run takes the batches an unbroken one would).
+
+    `labels_dir`: one `build_labels` folder or a list of them (same grid). `init`: a
+    paper ("tiled") net to start from (`init_from_tiled`) or a grid net to go on
+    training.
+    """
+    from tqdm import tqdm
+
+    from drake_grasp.station import gripper_frame_offsets
+
+    torch.set_num_threads(threads)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
+    for f in folders:
+        if not (Path(f) / "config.json").is_file():
+            raise ValueError(f"{f}: not a dense-labels folder (no config.json; run "
+                             "`drake-grasp dense-labels` first)")
+    configs = [json.loads((Path(f) / "config.json").read_text()) for f in folders]
+    if any(c != configs[0] for c in configs):
+        raise ValueError(f"{folders}: label folders made for different grids")
+    cfg = NetworkConfig.from_dict(configs[0])
+    data = load_labels(folders)
+    n_images = len(data["depth"])
+    identity = _identity(folders, n_images, cfg, init, batch=batch, lr=lr, lr_decay=lr_decay,
+                         seed=seed)
+    model = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay)
+    ckpt_path = out / "checkpoint.pt"
+    epoch, batch_index, total, count = 0, 0, 0.0, 0
+    metrics = {"identity": identity, "epochs": []}
+    if ckpt_path.exists():
+        ckpt = torch.load(ckpt_path, weights_only=True)
+        if ckpt["identity"] != identity:
+            diff = [k for k in identity if ckpt["identity"].get(k) != identity[k]]
+            raise ValueError(f"{out}: holds another training run (differs in {diff}); "
+                             "use another out folder")
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["opt"])
+        sched.load_state_dict(ckpt["sched"])
+        epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
+        total, count = ckpt["total"], ckpt["count"]
+        metrics = json.loads(ckpt["metrics"])
+    elif init:
+        start, _ = load_weights(init)
+        if start.config == cfg:  # a grid net: go on training it
+            model.load_state_dict(start.state_dict())
+        else:
+            init_from_tiled(model, start)
+    camera_z = float(gripper_frame_offsets()[2].translation()[2])
+
+    def checkpoint():
+        _save_checkpoint(ckpt_path, {
+            "identity": identity, "epoch": epoch, "batch_index": batch_index,
+            "total": total, "count": count, "metrics": json.dumps(metrics),
+            "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict()})
+
+    starts = list(range(0, n_images, batch))
+    done_batches = 0
+    last_ckpt = time.perf_counter()
+    while epoch < epochs:
+        order = np.random.default_rng([seed, epoch]).permutation(n_images)
+        model.train()
+        bar = tqdm(starts, initial=batch_index, total=len(starts), desc=f"epoch {epoch + 1}",
+                   unit="batch", disable=not progress)
+        for start in starts[batch_index:]:
+            idx = np.sort(order[start:start + batch])
+            images = model.preprocess(data["depth"][idx].astype(np.float32))
+            target = torch.from_numpy(data["grid"][idx].astype(np.float32))
+            mx = view_masks(torch.from_numpy(data["hand_z"][idx]), cfg, camera_z)
+            mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
+            mask = mask & torch.isfinite(target)
+            pred = model.image_features(images)
+            loss = (pred - target).abs()[mask].mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss) * len(idx)
+            count += len(idx)
+            batch_index += 1
+            done_batches += 1
+            bar.update(1)
+            bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
+            if time.perf_counter() - last_ckpt > 60 * checkpoint_minutes:
+                checkpoint()
+                last_ckpt = time.perf_counter()
+            if _stop_after_batches is not None and done_batches >= _stop_after_batches:
+                checkpoint()
+                bar.close()
+                return metrics  # a simulated kill (tests)
+        bar.close()
+        sched.step()
+        row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
+               "lr": lr * lr_decay ** epoch}
+        save_weights(model, out / f"epoch{epoch + 1}.safetensors",
+                     metadata={"trainer": "dense_training", "epoch": epoch + 1,
+                               "identity": identity})
+        if test_data:
+            row.update(evaluate(model, test_data))
+        metrics["epochs"].append(row)
+        epoch, batch_index, total, count = epoch + 1, 0, 0.0, 0
+        checkpoint()
+        last_ckpt = time.perf_counter()
+        tmp = out / "metrics.json.tmp"
+        tmp.write_text(json.dumps(metrics, indent=1))
+        tmp.replace(out / "metrics.json")
+        if progress:
+            print(json.dumps(row))
+    return metrics
+
+
+def evaluate(model: DistanceCNN, test_data: str | Path, *, ranking_images: int = 200) -> dict:
+    """Test L1 over every stored labelled offset and the controller's ranking metrics."""
+    from drake_grasp.cnn_metrics import l1_by_label, ranking_metrics
+    from drake_grasp.training import ChunkCache, ShardSet
+
+    model.eval()
+    l1, bins = l1_by_label(model, ShardSet(test_data, ChunkCache(int(2e9))))
+    ranks = ranking_metrics(model, test_data, images=ranking_images)
+    return {"test_l1_m": l1, "test_l1_bins": bins, "ranking": ranks}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("labels")
+    a.add_argument("--data", required=True)
+    a.add_argument("--out", required=True)
+    a.add_argument("--workers", type=int, default=2)
+    b = sub.add_parser("train")
+    b.add_argument("--labels", required=True, help="label folders, comma-separated")
+    b.add_argument("--out", required=True)
+    b.add_argument("--test-data", default=None)
+    b.add_argument("--init", default=None)
+    b.add_argument("--epochs", type=int, default=3)
+    b.add_argument("--batch", type=int, default=50)
+    b.add_argument("--lr", type=float, default=2e-4)
+    b.add_argument("--lr-decay", type=float, default=0.7)
+    b.add_argument("--threads", type=int, default=2)
+    b.add_argument("--checkpoint-minutes", type=float, default=5.0)
+    args = p.parse_args(argv)
+    if args.cmd == "labels":
+        print(build_labels(args.data, args.out, workers=args.workers), "images")
+    else:
+        train(args.labels.split(","), args.out, test_data=args.test_data, init=args.init,
+              epochs=args.epochs, batch=args.batch, lr=args.lr, lr_decay=args.lr_decay,
+              threads=args.threads, checkpoint_minutes=args.checkpoint_minutes)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,137 @@
+"""Dense labels for the grid head: exact against the dataset's label function, only in
+the view; the grid net trains on them."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from drake_grasp.actions import apply_actions
+from drake_grasp.dataset import SceneSamples, shard_name, write_shard
+from drake_grasp.dense_training import (
+    GRID_CONFIG,
+    build_labels,
+    grid_node_actions,
+    load_labels,
+    nearest_grasp_tree,
+    train,
+    tree_distances,
+    view_masks,
+)
+from drake_grasp.grasps import distance_to_nearest_grasp
+from drake_grasp.station import gripper_frame_offsets
+
+CAMERA_Z = float(gripper_frame_offsets()[2].translation()[2])
+
+
+def test_tree_distances_are_the_label_function():
+    rng = np.random.default_rng(0)
+    grasps = np.column_stack([rng.uniform(0.4, 0.6, 50), rng.uniform(-0.1, 0.1, 50),
+                              rng.uniform(-180, 180, 50)])
+    poses = np.column_stack([rng.uniform(0.3, 0.7, 2000), rng.uniform(-0.2, 0.2, 2000),
+                             rng.uniform(-400, 400, 2000)])
+    poses[:20, 2] = grasps[:20, 2] + 180.0 * rng.integers(-2, 3, 20)  # across the wrap
+    expected = distance_to_nearest_grasp(poses, grasps)
+    got = tree_distances(nearest_grasp_tree(grasps), poses)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+
+
+def _shard(folder, *, seed=0, scenes=2, images=6):
+    """Flat depth, hands at random heights over a few random grasps per scene."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True)
+    samples = []
+    for s in range(scenes):
+        g = np.column_stack([rng.uniform(0.45, 0.55, 5), rng.uniform(-0.05, 0.05, 5),
+                             rng.uniform(-90, 90, 5)])
+        height = rng.uniform(0.15, 0.30, images)
+        hand = np.column_stack([rng.uniform(0.45, 0.55, images), rng.uniform(-0.05, 0.05, images),
+                                height + CAMERA_Z, rng.uniform(-180, 180, images)])
+        depth = np.repeat(height[:, None, None], 64, axis=1).repeat(64, axis=2).astype(np.float32)
+        depth[:, 20:30, 30:40] -= 0.05
+        offsets = rng.uniform(-0.05, 0.05, (images, 10, 3))
+        offsets[..., 2] = rng.uniform(-90, 90, (images, 10))
+        labels = distance_to_nearest_grasp(apply_actions(hand[:, [0, 1, 3]], offsets).reshape(-1, 3),
+                                           g).reshape(images, 10)
+        samples.append(SceneSamples(s, "{}", depth, hand, offsets.astype(np.float32),
+                                    labels.astype(np.float32), np.zeros((5, 4, 4)),
+                                    np.full(5, 0.03, np.float32), g))
+    write_shard(folder / shard_name(0), samples, attrs={"config_hash": "synthetic", "split": "x"})
+    return samples
+
+
+def test_dense_labels_are_exact_in_the_view_and_nan_beyond(tmp_path):
+    samples = _shard(tmp_path / "data")
+    assert build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False) == 12
+    data = load_labels(tmp_path / "grid")
+    assert data["grid"].shape == (12, 18, 33, 33) and data["grid"].dtype == np.float16
+    nodes = grid_node_actions(GRID_CONFIG)
+    for i in (0, 7):
+        s = samples[i // 6]
+        hand = s.hand_pose[i % 6]
+        expected = distance_to_nearest_grasp(apply_actions(hand[[0, 1, 3]], nodes),
+                                             s.grasp_xy_theta).reshape(18, 33, 33)
+        mx = view_masks(torch.tensor([hand[2]]), GRID_CONFIG, CAMERA_Z)[0].numpy()
+        inside = mx[None, :, None] & mx[None, None, :] & np.ones((18, 1, 1), bool)
+        got = data["grid"][i].astype(np.float64)
+        assert inside.sum() > 0 and (~inside).sum() > 0
+        np.testing.assert_allclose(got[inside], expected[inside], rtol=2e-3, atol=1e-4)
+        assert np.isnan(got[~inside]).all()
+    # Re-running skips the finished shard.
+    assert build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False) == 0
+
+
+def test_build_labels_refuses_a_folder_without_shards(tmp_path):
+    with pytest.raises(ValueError, match="no shard"):
+        build_labels(tmp_path, tmp_path / "out", workers=1, progress=False)
+
+
+def test_the_grid_net_learns_dense_labels(tmp_path):
+    _shard(tmp_path / "data", scenes=2, images=8)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    with torch.random.fork_rng():
+        metrics = train(tmp_path / "grid", tmp_path / "run", test_data=None, init=None,
+                        epochs=10, batch=8, lr=2e-3, lr_decay=1.0, threads=2, progress=False)
+    first, last = metrics["epochs"][0]["train_l1_m"], metrics["epochs"][-1]["train_l1_m"]
+    assert last < 0.5 * first, (first, last)
+    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert saved["epochs"][-1]["train_l1_m"] == last
+    assert (tmp_path / "run" / "epoch10.safetensors").is_file()
+
+
+def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
+    from drake_grasp.network import load_weights
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False)
+    train(tmp_path / "grid", tmp_path / "whole", **kw)
+    # Killed after 2 of the 3 batches of epoch 1, then after 1 batch of epoch 2.
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    metrics = train(tmp_path / "grid", tmp_path / "broken", **kw)
+    assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
+    a, _ = load_weights(tmp_path / "whole" / "epoch2.safetensors")
+    b, _ = load_weights(tmp_path / "broken" / "epoch2.safetensors")
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.equal(x, y), name
+    with pytest.raises(ValueError, match="another training run.*lr"):
+        train(tmp_path / "grid", tmp_path / "broken", **{**kw, "lr": 2e-3})
+
+
+def test_cli_refuses_a_folder_that_holds_no_labels(tmp_path, capsys):
+    from drake_grasp.cli import main
+
+    assert main(["train-grid", "--labels", str(tmp_path), "--out", str(tmp_path / "run")]) == 2
+    assert "not a dense-labels folder" in capsys.readouterr().err
+
+
+def test_a_moved_label_folder_resumes_its_run(tmp_path):
+    _shard(tmp_path / "data", scenes=1, images=4)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False)
+    train(tmp_path / "grid", tmp_path / "run", _stop_after_batches=1, **kw)
+    (tmp_path / "grid").rename(tmp_path / "moved")
+    metrics = train(tmp_path / "moved", tmp_path / "run", **kw)
+    assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
