@@ -39,3 +39,15 @@ def test_weights_are_the_last_epoch_in_the_metrics(shipped):
     assert metrics["test_l1_m"] == pytest.approx(epochs[-1]["test_l1_m"], abs=0)
     stopped = config["train"].get("stopped_after_epoch", config["train"]["epochs"])
     assert stopped == epoch
+
+
+GRID = models_dir() / "cnn-grid"
+
+
+def test_the_grid_weights_are_the_last_epoch_of_their_run():
+    model, meta = load_weights(GRID / "weights.safetensors")
+    metrics = json.loads((GRID / "metrics.json").read_text())
+    assert model.config.action_fusion == "grid"
+    assert meta["identity"] == metrics["identity"]
+    assert meta["identity"]["config"] == meta["config"]
+    assert meta["epoch"] == len(metrics["epochs"]) == metrics["epochs"][-1]["epoch"]
