@@ -69,29 +69,38 @@ def check_scene(index: int, seed: int, mode: str, scenario, library, settings: d
             "drift_mm": [round(d, 2) for d in drift_mm]}
 
 
+def settle_stats(mine: list[dict], digits: int = 3) -> dict:
+    """Settled share (in all, by object count, by category) and settling time of rows
+    with `objects`, `settled`, `wall_s` and `sim_s` (also `analysis/settle_step.py`)."""
+    by_count, by_cat = collections.defaultdict(list), collections.defaultdict(list)
+    for r in mine:
+        by_count[len(r["objects"])].append(r["settled"])
+        for oid in r["objects"]:
+            by_cat[oid.rsplit("_", 1)[0]].append(r["settled"])
+    settled = float(np.mean([r["settled"] for r in mine]))
+    wall = float(np.mean([r["wall_s"] for r in mine]))
+    return {
+        "scenes": len(mine),
+        "settled_share": round(settled, 3),
+        "settled_share_by_object_count": {k: round(float(np.mean(v)), 3)
+                                          for k, v in sorted(by_count.items())},
+        "settled_share_by_category": {k: round(float(np.mean(v)), 3)
+                                      for k, v in sorted(by_cat.items())},
+        "settle_wall_s_per_attempt": round(wall, digits),
+        "settle_sim_s_per_attempt": round(float(np.mean([r["sim_s"] for r in mine])), 3),
+        # Attempts per kept scene are 1 / settled share (a geometric number of tries).
+        "settle_wall_s_per_kept_scene": round(wall / settled, digits) if settled else None,
+    }
+
+
 def summarize(rows: list[dict], settings: dict) -> dict:
     out = {}
     for mode in MODES:
         mine = [r for r in rows if r["mode"] == mode]
-        by_count, by_cat = collections.defaultdict(list), collections.defaultdict(list)
-        for r in mine:
-            by_count[len(r["objects"])].append(r["settled"])
-            for oid in r["objects"]:
-                by_cat[oid.rsplit("_", 1)[0]].append(r["settled"])
         drift = np.array([d for r in mine if r["settled"] for d in r["drift_mm"]])
-        settled = float(np.mean([r["settled"] for r in mine]))
-        wall = float(np.mean([r["wall_s"] for r in mine]))
         out[mode] = {
-            **settings[mode], "speed_tol_m_s": settings["speed_tol_m_s"], "scenes": len(mine),
-            "settled_share": round(settled, 3),
-            "settled_share_by_object_count": {k: round(float(np.mean(v)), 3)
-                                              for k, v in sorted(by_count.items())},
-            "settled_share_by_category": {k: round(float(np.mean(v)), 3)
-                                          for k, v in sorted(by_cat.items())},
-            "settle_wall_s_per_attempt": round(wall, 3),
-            "settle_sim_s_per_attempt": round(float(np.mean([r["sim_s"] for r in mine])), 3),
-            # Attempts per kept scene are 1 / settled share (a geometric number of tries).
-            "settle_wall_s_per_kept_scene": round(wall / settled, 3) if settled else None,
+            **settings[mode], "speed_tol_m_s": settings["speed_tol_m_s"],
+            **settle_stats(mine),
             "settled_objects": int(drift.size),
             "drift_next_1s_over_1mm": int((drift > 1).sum()),
             "drift_next_1s_over_3mm": int((drift > 3).sum()),

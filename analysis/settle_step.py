@@ -18,7 +18,6 @@ the episodes' physics) with one row per scene and step.
 from __future__ import annotations
 
 import argparse
-import collections
 import copy
 import json
 import time
@@ -67,28 +66,15 @@ def drift_in_episode_physics(spec, scenario, library, seconds: float = 1.0) -> l
 
 
 def summarize(rows: list[dict]) -> dict:
+    from settle_check import settle_stats
+
     out = {}
     for step in sorted({r["step_s"] for r in rows}):
         mine = [r for r in rows if r["step_s"] == step]
-        by_count, by_cat = collections.defaultdict(list), collections.defaultdict(list)
-        for r in mine:
-            by_count[len(r["objects"])].append(r["settled"])
-            for oid in r["objects"]:
-                by_cat[oid.rsplit("_", 1)[0]].append(r["settled"])
         drift = np.array([d for r in mine if r["settled"] for d in r["drift_mm"]])
-        settled = float(np.mean([r["settled"] for r in mine]))
-        wall = float(np.mean([r["wall_s"] for r in mine]))
         out[f"{step:g}"] = {
-            "scenes": len(mine),
+            **settle_stats(mine, digits=4),
             "settled": int(sum(r["settled"] for r in mine)),
-            "settled_share": round(settled, 3),
-            "settled_share_by_object_count": {k: round(float(np.mean(v)), 3)
-                                              for k, v in sorted(by_count.items())},
-            "settled_share_by_category": {k: round(float(np.mean(v)), 3)
-                                          for k, v in sorted(by_cat.items())},
-            "settle_wall_s_per_attempt": round(wall, 4),
-            "settle_sim_s_per_attempt": round(float(np.mean([r["sim_s"] for r in mine])), 3),
-            "settle_wall_s_per_kept_scene": round(wall / settled, 4) if settled else None,
             "settled_objects": int(drift.size),
             "drift_1s_over_1mm": int((drift > 1).sum()),
             "drift_1s_over_3mm": int((drift > 3).sum()),

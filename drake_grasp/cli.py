@@ -118,16 +118,6 @@ def _cmd_objects_list(args) -> int:
     return 0
 
 
-def _torque_ratio(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
-
-
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -152,7 +142,7 @@ def _add_torque_ratio_flag(p) -> None:
     from drake_grasp.dataset import DatasetConfig
 
     default = DatasetConfig().max_torque_ratio
-    p.add_argument("--max-torque-ratio", type=_torque_ratio, default=default, metavar="R",
+    p.add_argument("--max-torque-ratio", type=_positive_float, default=default, metavar="R",
                    help="the ground truth's torque test: the largest torque about the "
                    "contact axis under gravity and the lab's shake, per unit of the pads' "
                    f"torsional friction lever, a true grasp may need (default {default:g}, "
