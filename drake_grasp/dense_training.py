@@ -24,6 +24,7 @@ import argparse
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -298,7 +299,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
             count += len(idx)
             batch_index += 1
             done_batches += 1
@@ -312,7 +313,12 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                 bar.close()
                 return metrics  # a simulated kill (tests)
         bar.close()
-        sched.step()
+        with warnings.catch_warnings():
+            # A run resumed right at an epoch's end steps the schedule without an
+            # optimizer step in this process; the schedule is still the unbroken run's.
+            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step",
+                                    category=UserWarning)
+            sched.step()
         row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
                "lr": lr * lr_decay ** epoch}
         save_weights(model, out / f"epoch{epoch + 1}.safetensors",
