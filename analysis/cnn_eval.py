@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from drake_grasp.cnn_metrics import LABEL_BINS_MM, l1_by_label, ranking_metrics  # noqa: F401
+from drake_grasp.cnn_metrics import l1_by_label, ranking_metrics
 from drake_grasp.network import MirrorAveragedCNN, load_weights
 from drake_grasp.training import ChunkCache, ShardSet
 

@@ -148,6 +148,7 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from drake_grasp.objects import load_library
+    from drake_grasp.results import atomic_write_text
     from drake_grasp.scenario import load_scenario
 
     scenario, library = load_scenario(scenario_name="random"), load_library(None)
@@ -160,9 +161,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plot(summary["modes"], out / "settled_by_count.png")
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps({**summary, "rows": rows}, indent=1))
-    tmp.replace(out / "summary.json")
+    atomic_write_text(out / "summary.json", json.dumps({**summary, "rows": rows}, indent=1))
     print(json.dumps(summary, indent=1))
     return 0
 

@@ -102,6 +102,7 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from drake_grasp.objects import load_library
+    from drake_grasp.results import atomic_write_text
     from drake_grasp.scenario import load_scenario
 
     scenario, library = load_scenario(scenario_name="random"), load_library(None)
@@ -111,11 +112,8 @@ def main(argv=None) -> int:
     summary = {"scenes": args.scenes, "seed": args.seed,
                "episode_plant_time_step_s": scenario.plant.time_step,
                "steps": summarize(rows)}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps({**summary, "rows": rows}, indent=1))
-    tmp.replace(out / "summary.json")
+    atomic_write_text(Path(args.out) / "summary.json",
+                      json.dumps({**summary, "rows": rows}, indent=1))
     print(json.dumps(summary, indent=1))
     return 0
 

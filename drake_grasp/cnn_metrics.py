@@ -121,9 +121,9 @@ LABEL_BINS_MM = (0, 30, 60, 100, 150, float("inf"))
 
 
 def l1_by_label(model, data, *, batch_images: int = 200) -> tuple[float, list[dict]]:
-    """One pass over every labelled offset of `data` (a `training.ShardSet`): the mean absolute error [m] (what `train`'s
-    `evaluate_l1` reports), and the error [mm] and label count per bin of the true
-    distance."""
+    """One pass over every labelled offset of `data` (a `training.ShardSet`): the mean
+    absolute error [m] (what `train`'s `evaluate_l1` reports), and the error [mm] and
+    label count per bin of the true distance (`LABEL_BINS_MM`)."""
     edges = np.array(LABEL_BINS_MM) / 1000.0
     total = np.zeros(len(edges) - 1)
     count = np.zeros(len(edges) - 1, dtype=np.int64)

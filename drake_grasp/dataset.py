@@ -857,8 +857,8 @@ def _generate_locked(out: Path, *, cfg: dict, chash: str, num_scenes: int, split
                 objects_dir=str(objects_dir) if objects_dir else None, attrs=attrs,
                 num_scenes=int(num_scenes), tmp_tag=token)
     timings, steady = _run_tasks(todo, args, workers=workers, scheduler=scheduler,
-                                         progress=progress, total=num_shards,
-                                         done=num_shards - len(todo))
+                                 progress=progress, total=num_shards,
+                                 done=num_shards - len(todo))
     manifest = write_manifest(out, cfg, tmp_tag=token)
     if manifest["num_scenes"] != num_scenes:  # a bookkeeping error, never expected
         raise RuntimeError(f"{out}: holds {manifest['num_scenes']} scenes, expected {num_scenes}")

@@ -88,11 +88,9 @@ def _label_shard(path: str, cfg_dict: dict) -> dict:
         grasp_scene = f["grasp_scene"][:]
         grasps = f["grasp_xy_theta"][:]
     # Only the nodes in the image's view are labelled (the loss uses no others), NaN
-    # elsewhere; the view is taken a hair wider than `view_masks` takes it.
+    # elsewhere; the view is taken a hair wider than the loss takes it.
     grids = np.full((len(depth), *cfg.grid_shape()), np.nan, np.float16)
-    n = cfg.grid_shape()[1]
-    offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
-    half_view = (hand[:, 2] - camera_z) * math.tan(math.radians(cfg.camera_fov_deg) / 2.0)
+    in_view = view_masks(hand[:, 2], cfg, camera_z, slack_m=1e-6)
     keep = np.ones(len(depth), bool)
     for scene in np.unique(image_scene):
         rows = np.flatnonzero(image_scene == scene)
@@ -102,7 +100,7 @@ def _label_shard(path: str, cfg_dict: dict) -> dict:
             continue
         tree = nearest_grasp_tree(g)
         for i in rows:
-            inside = np.abs(offsets) <= half_view[i] + 1e-6
+            inside = in_view[i]
             node_in = (inside[None, :, None] & inside[None, None, :]).repeat(
                 cfg.grid_shape()[0], axis=0).ravel()
             moved = apply_actions(hand[i, [0, 1, 3]], nodes[node_in])
@@ -159,13 +157,16 @@ def load_labels(folders) -> dict:
     return {k: np.concatenate(v) for k, v in data.items()}
 
 
-def view_masks(hand_z: torch.Tensor, cfg: NetworkConfig, camera_z_G_m: float) -> torch.Tensor:
+def view_masks(hand_z, cfg: NetworkConfig, camera_z_G_m: float, *,
+               slack_m: float = 1e-9) -> np.ndarray:
     """(B, N) mask of the grid's x (and, by symmetry of the square view, y) nodes inside
-    the camera's footprint on the table at each image's camera height."""
+    the camera's footprint on the table at each image's camera height (hand heights
+    `hand_z`, (B,)), widened by `slack_m`."""
     n = cfg.grid_shape()[1]
-    half_view = (hand_z - camera_z_G_m) * math.tan(math.radians(cfg.camera_fov_deg) / 2.0)
-    offsets = (torch.arange(n, dtype=hand_z.dtype) - (n - 1) / 2.0) * cfg.grid_step_m
-    return offsets.abs()[None, :] <= half_view[:, None] + 1e-9
+    half_view = ((np.asarray(hand_z, float) - camera_z_G_m)
+                 * math.tan(math.radians(cfg.camera_fov_deg) / 2.0))
+    offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
+    return np.abs(offsets)[None, :] <= half_view[:, None] + slack_m
 
 
 def init_from_tiled(grid_net: DistanceCNN, tiled: DistanceCNN) -> None:
@@ -194,13 +195,11 @@ def _fingerprint(folder) -> str:
     return h.hexdigest()
 
 
-def _identity(folders, n_images, cfg, init, *, batch, lr, lr_decay, seed) -> dict:
+def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
+              seed) -> dict:
     from drake_grasp.network import tensors_sha256
 
-    init_sha = None
-    if init:
-        start, _ = load_weights(init)
-        init_sha = tensors_sha256(start.state_dict())
+    init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
     return {"labels": [_fingerprint(f) for f in folders], "images": int(n_images),
             "config": cfg.to_dict(), "init_sha256": init_sha, "batch": int(batch),
             "lr": float(lr), "lr_decay": float(lr_decay), "seed": int(seed)}
@@ -229,6 +228,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     """
     from tqdm import tqdm
 
+    from drake_grasp.results import atomic_write_text
     from drake_grasp.station import gripper_frame_offsets
 
     torch.set_num_threads(threads)
@@ -245,7 +245,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     cfg = NetworkConfig.from_dict(configs[0])
     data = load_labels(folders)
     n_images = len(data["depth"])
-    identity = _identity(folders, n_images, cfg, init, batch=batch, lr=lr, lr_decay=lr_decay,
+    init_net = load_weights(init)[0] if init else None
+    identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
                          seed=seed)
     model = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
@@ -265,12 +266,11 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
         total, count = ckpt["total"], ckpt["count"]
         metrics = json.loads(ckpt["metrics"])
-    elif init:
-        start, _ = load_weights(init)
-        if start.config == cfg:  # a grid net: go on training it
-            model.load_state_dict(start.state_dict())
+    elif init_net is not None:
+        if init_net.config == cfg:  # a grid net: go on training it
+            model.load_state_dict(init_net.state_dict())
         else:
-            init_from_tiled(model, start)
+            init_from_tiled(model, init_net)
     camera_z = float(gripper_frame_offsets()[2].translation()[2])
 
     def checkpoint():
@@ -291,7 +291,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             idx = np.sort(order[start:start + batch])
             images = model.preprocess(data["depth"][idx].astype(np.float32))
             target = torch.from_numpy(data["grid"][idx].astype(np.float32))
-            mx = view_masks(torch.from_numpy(data["hand_z"][idx]), cfg, camera_z)
+            mx = torch.from_numpy(view_masks(data["hand_z"][idx], cfg, camera_z))
             mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
             mask = mask & torch.isfinite(target)
             pred = model.image_features(images)
@@ -330,9 +330,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         epoch, batch_index, total, count = epoch + 1, 0, 0.0, 0
         checkpoint()
         last_ckpt = time.perf_counter()
-        tmp = out / "metrics.json.tmp"
-        tmp.write_text(json.dumps(metrics, indent=1))
-        tmp.replace(out / "metrics.json")
+        atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))
         if progress:
             print(json.dumps(row))
     return metrics

@@ -788,9 +788,7 @@ class DistanceCNN(nn.Module):
             return torch.cat((fmap, ref.expand(-1, 1, *fmap.shape[2:])), dim=1)
         if self.grid:
             h = F.max_pool2d(self._lrelu(self.conv2(x)), 2).flatten(1)
-            z = self.ip2(self._lrelu(self.ip1(h)))
-            return (self.config.output_scale_m * F.softplus(z)).reshape(
-                -1, *self.config.grid_shape())
+            return self._after_ip1(self.ip1(h)).reshape(-1, *self.config.grid_shape())
         return F.max_pool2d(self.conv2(x), 2)
 
     def action_offsets(self, actions: ArrayLike) -> torch.Tensor:

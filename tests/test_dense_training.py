@@ -72,7 +72,7 @@ def test_dense_labels_are_exact_in_the_view_and_nan_beyond(tmp_path):
         hand = s.hand_pose[i % 6]
         expected = distance_to_nearest_grasp(apply_actions(hand[[0, 1, 3]], nodes),
                                              s.grasp_xy_theta).reshape(18, 33, 33)
-        mx = view_masks(torch.tensor([hand[2]]), GRID_CONFIG, CAMERA_Z)[0].numpy()
+        mx = view_masks([hand[2]], GRID_CONFIG, CAMERA_Z)[0]
         inside = mx[None, :, None] & mx[None, None, :] & np.ones((18, 1, 1), bool)
         got = data["grid"][i].astype(np.float64)
         assert inside.sum() > 0 and (~inside).sum() > 0
