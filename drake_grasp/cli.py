@@ -308,7 +308,8 @@ def _cmd_evaluate(args) -> int:
                       conditions=[c for c in args.conditions.split(",") if c] or None,
                       force_new=args.force_new, physics_profile=args.physics_profile,
                       weights=args.weights or "", gpd_weights=args.gpd_weights or "",
-                      mirror_average=args.mirror_average)
+                      mirror_average=args.mirror_average,
+                      converge_iterations=-1 if args.converge is None else args.converge)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -724,6 +725,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mirror-average", action="store_true",
                    help="the CNN conditions score every candidate as the mean over the "
                         "wrist image and its mirror image (controller.mirror_average)")
+    p.add_argument("--converge", type=int, default=None, metavar="N",
+                   help="the closed-loop conditions (ctr, cnn-ctr) keep servoing for up to "
+                        "N iterations at the height where the stop rule fired, until the "
+                        "commanded move stays below controller.converge_step_m "
+                        "(controller.converge_iterations; default: the scenarios', 0)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

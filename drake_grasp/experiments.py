@@ -85,6 +85,9 @@ class Experiment:
     # True: the conditions whose policy uses the CNN score with `controller.mirror_average`
     # on; False keeps the scenario's. `evaluate --mirror-average` sets it.
     cnn_mirror_average: bool = False
+    # >= 0: the closed-loop conditions (ctr, cnn-ctr) run with this
+    # `controller.converge_iterations`; -1 keeps the scenario's. `evaluate --converge` sets it.
+    ctr_converge_iterations: int = -1
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -265,6 +268,9 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
         s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
     if experiment.cnn_mirror_average and condition.policy in CNN_POLICIES:
         s.controller = dataclasses.replace(s.controller, mirror_average=True)
+    if experiment.ctr_converge_iterations >= 0 and condition.policy in ("ctr", "cnn-ctr"):
+        s.controller = dataclasses.replace(
+            s.controller, converge_iterations=experiment.ctr_converge_iterations)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
     if objects_dir:

@@ -68,6 +68,8 @@ class TrialTask:
     gpd_weights: str = ""
     # `Experiment.cnn_mirror_average`.
     cnn_mirror_average: bool = False
+    # `Experiment.ctr_converge_iterations`.
+    ctr_converge_iterations: int = -1
 
     @property
     def trial_id(self) -> str:
@@ -86,6 +88,9 @@ def task_experiment(task: TrialTask) -> Experiment:
         experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
     if task.cnn_mirror_average:
         experiment = dataclasses.replace(experiment, cnn_mirror_average=True)
+    if task.ctr_converge_iterations >= 0:
+        experiment = dataclasses.replace(
+            experiment, ctr_converge_iterations=task.ctr_converge_iterations)
     return experiment
 
 
@@ -112,7 +117,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
                       experiment.cnn_weights, experiment.gpd_weights,
-                      experiment.cnn_mirror_average)
+                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations)
             for i in range(n) for c, spec in asked]
 
 
@@ -638,7 +643,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
-             mirror_average: bool = False) -> dict:
+             mirror_average: bool = False, converge_iterations: int = -1) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -677,6 +682,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         mirror_average: The CNN conditions score with `controller.mirror_average` on (the
             mean over the wrist image and its mirror image); part of the run's identity
             through the conditions' scenarios.
+        converge_iterations: >= 0: the closed-loop conditions (ctr, cnn-ctr) servo on for
+            up to this many iterations at the height where the stop rule fired
+            (`controller.converge_iterations`); -1 keeps the scenarios'. Part of the run's
+            identity through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -706,6 +715,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         exp = dataclasses.replace(exp, gpd_weights=str(gpd_weights))
     if mirror_average:
         exp = dataclasses.replace(exp, cnn_mirror_average=True)
+    if converge_iterations >= 0:
+        exp = dataclasses.replace(exp, ctr_converge_iterations=int(converge_iterations))
+    elif converge_iterations != -1:
+        raise ValueError(f"--converge: expected >= 0 iterations, got {converge_iterations}")
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -4,7 +4,8 @@ CTR, the paper's Algorithm 1: on each control step take the latest depth image, 
 candidate actions sampled near the current pose, pick the least predicted distance, move
 a fraction r of the way there in (x, y, theta) and step down in z; stop when an object
 is within 14 cm of the sensor, the hand reaches its lowest height, or the iterations
-are spent. The baselines decide once, from the first image: `cnn-only` the CNN's global
+are spent, then (`controller.converge_iterations`) servo on at that height until the
+commanded move is small. The baselines decide once, from the first image: `cnn-only` the CNN's global
 best action over the whole view, `gpd` a geometric one-shot grasp detection.
 """
 

@@ -240,6 +240,21 @@ class ControllerConfig:
     # `stop_distance_m` (the camera is beside the axis): half side [m] at that distance
     # (0.02 m: about 9 px of the 64 px image, the pads' closing strip).
     stop_window_half_m: float = 0.02
+    # Once the stop rule fires (an object within `stop_distance_m`, or the hand at its
+    # lowest height), keep servoing in (x, y, theta) at that height for up to this many
+    # iterations before the grasp, as the paper's Algorithm 1 repeats "until the
+    # controller converges" (0: grasp at once, the paper's robot runs). The hand rises
+    # when a taller surface comes under the grasp axis, never descends.
+    converge_iterations: int = 20
+    # ... ending once the commanded move (the paper's metric, 0.001 m/deg, after r) has
+    # stayed below this for two iterations in a row [m].
+    converge_step_m: float = 0.002
+    # The commanded yaw stays within this of the start's [deg]. A parallel gripper is
+    # symmetric under 180 degrees, so every grasp has a yaw within 90 degrees of the start;
+    # without the bound, a CNN that prefers some rotation on a round object (whose image
+    # does not change as the hand turns) turns the wrist on and on into its joint limit,
+    # where differential IK sticks and the hand no longer follows. 0: no bound.
+    max_yaw_from_start_deg: float = 135.0
     # The grasp height read from the depth image keeps the fingertips this far above the
     # lowest surface seen under the open hand (the table or sheet top) [m].
     support_margin_m: float = 0.004
@@ -669,6 +684,9 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.end_camera_height_m": (0, _INF, True, True, "m"),
     "controller.stop_distance_m": (0, _INF, False, True, "m"),
     "controller.stop_window_half_m": (0, 0.1, True, False, "m"),
+    "controller.converge_iterations": (0, 10_000, False, False, ""),
+    "controller.converge_step_m": (0, _INF, False, True, "m"),
+    "controller.max_yaw_from_start_deg": (0, 360, False, False, "deg"),
     "controller.support_margin_m": (0, 0.05, False, False, "m"),
     "controller.num_candidates": (1, 1_000_000, False, False, ""),
     "controller.sample_xy_m": (0, _INF, False, True, "m"),

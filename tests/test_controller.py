@@ -50,7 +50,7 @@ def _image(value, shape=(64, 64), center=None):
     return img
 
 
-def _controller_diagram(scenario, depth_image, policy="ctr"):
+def _controller_diagram(scenario, depth_image, policy="ctr", evaluator=None):
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
     builder = DiagramBuilder()
@@ -60,8 +60,9 @@ def _controller_diagram(scenario, depth_image, policy="ctr"):
     sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
                                               theta_deg=c.sample_theta_deg, period_s=c.period_s,
                                               seed=scenario.seed))
-    ev = builder.AddSystem(StandInEvaluator())
-    depth = builder.AddSystem(ConstantValueSource(AbstractValue.Make(depth_image)))
+    ev = builder.AddSystem(evaluator or StandInEvaluator())
+    depth = builder.AddSystem(depth_image if isinstance(depth_image, LeafSystem)
+                              else ConstantValueSource(AbstractValue.Make(depth_image)))
     label = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageLabel16I(64, 64))))
     grip = builder.AddSystem(ConstantVectorSource(np.zeros(4)))
     builder.Connect(depth.get_output_port(), ctrl.GetInputPort("depth_image"))
@@ -78,7 +79,9 @@ def _controller_diagram(scenario, depth_image, policy="ctr"):
 
 @pytest.fixture
 def scenario():
-    return load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+    # The paper's stop rule alone: grasp as soon as it fires (no convergence phase).
+    return load_scenario(scenario_name="isolation",
+                         scenario_text="{seed: 2, controller: {converge_iterations: 0}}")
 
 
 def test_controller_converges_to_the_stand_in_minimum(scenario):
@@ -111,7 +114,7 @@ def test_each_step_moves_the_fraction_r_and_steps_down(scenario):
 
 def test_robot_profile_moves_half_way_and_steps_down_1_cm_until_the_lowest_height():
     scenario = load_scenario(scenario_name="isolation",
-                             scenario_text="{seed: 2, controller: {profile: robot}}")
+                             scenario_text="{seed: 2, controller: {profile: robot, converge_iterations: 0}}")
     c = scenario.controller
     assert (c.step_ratio, c.z_step_m) == (0.5, 0.01)
     sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
@@ -133,7 +136,7 @@ def test_robot_profile_moves_half_way_and_steps_down_1_cm_until_the_lowest_heigh
 
 def test_robot_profile_stops_at_14_cm():
     scenario = load_scenario(scenario_name="isolation",
-                             scenario_text="{seed: 2, controller: {profile: robot}}")
+                             scenario_text="{seed: 2, controller: {profile: robot, converge_iterations: 0}}")
     sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))
     sim.AdvanceTo(1.5 * scenario.controller.period_s)
     s = ctrl.get_controller_state(ctx)
@@ -148,6 +151,77 @@ def test_stop_rule_fires_at_14_cm(scenario, near, stops):
     assert (s.phase == Phase.DESCEND) == stops
     if stops:
         assert "within 0.14 m" in s.stop_reason and s.iteration == 0
+
+
+class DepthAfter(LeafSystem):
+    """One depth image until `t_switch`, another after (a taller object comes under the
+    grasp axis)."""
+
+    def __init__(self, before, after, t_switch):
+        super().__init__()
+        self._images = (before, after)
+        self._t = t_switch
+        self.DeclareAbstractOutputPort("depth", lambda: AbstractValue.Make(before), self._Calc)
+
+    def _Calc(self, context, output):
+        output.set_value(self._images[int(context.get_time() >= self._t)])
+
+
+class TurnEvaluator(StandInEvaluator):
+    """Prefers turning the hand by +theta whatever the image shows (a CNN biased on a
+    round object)."""
+
+    def _Calc(self, context, output):
+        output.set_value(-np.asarray(self.get_input_port(0).Eval(context))[:, 2])
+
+
+def _converge_scenario(**controller):
+    fields = ", ".join(f"{k}: {v}" for k, v in controller.items())
+    return load_scenario(scenario_name="isolation", scenario_text=f"{{seed: 2, controller: {{{fields}}}}}")
+
+
+def test_converge_servos_at_the_stop_height_until_the_move_is_small():
+    scenario = _converge_scenario(converge_iterations=60, converge_step_m=0.004)
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))
+    c = scenario.controller
+    sim.AdvanceTo(c.period_s * 62.5)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase != Phase.SERVO and "within 0.14 m" in s.stop_reason
+    assert "converged after" in s.stop_reason and s.calm == 2
+    assert 3 <= s.iteration < 60
+    assert s.hand[2] == pytest.approx(0.3 - 0.115)  # no step down after the stop rule fired
+    assert np.linalg.norm(np.array(s.hand[:2]) - GOAL[:2]) < 0.01
+
+
+def test_converge_ends_when_its_iterations_are_spent():
+    scenario = _converge_scenario(converge_iterations=5, converge_step_m=0.0)
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))
+    sim.AdvanceTo(scenario.controller.period_s * 8.5)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND
+    assert s.stop_reason.endswith("not converged in 5 more iterations") and s.iteration == 5
+
+
+def test_converge_rises_when_a_taller_surface_comes_under_the_axis():
+    scenario = _converge_scenario(converge_iterations=5, converge_step_m=0.0)
+    source = DepthAfter(_image(0.3, center=0.139), _image(0.3, center=0.119), 0.25)
+    sim, ctrl, ctx = _controller_diagram(scenario, source)
+    sim.AdvanceTo(0.15)  # the stop rule fired at 0.139 m, one iteration at that height
+    z0 = ctrl.get_controller_state(ctx).hand[2]
+    assert z0 == pytest.approx(0.3 - 0.115)
+    sim.AdvanceTo(0.35)  # 2 cm nearer: the hand rises 2 cm, once
+    s = ctrl.get_controller_state(ctx)
+    assert s.hand[2] == pytest.approx(z0 + 0.02)
+
+
+def test_commanded_yaw_stays_within_its_bound_of_the_start():
+    scenario = _converge_scenario(max_yaw_from_start_deg=135)
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3), evaluator=TurnEvaluator())
+    sim.AdvanceTo(scenario.controller.period_s * 40.5)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.SERVO and s.iteration == 40
+    # 40 steps of about 0.2 x 45 degrees would turn 360 degrees; the bound holds it at 135.
+    assert s.hand[3] == pytest.approx(-135.0) or s.hand[3] == pytest.approx(135.0)
 
 
 def test_gaussian_noise_matches_the_formula():

@@ -91,7 +91,7 @@ def test_stop_rule_looks_under_the_grasp_axis(where, stops):
     # An object 13.9 cm from the sensor: under the grasp axis it lies ~22 px off the
     # image centre (the camera is 5 cm beside the axis); at the image centre it is
     # 5 cm beside the grasp and must not stop the approach.
-    scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+    scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2, controller: {converge_iterations: 0}}")
     _, _, X_GC = gripper_frame_offsets()
     depth = np.full((64, 64), 0.3)
     if where == "axis":

@@ -481,6 +481,30 @@ def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp
     assert m.folder_conflict(out, m.run_identity(EXPERIMENTS["isolation"], seed=0)) is not None
 
 
+def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path):
+    """`evaluate --converge N`: the closed-loop conditions run with
+    controller.converge_iterations = N, the run's identity differs, the others are
+    unchanged; a negative N is refused before anything is written."""
+    from drake_grasp.experiments import trial_scenario
+
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_converge_iterations=0)
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    assert ident["ctr"]["scenario"]["controller"]["converge_iterations"] == 0
+    assert base["ctr"]["scenario"]["controller"]["converge_iterations"] == 20
+    assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
+    assert ident["ctr-sim"]["config_hash"] != base["ctr-sim"]["config_hash"]
+    assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
+    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.controller.converge_iterations == (0 if task.condition == "ctr" else 20)
+    with pytest.raises(ValueError, match="--converge: expected >= 0 iterations, got -2"):
+        evaluate(experiment="isolation", out=tmp_path / "run", trials=1, converge_iterations=-2,
+                 progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_parallel_map_keeps_the_order_in_and_out_of_process():
     import operator
 

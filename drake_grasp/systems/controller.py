@@ -5,7 +5,8 @@ is decided outside it, by the `GraspJudge` (systems/judge.py).
 
 Policies (`policy` argument):
     ctr: Algorithm 1 - every control period score the sampled candidates, move a
-        fraction r toward the best one in (x, y, theta), step down in z; stop at 14 cm.
+        fraction r toward the best one in (x, y, theta), step down in z; stop at 14 cm,
+        then servo on at that height until converged (`controller.converge_iterations`).
         r and the z steps are the scenario's controller profile
         (`scenario.CONTROLLER_PROFILES`): "sim", r = 0.2 and the camera from 0.3 m to
         0.15 m in 75 equal steps; "robot", r = 0.5 and 1 cm steps until the stop rule.
@@ -49,6 +50,7 @@ from drake_grasp.grasps import (
 )
 from drake_grasp.policies import (
     choose_action,
+    displacement_norm,
     gaussian_noisy_displacement,
     grasp_height,
     heights_under_grasp,
@@ -123,6 +125,12 @@ class ControllerState:
     # When a one-shot policy took the image it decided on [s]: 0 for those deciding at the
     # start; gpd's image comes at the viewpoint. Its control steps count from here.
     decided_s: float = 0.0
+    # CTR after its stop rule fired (`controller.converge_iterations`): iterations spent
+    # at the stop height, the nearest depth under the grasp axis when it fired [m], and
+    # how many iterations in a row the commanded move was below `converge_step_m`.
+    converging: int = 0
+    stop_near_m: float = 0.0
+    calm: int = 0
 
 
 def hand_to_pose(hand) -> RigidTransform:
@@ -401,12 +409,24 @@ class GraspController(LeafSystem):
                                     c.stop_distance_m, c.stop_window_half_m)
         cam_z = self._camera_height(hand)
         reason = ""
-        if near < c.stop_distance_m:
+        if s.converging:
+            if s.calm >= 2:
+                reason = f"{s.stop_reason}; converged after {s.converging - 1} more iterations"
+            elif s.converging > c.converge_iterations or s.iteration >= c.iterations:
+                reason = (f"{s.stop_reason}; not converged in {s.converging - 1} more "
+                          "iterations")
+        elif near < c.stop_distance_m:
             reason = f"object within {c.stop_distance_m:.2f} m of the sensor ({near:.3f} m)"
         elif cam_z <= c.end_camera_height_m + 1e-6:
             reason = "hand at its lowest height"
         elif s.iteration >= c.iterations:
             reason = "iteration budget spent"
+        if (reason and not s.converging and c.converge_iterations > 0
+                and s.iteration < c.iterations):
+            # Servo on at this height until converged (Algorithm 1's "until the
+            # controller converges").
+            s = replace(s, converging=1, stop_near_m=float(near), stop_reason=reason)
+            reason = ""
         if reason:
             grasp = self._grasp_from_depth(depth, hand, hand)
             return replace(s, phase=Phase.DESCEND, phase_start_s=t, segment_from=hand,
@@ -417,10 +437,24 @@ class GraspController(LeafSystem):
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
         best, _ = choose_action(actions, distances)
-        delta = self._noisy(c.step_ratio * best, s.iteration + 1)
+        command = c.step_ratio * best
+        delta = self._noisy(command, s.iteration + 1)
         moved = apply_actions([hand[0], hand[1], hand[3]], delta[None])[0]
-        z = max(hand[2] - self._dz, c.end_camera_height_m - self._cam_dz)
-        new_hand = (float(moved[0]), float(moved[1]), float(z), float(moved[2]))
+        if s.converging:
+            # Hold the height; rise when a surface under the grasp axis comes nearer than
+            # the stop rule allows (or than it was when the rule fired, if nearer then):
+            # the descent's invariant, kept while the hand moves sideways.
+            keep = min(s.stop_near_m, c.stop_distance_m)
+            z = hand[2] + (max(0.0, keep - near) if np.isfinite(near) else 0.0)
+            small = float(displacement_norm(command)) < c.converge_step_m
+            s = replace(s, converging=s.converging + 1, calm=s.calm + 1 if small else 0)
+        else:
+            z = max(hand[2] - self._dz, c.end_camera_height_m - self._cam_dz)
+        yaw = float(moved[2])
+        if c.max_yaw_from_start_deg > 0:
+            bound = c.max_yaw_from_start_deg
+            yaw = float(np.clip(yaw, self._start[3] - bound, self._start[3] + bound))
+        new_hand = (float(moved[0]), float(moved[1]), float(z), yaw)
         record = StepRecord(s.iteration, t, tuple(hand),
                             *(freeze(np.array(a, copy=True))
                               for a in (depth, actions, distances, best, delta)))
