@@ -249,6 +249,8 @@ class ControllerConfig:
     # ... ending once the commanded move (the paper's metric, 0.001 m/deg, after r) has
     # stayed below this for two iterations in a row [m].
     converge_step_m: float = 0.002
+    # The fraction r of the way to the best candidate while converging; 0: `step_ratio`.
+    converge_step_ratio: float = 0.0
     # The commanded yaw stays within this of the start's [deg]. A parallel gripper is
     # symmetric under 180 degrees, so every grasp has a yaw within 90 degrees of the start;
     # without the bound, a CNN that prefers some rotation on a round object (whose image
@@ -686,6 +688,7 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.stop_window_half_m": (0, 0.1, True, False, "m"),
     "controller.converge_iterations": (0, 10_000, False, False, ""),
     "controller.converge_step_m": (0, _INF, False, True, "m"),
+    "controller.converge_step_ratio": (0, 1, False, False, ""),
     "controller.max_yaw_from_start_deg": (0, 360, False, False, "deg"),
     "controller.support_margin_m": (0, 0.05, False, False, "m"),
     "controller.num_candidates": (1, 1_000_000, False, False, ""),

@@ -193,6 +193,16 @@ def test_converge_servos_at_the_stop_height_until_the_move_is_small():
     assert np.linalg.norm(np.array(s.hand[:2]) - GOAL[:2]) < 0.01
 
 
+def test_converge_moves_its_own_fraction_when_given():
+    scenario = _converge_scenario(profile="robot", converge_iterations=5, converge_step_m=0.0,
+                                  converge_step_ratio=0.2)
+    assert scenario.controller.step_ratio == 0.5
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))
+    sim.AdvanceTo(1.5 * scenario.controller.period_s)  # the stop rule fired, one step at 0.2
+    rec = ctrl.get_controller_state(ctx).last_step
+    np.testing.assert_allclose(rec.moved, 0.2 * rec.chosen)
+
+
 def test_converge_ends_when_its_iterations_are_spent():
     scenario = _converge_scenario(converge_iterations=5, converge_step_m=0.0)
     sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.139))

@@ -437,7 +437,8 @@ class GraspController(LeafSystem):
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
         best, _ = choose_action(actions, distances)
-        command = c.step_ratio * best
+        ratio = c.converge_step_ratio if s.converging and c.converge_step_ratio > 0 else c.step_ratio
+        command = ratio * best
         delta = self._noisy(command, s.iteration + 1)
         moved = apply_actions([hand[0], hand[1], hand[3]], delta[None])[0]
         if s.converging:
