@@ -729,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the closed-loop conditions (ctr, cnn-ctr) keep servoing for up to "
                         "N iterations at the height where the stop rule fired, until the "
                         "commanded move stays below controller.converge_step_m "
-                        "(controller.converge_iterations; default: the scenarios', 0)")
+                        "(controller.converge_iterations; default: the scenarios', 20; 0 grasps as "
+                        "soon as the stop rule fires, as the paper's robot did)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

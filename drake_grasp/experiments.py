@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drake_grasp.policies import CLOSED_LOOP_POLICIES
 from drake_grasp.scenario import Scenario, load_scenario
 
 
@@ -268,7 +269,7 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
         s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
     if experiment.cnn_mirror_average and condition.policy in CNN_POLICIES:
         s.controller = dataclasses.replace(s.controller, mirror_average=True)
-    if experiment.ctr_converge_iterations >= 0 and condition.policy in ("ctr", "cnn-ctr"):
+    if experiment.ctr_converge_iterations >= 0 and condition.policy in CLOSED_LOOP_POLICIES:
         s.controller = dataclasses.replace(
             s.controller, converge_iterations=experiment.ctr_converge_iterations)
     if experiment.gpd_weights and condition.policy == "gpd":

@@ -15,6 +15,9 @@ import numpy as np
 
 from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
 
+# The policies that decide at every control step (CTR, and CTR after a one-shot start).
+CLOSED_LOOP_POLICIES = ("ctr", "cnn-ctr")
+
 
 def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,
                       theta_deg: float) -> np.ndarray:

@@ -49,6 +49,7 @@ from drake_grasp.grasps import (
     topdown_rotation,
 )
 from drake_grasp.policies import (
+    CLOSED_LOOP_POLICIES,
     choose_action,
     displacement_norm,
     gaussian_noisy_displacement,
@@ -67,7 +68,6 @@ from drake_grasp.systems.supervisor import (
     motion_phase_code,
 )
 
-CLOSED_LOOP = ("ctr", "cnn-ctr")
 ONE_SHOT = ("gpd", "gpd-geometric", "cnn-only")
 
 
@@ -632,7 +632,7 @@ class GraspController(LeafSystem):
 
     def _CalcStatus(self, context, output: BasicVector):
         s = self.get_controller_state(context)
-        if s.phase in (Phase.START, Phase.VIEW, Phase.SERVO) or self._policy in CLOSED_LOOP:
+        if s.phase in (Phase.START, Phase.VIEW, Phase.SERVO) or self._policy in CLOSED_LOOP_POLICIES:
             step = s.iteration
         else:
             # Control periods since the image the policy decided on (a disturbance "after
