@@ -242,7 +242,8 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
             object_body_index=station.object_body(target).index(),
             object_points_O=points_O, X_WG_start=station.X_WG_start,
             motion=scenario.scripted, gripper=scenario.gripper,
-            X_WG_planned=None if X_WG_plan is None else RigidTransform(X_WG_plan)))
+            X_WG_planned=None if X_WG_plan is None else RigidTransform(X_WG_plan),
+            object_com_O=library.get(scene.objects[target].object_id).read_meta()["com_m"]))
         _hold_sheet(builder, sd)
         builder.Connect(sd.GetOutputPort("body_poses"), policy.GetInputPort("body_poses"))
         out.target = target

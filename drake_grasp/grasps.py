@@ -59,6 +59,10 @@ def plan_topdown_grasp(
     min_height: float = 0.02,
     max_width: float = STROKE_M - 0.01,
     angle_step_deg: float = 2.0,
+    com_W: np.ndarray | None = None,
+    slice_step_m: float = 0.004,
+    finger_margin_m: float = 0.005,
+    max_com_offset_m: float = 0.04,
 ) -> TopDownGrasp:
     """Plans a top-down grasp of one object from points on its surface (true pose).
 
@@ -68,9 +72,18 @@ def plan_topdown_grasp(
     narrowest (a rotating-calipers search over yaw), and the centre is the middle of
     their extent in both planar directions.
 
+    When the whole object is wider than `max_width` in every direction (a hammer lying
+    flat: its 87 mm head), only the slice the fingers sweep has to fit: the points within
+    a finger's half width plus `finger_margin_m` of the closing line. Every slice
+    (`slice_step_m` apart, every yaw) that fits and whose centre lies within
+    `max_com_offset_m` of `com_W` (horizontally; the points' centroid when None) is a
+    candidate - farther out, the object's weight would twist it out of the pads, and
+    the slice would be a corner of a wide object. The plan is the candidate nearest the
+    centre of mass, the narrowest of those within 5 mm of that distance.
+
     Raises:
-        ValueError: no direction is narrower than `max_width` (the object cannot be
-            grasped from above by the 85 mm stroke).
+        ValueError: no slice near the centre of mass is narrower than `max_width` (the
+            object cannot be grasped from above by the 85 mm stroke).
     """
     P = np.asarray(points_W, dtype=float)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
@@ -83,19 +96,44 @@ def plan_topdown_grasp(
     proj = inside[:, :2] @ dirs.T  # (N, A)
     widths = proj.max(axis=0) - proj.min(axis=0)
     best = int(np.argmin(widths))
-    if widths[best] > max_width:
+    if widths[best] <= max_width:
+        d = dirs[best]
+        e = np.array([-d[1], d[0]])
+        along = proj[:, best]
+        across = inside[:, :2] @ e
+        c_d = 0.5 * (along.max() + along.min())
+        c_e = 0.5 * (across.max() + across.min())
+        xy = c_d * d + c_e * e
+        return TopDownGrasp(np.array([xy[0], xy[1], z_grasp]), float(yaws[best]),
+                            float(widths[best]))
+    target = (np.asarray(com_W, dtype=float)[:2] if com_W is not None
+              else inside[:, :2].mean(axis=0))
+    half = PAD_HALF_WIDTH_M + finger_margin_m
+    found = []  # (distance to target, width, yaw, centre xy)
+    for k, yaw in enumerate(yaws):
+        d = dirs[k]
+        e = np.array([-d[1], d[0]])
+        along, across = proj[:, k], inside[:, :2] @ e
+        for s in np.arange(across.min(), across.max() + 1e-9, slice_step_m):
+            strip = np.abs(across - s) <= half
+            if not strip.any():
+                continue
+            lo, hi = along[strip].min(), along[strip].max()
+            if hi - lo > max_width:
+                continue
+            xy = 0.5 * (lo + hi) * d + s * e
+            if np.linalg.norm(xy - target) > max_com_offset_m:
+                continue
+            found.append((float(np.linalg.norm(xy - target)), float(hi - lo), float(yaw), xy))
+    if not found:
         raise ValueError(
-            f"object is {widths[best] * 1000:.0f} mm wide at its narrowest; the gripper "
-            f"opens {max_width * 1000:.0f} mm"
+            f"object is {widths[best] * 1000:.0f} mm wide at its narrowest, and so is every "
+            f"slice under the fingers within {max_com_offset_m * 1000:.0f} mm of its centre "
+            f"of mass; the gripper opens {max_width * 1000:.0f} mm"
         )
-    d = dirs[best]
-    e = np.array([-d[1], d[0]])
-    along = proj[:, best]
-    across = inside[:, :2] @ e
-    c_d = 0.5 * (along.max() + along.min())
-    c_e = 0.5 * (across.max() + across.min())
-    xy = c_d * d + c_e * e
-    return TopDownGrasp(np.array([xy[0], xy[1], z_grasp]), float(yaws[best]), float(widths[best]))
+    nearest = min(f[0] for f in found)
+    _, width, yaw, xy = min((f for f in found if f[0] <= nearest + 0.005), key=lambda f: f[1])
+    return TopDownGrasp(np.array([xy[0], xy[1], z_grasp]), yaw, width)
 
 
 def points_between_pads(points_G: np.ndarray, width: float, margin: float = 0.005) -> int:

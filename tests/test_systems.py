@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_grasp.grasps import plan_topdown_grasp, points_between_pads, topdown_rotation
+from drake_grasp.grasps import (
+    STROKE_M,
+    plan_topdown_grasp,
+    points_between_pads,
+    topdown_rotation,
+)
 from drake_grasp.scenario import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.gripper import GripperController, gripper_pd_target
 from drake_grasp.systems.supervisor import Mode, ScriptedGraspSupervisor, interpolate_pose, min_jerk
@@ -49,9 +54,33 @@ def test_topdown_plan_grasps_a_box_across_its_narrow_side():
 
 
 def test_topdown_plan_rejects_wide_objects():
+    # 12 cm square: the only slices that fit the stroke cross its corners, over 4 cm from
+    # its centre.
     g = np.random.default_rng(0).uniform([-0.06, -0.06, 0], [0.06, 0.06, 0.05], size=(500, 3))
     with pytest.raises(ValueError, match="wide"):
         plan_topdown_grasp(g)
+    assert plan_topdown_grasp(g, max_com_offset_m=0.1).width <= STROKE_M - 0.01
+
+
+def test_topdown_plan_fits_a_flat_hammer_slice_by_slice():
+    # A hammer lying flat: an 87 mm x 30 mm head at y = 0.10 and a 25 mm wide handle along
+    # y, 2 cm thick. No direction fits the whole object into the 75 mm stroke, but the
+    # slice under the fingers across the handle does: the plan closes across the handle
+    # (along x), as near the centre of mass as a slice clear of the head allows.
+    rng = np.random.default_rng(0)
+    head = rng.uniform([-0.0435, 0.085, 0.0], [0.0435, 0.115, 0.02], size=(800, 3))
+    handle = rng.uniform([-0.0125, -0.15, 0.0], [0.0125, 0.085, 0.02], size=(2000, 3))
+    g = np.concatenate([head, handle]) + [0.5, 0.0, 0.0]
+    com = np.array([0.5, 0.08, 0.01])  # on the handle, 5 mm from the head
+    plan = plan_topdown_grasp(g, min_height=0.025, com_W=com)
+    closing = topdown_rotation(plan.yaw)[:, 0]
+    assert abs(closing[0]) == pytest.approx(1.0, abs=0.05)  # across the handle
+    assert plan.width == pytest.approx(0.025, abs=0.003)
+    assert plan.position[0] == pytest.approx(0.5, abs=0.003)
+    # The fingers' slice (pad half width + 5 mm margin) stays clear of the head's edge.
+    assert plan.position[1] <= 0.085 - 0.016 + 1e-9
+    assert plan.position[1] == pytest.approx(0.085 - 0.016, abs=0.005)  # nearest the COM
+    assert plan.position[2] == pytest.approx(0.025)
 
 
 def test_points_between_pads():

@@ -98,7 +98,8 @@ class ScriptedGraspSupervisor(LeafSystem):
     """Grasps one object from above, planned from its true pose (an oracle by design):
     a grasp planned outside from the scene's true poses (`X_WG_planned`, e.g. a
     ground-truth grasp), else `plan_topdown_grasp` on the object's points at
-    initialization.
+    initialization (with `object_com_O`, the object's centre of mass in its frame, for
+    objects that fit the stroke only slice by slice).
 
     Modes (abstract state): approach -> descend -> close -> lift -> hold -> done. The
     `GraspJudge` decides whether the grasp held.
@@ -118,8 +119,10 @@ class ScriptedGraspSupervisor(LeafSystem):
     def __init__(self, *, object_body_index, object_points_O: np.ndarray,
                  X_WG_start: RigidTransform, motion: ScriptedGraspConfig,
                  gripper: GripperConfig, table_z: float = 0.0, period_s: float = 0.01,
-                 X_WG_planned: RigidTransform | None = None):
+                 X_WG_planned: RigidTransform | None = None,
+                 object_com_O: np.ndarray | None = None):
         super().__init__()
+        self._com_O = None if object_com_O is None else np.asarray(object_com_O, float).reshape(3)
         self._X_WG_planned = X_WG_planned
         self._object = int(object_body_index)
         self._points_O = np.asarray(object_points_O, dtype=float)
@@ -183,10 +186,14 @@ class ScriptedGraspSupervisor(LeafSystem):
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
             return
         try:
+            com_W = None
+            if self._com_O is not None:
+                X_WO = self._body_poses.Eval(context)[self._object]
+                com_W = X_WO.rotation().matrix() @ self._com_O + X_WO.translation()
             plan = plan_topdown_grasp(
                 self._object_points_W(context), table_z=self._table_z,
                 depth_below_top=self._motion.grasp_depth_below_top_m,
-                min_height=self._motion.min_grasp_height_m)
+                min_height=self._motion.min_grasp_height_m, com_W=com_W)
         except ValueError as e:
             new = SupervisorState(mode=Mode.DONE, outcome={
                 "failure_reason": f"no top-down grasp: {e}"})
