@@ -253,7 +253,8 @@ def bench_cnn(rounds: int = 8) -> dict:
 
 def bench_cnn_onnx(rounds: int = 10, repeats: int = 10) -> dict:
     """`score_candidates` on one depth image with 128 candidates: the torch fast path and
-    the ONNX export of the same shipped weights under onnxruntime, 1 thread each, the
+    the ONNX export of the same weights (the shipped paper net, `models/cnn/`: the export
+    covers the tiled fusion) under onnxruntime, 1 thread each, the
     same inputs, interleaved in `rounds` x `repeats` (median of each)."""
     import importlib.util
     import logging
@@ -267,16 +268,18 @@ def bench_cnn_onnx(rounds: int = 10, repeats: int = 10) -> dict:
         return {"cnn_onnx_torch_ms_128": None, "cnn_onnx_ms_128": None, "cnn_onnx_speedup": None}
     import torch
 
+    from drake_grasp.assets import models_dir
     from drake_grasp.onnx_export import export_onnx
     from drake_grasp.policies import sample_candidates
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.systems.evaluator import PAPER_WEIGHTS, load_cnn, score_candidates
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            onnx_path = export_onnx(out=Path(tmp) / "cnn.onnx").path
-            backends = {"torch": load_cnn(""), "onnx": load_cnn(str(onnx_path))}
+            onnx_path = export_onnx(out=Path(tmp) / "cnn.onnx").path  # the paper net
+            backends = {"torch": load_cnn(str(models_dir() / PAPER_WEIGHTS)),
+                        "onnx": load_cnn(str(onnx_path))}
         rng = np.random.default_rng(BENCH_SEED)
         depth = rng.uniform(0.2, 0.3, (64, 64)).astype(np.float32)
         actions = sample_candidates(rng, 128, xy_m=0.04, theta_deg=45.0)

@@ -456,7 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kinematic noise on commanded displacements (default: the scenario's)")
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
                    help="grasp this object: candidates restricted to its image region")
-    p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn/)")
+    p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn-grid/, the grid "
+                   "head; models/cnn/weights.safetensors is the paper's net)")
     p.add_argument("--seed", type=int, default=None,
                    help="trial seed (scene and noise); default: the scenario's seed")
     p.add_argument("--out", required=True, help="output folder")
@@ -714,8 +715,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "results measured before the fast profile); default: the scenarios'")
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
-                        "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped "
-                        "models/cnn/weights.safetensors. Its sha256 is part of the run's "
+                        "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped grid head "
+                        "models/cnn-grid/weights.safetensors (the paper's net: "
+                        "models/cnn/weights.safetensors). Its sha256 is part of the run's "
                         "identity")
     p.add_argument("--gpd-weights", default=None, metavar="FILE",
                    help="GPD grasp-classifier weights (safetensors from 'drake-grasp "
@@ -797,8 +799,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the image part, ending in .onnx; the head goes to the same name with "
                         ".head.onnx (X.onnx -> X.head.onnx); both are replaced if present")
     p.add_argument("--weights", default="", metavar="W",
-                   help="safetensors weights to export (default: the shipped "
-                        "models/cnn/weights.safetensors)")
+                   help="safetensors weights to export, a tiled (paper) net (default: the "
+                        "shipped paper net models/cnn/weights.safetensors; the grid head, "
+                        "the episodes' default, has no ONNX export)")
     p.add_argument("--exporter", default="auto", choices=["auto", "dynamo", "torchscript"],
                    help="torch.onnx.export path: dynamo (needs onnxscript) or torchscript "
                         "(dynamo=False); auto (default): dynamo when onnxscript is installed")

@@ -36,7 +36,9 @@ from drake_grasp.onnx_runtime import ONNX_FORMAT, OnnxDistanceModel, head_path, 
 from drake_grasp.provenance import file_sha256
 
 SHIPPED_WEIGHTS = "cnn/weights.safetensors"
-"""Default weights, under `models_dir()` (= `systems.evaluator.DEFAULT_WEIGHTS`, a floor up)."""
+"""Default weights, under `models_dir()`: the paper's tiled net (=
+`systems.evaluator.PAPER_WEIGHTS`); the export covers the tiled fusion only, so the
+episode's default, the grid head (`systems.evaluator.DEFAULT_WEIGHTS`), is not exported."""
 
 EXPORTERS = ("auto", "dynamo", "torchscript")
 OPSET = 18  # onnxruntime >= 1.14 runs it; the dynamo exporter's own default
@@ -138,7 +140,9 @@ def export_onnx(
     Args:
         out: Destination of the image part; must end in ``.onnx``.
         weights: A safetensors weights file (`drake_grasp.network.save_weights`);
-            "" = the shipped ``models/cnn/weights.safetensors``. Exported in float32.
+            "" = the shipped paper net ``models/cnn/weights.safetensors`` (not the
+            episode's default grid head, which the export does not cover). Exported in
+            float32.
         exporter: "auto" (dynamo when onnxscript is installed, else torchscript),
             "dynamo" or "torchscript".
 

@@ -265,7 +265,8 @@ class ControllerConfig:
     num_candidates: int = 128
     sample_xy_m: float = 0.04
     sample_theta_deg: float = 45.0
-    # CNN weights; "" = the shipped models/cnn/weights.safetensors; an X.onnx file from
+    # CNN weights; "" = the shipped models/cnn-grid/weights.safetensors (the grid head;
+    # models/cnn/weights.safetensors is the paper's tiled net); an X.onnx file from
     # `drake-grasp export-onnx` runs the CNN with onnxruntime instead of torch.
     weights: str = ""
     # Open-loop policies (cnn-only) search this many actions over the whole view.

@@ -16,6 +16,7 @@ import pytest
 import torch
 from pydrake.systems.sensors import ImageDepth32F
 
+from drake_grasp.assets import models_dir
 from drake_grasp.cli import main
 from drake_grasp.network import (DistanceCNN, MirrorAveragedCNN, NetworkConfig,
                                   normalize_depth, save_weights)
@@ -24,6 +25,7 @@ from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path, random_check_
 from drake_grasp.onnx_runtime import normalize_depth as normalize_depth_np
 from drake_grasp.systems.evaluator import (
     DEFAULT_WEIGHTS,
+    PAPER_WEIGHTS,
     DistanceEvaluator,
     load_cnn,
     score_candidates,
@@ -35,7 +37,7 @@ FEATURE_REL_TOL = 1e-5
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """The shipped weights exported once through the CLI (default exporter)."""
+    """The shipped paper net exported once through the CLI (default exporter and weights)."""
     path = tmp_path_factory.mktemp("onnx") / "cnn.onnx"
     assert main(["export-onnx", "--out", str(path)]) == 0
     return path
@@ -43,7 +45,7 @@ def exported(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def torch_model():
-    return load_cnn("")
+    return load_cnn(str(models_dir() / PAPER_WEIGHTS))
 
 
 def test_normalization_is_bit_for_bit_torchs():
@@ -96,7 +98,10 @@ def test_the_torchscript_exporter_gives_the_same_numbers(tmp_path, exported, tor
     depth, actions = random_check_inputs(2, images=1)
     got = OnnxDistanceModel(result.path).score(depth[0], actions)
     assert np.abs(got - score_candidates(torch_model, depth[0], actions)).max() <= DISTANCE_TOL_M
-    assert SHIPPED_WEIGHTS == DEFAULT_WEIGHTS  # export's default is the evaluator's
+    # export's default is the paper net; the episodes' default, the grid head, is refused
+    assert SHIPPED_WEIGHTS == PAPER_WEIGHTS != DEFAULT_WEIGHTS
+    with pytest.raises(ValueError, match="tiled"):
+        export_onnx(out=tmp_path / "grid.onnx", weights=str(models_dir() / DEFAULT_WEIGHTS))
 
 
 def test_evaluator_system_with_the_onnx_file_equals_torch(exported, torch_model):

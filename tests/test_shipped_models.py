@@ -51,3 +51,15 @@ def test_the_grid_weights_are_the_last_epoch_of_their_run():
     assert meta["identity"] == metrics["identity"]
     assert meta["identity"]["config"] == meta["config"]
     assert meta["epoch"] == len(metrics["epochs"]) == metrics["epochs"][-1]["epoch"]
+
+
+def test_the_episodes_default_cnn_is_the_grid_head_and_the_paper_net_stays_shipped():
+    from drake_grasp.montecarlo import weights_path
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS, PAPER_WEIGHTS, load_cnn
+
+    assert models_dir() / DEFAULT_WEIGHTS == GRID / "weights.safetensors"
+    assert load_cnn("").config.action_fusion == "grid"
+    assert load_cnn(str(models_dir() / PAPER_WEIGHTS)).config.action_fusion == "tiled"
+    ctr = load_scenario(scenario_text="{policy: ctr}")
+    assert weights_path(ctr) == str(GRID / "weights.safetensors")

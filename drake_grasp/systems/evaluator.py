@@ -22,11 +22,16 @@ from drake_grasp.policies import sample_candidates
 if TYPE_CHECKING:
     from drake_grasp.network import DistanceCNN
 
-DEFAULT_WEIGHTS = "cnn/weights.safetensors"
+# The default distance CNN: the paper's trunk with the grid head (models/cnn-grid/README.md;
+# measured better than the paper's tiled net in the closed loop: isolation 96.7% vs 93.8%,
+# clutter 88.1% vs 82.5%). The paper's net (PAPER_WEIGHTS) stays shipped and selectable.
+DEFAULT_WEIGHTS = "cnn-grid/weights.safetensors"
+PAPER_WEIGHTS = "cnn/weights.safetensors"
 
 
 def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxDistanceModel]:
-    """The distance CNN from a weights file; "" -> the shipped `models/cnn/` weights.
+    """The distance CNN from a weights file; "" -> the shipped default, `models/cnn-grid/`
+    (`DEFAULT_WEIGHTS`; the paper's tiled net is `models/cnn/`, `PAPER_WEIGHTS`).
 
     A path ending in ``.onnx`` (the image file of ``drake-grasp export-onnx``, its
     ``.head.onnx`` sibling beside it) loads the onnxruntime backend
