@@ -309,7 +309,9 @@ def _cmd_evaluate(args) -> int:
                       force_new=args.force_new, physics_profile=args.physics_profile,
                       weights=args.weights or "", gpd_weights=args.gpd_weights or "",
                       mirror_average=args.mirror_average,
-                      converge_iterations=-1 if args.converge is None else args.converge)
+                      converge_iterations=-1 if args.converge is None else args.converge,
+                      distance_samples=0 if args.distance_samples is None
+                      else args.distance_samples)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -733,6 +735,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "commanded move stays below controller.converge_step_m "
                         "(controller.converge_iterations; default: the scenarios', 20; 0 grasps as "
                         "soon as the stop rule fires, as the paper's robot did)")
+    p.add_argument("--distance-samples", type=int, default=None, metavar="N",
+                   help="measure every trial's final distance (the paper's metric) against a "
+                        "ground-truth search of N surface points (judge.distance_grasp_samples; "
+                        "default: the scenarios', 400, the dataset's labels' search)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

@@ -506,13 +506,17 @@ def _scene_now(plant, plant_context, station, scene: SceneSpec) -> SceneSpec:
                      objects=placements, settled=False)
 
 
-def final_distance(plant, plant_context, station, scene: SceneSpec, library, seed: int) -> dict:
+def final_distance(plant, plant_context, station, scene: SceneSpec, library, seed: int, *,
+                   num_samples: int = 400) -> dict:
     """The paper's metric for the hand's current pose: its (x, y, theta) distance to the
-    nearest ground-truth grasp of the scene as it is now (objects where they are)."""
+    nearest ground-truth grasp of the scene as it is now (objects where they are), the
+    ground truth searched from `num_samples` surface points (`judge.distance_grasp_samples`;
+    400 as in the dataset's labels)."""
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
 
     now = _scene_now(plant, plant_context, station, scene)
-    grasps = find_grasps(now, library, np.random.default_rng([seed, 61]))
+    grasps = find_grasps(now, library, np.random.default_rng([seed, 61]),
+                         num_samples=int(num_samples))
     X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
                                        plant.GetFrameByName("grasp_frame", station.gripper))
     hand = _hand_xy_yaw(X_WG)
@@ -615,7 +619,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         # The paper's metric is taken where the hand stands when the fingers start to
         # close (INIT: where it started).
         if distance is None and (mode == "close" or (mode == "done" and scenario.policy == "init")):
-            distance = final_distance(plant, plant_context, station, scene, library, scenario.seed)
+            distance = final_distance(plant, plant_context, station, scene, library, scenario.seed,
+                                      num_samples=scenario.judge.distance_grasp_samples)
         if detection is None and scenario.policy == "gpd":
             X_det = policy.get_controller_state(policy_context).outcome.get("gpd_detection")
             if X_det is not None:
@@ -627,7 +632,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         simulator.AdvanceTo(t)
     loop_wall_s = time.perf_counter() - loop_start
     if distance is None:
-        distance = final_distance(plant, plant_context, station, scene, library, scenario.seed)
+        distance = final_distance(plant, plant_context, station, scene, library, scenario.seed,
+                                  num_samples=scenario.judge.distance_grasp_samples)
     replay = None
     if ed.visualizer is not None:
         ed.visualizer.StopRecording()

@@ -89,6 +89,10 @@ class Experiment:
     # >= 0: the closed-loop conditions (ctr, cnn-ctr) run with this
     # `controller.converge_iterations`; -1 keeps the scenario's. `evaluate --converge` sets it.
     ctr_converge_iterations: int = -1
+    # > 0: every condition's judge measures the final distance against a ground-truth
+    # search of this many surface points (`judge.distance_grasp_samples`); 0 keeps the
+    # scenario's. `evaluate --distance-samples` sets it.
+    judge_distance_samples: int = 0
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -274,6 +278,9 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
             s.controller, converge_iterations=experiment.ctr_converge_iterations)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
+    if experiment.judge_distance_samples > 0:
+        s.judge = dataclasses.replace(
+            s.judge, distance_grasp_samples=experiment.judge_distance_samples)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,

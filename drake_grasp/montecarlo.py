@@ -70,6 +70,8 @@ class TrialTask:
     cnn_mirror_average: bool = False
     # `Experiment.ctr_converge_iterations`.
     ctr_converge_iterations: int = -1
+    # `Experiment.judge_distance_samples`.
+    judge_distance_samples: int = 0
 
     @property
     def trial_id(self) -> str:
@@ -91,6 +93,9 @@ def task_experiment(task: TrialTask) -> Experiment:
     if task.ctr_converge_iterations >= 0:
         experiment = dataclasses.replace(
             experiment, ctr_converge_iterations=task.ctr_converge_iterations)
+    if task.judge_distance_samples > 0:
+        experiment = dataclasses.replace(
+            experiment, judge_distance_samples=task.judge_distance_samples)
     return experiment
 
 
@@ -117,7 +122,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
                       experiment.cnn_weights, experiment.gpd_weights,
-                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations)
+                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
+                      experiment.judge_distance_samples)
             for i in range(n) for c, spec in asked]
 
 
@@ -643,7 +649,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
-             mirror_average: bool = False, converge_iterations: int = -1) -> dict:
+             mirror_average: bool = False, converge_iterations: int = -1,
+             distance_samples: int = 0) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -686,6 +693,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             up to this many iterations at the height where the stop rule fired
             (`controller.converge_iterations`); -1 keeps the scenarios'. Part of the run's
             identity through the conditions' scenarios.
+        distance_samples: > 0: every trial's final distance is measured against a
+            ground-truth search of this many surface points (`judge.distance_grasp_samples`;
+            the scenarios' 400 otherwise). Part of the run's identity.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -719,6 +729,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         exp = dataclasses.replace(exp, ctr_converge_iterations=int(converge_iterations))
     elif converge_iterations != -1:
         raise ValueError(f"--converge: expected >= 0 iterations, got {converge_iterations}")
+    if distance_samples > 0:
+        exp = dataclasses.replace(exp, judge_distance_samples=int(distance_samples))
+    elif distance_samples != 0:
+        raise ValueError(f"--distance-samples: expected a positive number of surface points, "
+                         f"got {distance_samples}")
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -371,6 +371,11 @@ class JudgeConfig:
     # "pushed-away": the object the grasp went for moved more than this horizontally
     # before the closing pads touched it [m].
     max_push_m: float = 0.02
+    # Surface points of the ground-truth search behind each trial's `final_distance_m`
+    # (the paper's distance to the nearest grasp). 400 is the dataset's labels' search; a
+    # sparser search finds fewer of the true grasps, so its nearest one is farther away
+    # (README *How exact the labels are*). `evaluate --distance-samples` sets it.
+    distance_grasp_samples: int = 400
 
 
 # Named contact-simulation settings (`physics.profile`). "reference" is what every result

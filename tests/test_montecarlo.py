@@ -505,6 +505,48 @@ def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path)
     assert not (tmp_path / "run").exists()
 
 
+def test_distance_samples_option_reaches_every_condition_and_the_identity(tmp_path):
+    """`evaluate --distance-samples N`: every condition's judge searches the ground truth
+    behind the final distance from N surface points; the identity differs; N <= 0 other
+    than the 0 that keeps the scenarios' is refused before anything is written."""
+    from drake_grasp.experiments import trial_scenario
+
+    exp = dataclasses.replace(EXPERIMENTS["sim-distance"], judge_distance_samples=1600)
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["sim-distance"], seed=0)["conditions"]}
+    for name in ("init", "ctr", "ctr_noise", "gpd", "gpd_noise"):
+        assert ident[name]["scenario"]["judge"]["distance_grasp_samples"] == 1600
+        assert base[name]["scenario"]["judge"]["distance_grasp_samples"] == 400
+        assert ident[name]["config_hash"] != base[name]["config_hash"]
+    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.judge.distance_grasp_samples == 1600
+    with pytest.raises(ValueError, match="--distance-samples: expected a positive number"):
+        evaluate(experiment="sim-distance", out=tmp_path / "run", trials=1, distance_samples=-5,
+                 progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_denser_distance_search_finds_more_true_grasps_for_the_same_episode():
+    """The judge's `distance_grasp_samples` is the search behind `final_distance_m`: the
+    same INIT episode (same seed, same hand pose) measured against a 4x denser search
+    counts more than twice the true grasps. (Its nearest one is not always nearer: the
+    two searches draw independent points.)"""
+    from drake_grasp.episode import simulate_episode
+    from drake_grasp.scenario import load_scenario
+
+    runs = {}
+    for n in (400, 1600):
+        s = load_scenario(scenario_name="isolation",
+                          scenario_text=f"{{policy: init, seed: 3, judge: {{distance_grasp_samples: {n}}}}}")
+        runs[n] = simulate_episode(s, record_depth=False, visualize=False).result
+    sparse, dense = runs[400], runs[1600]
+    assert dense.details["num_true_grasps"] > 2 * sparse.details["num_true_grasps"] > 0
+    assert dense.details["hand_at_close_xy_yaw"] == sparse.details["hand_at_close_xy_yaw"]
+    assert dense.final_distance_m is not None and sparse.final_distance_m is not None
+
+
 def test_parallel_map_keeps_the_order_in_and_out_of_process():
     import operator
 
