@@ -838,14 +838,8 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
             for t in todo:
                 tick(run_task(t, out, objects_dir, fail_trials))
         else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                     **_worker_recycling()) as pool:
-                futures = [pool.submit(run_task, t, out, objects_dir, fail_trials) for t in todo]
-                for fut in as_completed(futures):
-                    tick(fut.result())
+            pooled_map(run_task, [(t, out, objects_dir, fail_trials) for t in todo],
+                       workers=workers, on_result=tick)
     finally:
         bar.close()
 
@@ -853,15 +847,32 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
 # A worker's memory grows by about 15 MB per trial (2,000 sim-distance trials on 2 workers:
 # one worker reached 12 GB and was killed by the kernel): with drake 1.51 a Python
 # LeafSystem that declares a port is never freed, and the episode Diagram holding it stays
-# alive with its plant, SceneGraph and renderer (Drake issues 22515 and 24162). So workers
-# are replaced after this many trials; a fresh one reloads the CNN and meshes in seconds.
+# alive with its plant, SceneGraph and renderer (Drake issues 22515 and 24162). So worker
+# processes are replaced after about this many trials; a fresh one reloads the CNN and
+# meshes in seconds.
 WORKER_MAX_TRIALS = 200
 
 
-def _worker_recycling() -> dict:
-    """ProcessPoolExecutor's `max_tasks_per_child` (Python >= 3.11; older Pythons keep
-    their workers for the whole run)."""
-    return {"max_tasks_per_child": WORKER_MAX_TRIALS} if sys.version_info >= (3, 11) else {}
+def pooled_map(fn, arg_tuples, *, workers: int, on_result,
+               per_worker: int = WORKER_MAX_TRIALS) -> None:
+    """Calls `fn(*args)` for every tuple on `workers` spawned processes and
+    `on_result(value)` in completion order, with fresh processes for every
+    `workers * per_worker` tasks (so no process runs more than that many).
+
+    Not ProcessPoolExecutor's `max_tasks_per_child`: in Python 3.11 to 3.15.0b3 a pool
+    with a backlog deadlocks once a worker exits at that limit (CPython gh-115634): an
+    `evaluate` on 2 workers hung after exactly 400 of 480 trials, both workers gone. A new
+    pool per chunk needs no worker replacement."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    arg_tuples = list(arg_tuples)
+    chunk = max(1, int(workers) * int(per_worker))
+    for start in range(0, len(arg_tuples), chunk):
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+            futures = [pool.submit(fn, *a) for a in arg_tuples[start:start + chunk]]
+            for fut in as_completed(futures):
+                on_result(fut.result())
 
 
 def parallel_map(fn, arg_tuples, *, workers: int = 2, desc: str = "") -> list:

@@ -555,17 +555,23 @@ def test_parallel_map_keeps_the_order_in_and_out_of_process():
     assert m.parallel_map(operator.pow, args, workers=1) == [32, 9, 1, 7]
 
 
-def test_pool_workers_are_recycled():
-    """Workers are replaced after WORKER_MAX_TRIALS trials (their memory grew per trial)."""
-    import sys
-
-    from drake_grasp import montecarlo
-
-    kwargs = montecarlo._worker_recycling()
-    if sys.version_info >= (3, 11):
-        assert kwargs == {"max_tasks_per_child": montecarlo.WORKER_MAX_TRIALS}
-    else:
-        assert kwargs == {}
+def test_pool_workers_are_recycled_without_deadlock():
+    """`pooled_map` runs every task and replaces its worker processes every
+    workers * per_worker tasks. With ProcessPoolExecutor's max_tasks_per_child (Python
+    3.11-3.15.0b3, CPython gh-115634) this backlog deadlocked once a worker exited at
+    its limit, so it runs in a subprocess with a time limit."""
+    code = ("import collections, os\n"
+            "from drake_grasp.montecarlo import pooled_map\n"
+            "pids = []\n"
+            "pooled_map(os.getpid, [()] * 10, workers=2, per_worker=2, on_result=pids.append)\n"
+            "print(len(pids), len(set(pids)), max(collections.Counter(pids).values()))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    results, processes, most = (int(v) for v in done.stdout.split())
+    assert results == 10
+    assert processes >= 3  # 3 chunks of 4 tasks, each on fresh processes
+    assert most <= 4
 
 
 @pytest.mark.parametrize("experiment,moves", [("clutter", False), ("clutter-shift", True)])
