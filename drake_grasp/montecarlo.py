@@ -913,7 +913,8 @@ def recorded_scenario(scenario_yaml: str):
         raise ValueError(f"the recorded scenario does not load in drake_grasp {code_version()}: "
                          f"{e}") from None
     if not re.search(r"^physics:", scenario_yaml, re.MULTILINE):
-        scenario = apply_physics_profile(scenario, "reference", keep={"plant.time_step"})
+        scenario = apply_physics_profile(scenario, "reference", keep={
+            "plant.time_step", "plant.discrete_contact_approximation"})
     elif not re.search(r"^physics:\n(?:  .*\n)*  table_collision:", scenario_yaml, re.MULTILINE):
         # Recorded before `physics.table_collision` existed: the table had its box.
         scenario.physics.table_collision = "box"

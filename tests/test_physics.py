@@ -23,6 +23,32 @@ def test_default_is_the_fast_profile_and_reference_restores_the_old_settings():
     assert fast.physics.table_collision == "halfspace"
 
 
+def test_fast10_profile_is_fast_at_a_10_ms_step_with_the_similar_approximation():
+    fast = load_scenario(scenario_name="isolation", physics_profile="fast")
+    s = load_scenario(scenario_name="isolation", physics_profile="fast10")
+    assert s.physics.profile == "fast10"
+    assert s.plant.time_step == 0.01
+    assert s.plant.discrete_contact_approximation == "similar"
+    assert fast.plant.discrete_contact_approximation == "lagged"
+    # Everything else is the fast profile's; scenes still settle at 5 ms.
+    assert s.physics.settle_time_step_s == 0.005
+    assert (s.physics.hydroelastic_margin_m, s.physics.sheet_collision,
+            s.physics.table_collision) == (fast.physics.hydroelastic_margin_m,
+                                           fast.physics.sheet_collision,
+                                           fast.physics.table_collision)
+    # Switching back restores the fast profile's approximation.
+    back = load_scenario(scenario_name="isolation",
+                         scenario_text="{physics: {profile: fast}}", physics_profile="fast10")
+    assert (back.plant.time_step, back.plant.discrete_contact_approximation) == (0.005, "lagged")
+
+
+def test_a_plant_key_given_beside_a_profile_wins():
+    s = load_scenario(scenario_name="isolation", scenario_text=(
+        "{physics: {profile: fast10}, plant: {discrete_contact_approximation: sap}}"))
+    assert s.plant.discrete_contact_approximation == "sap"   # given in the same text
+    assert s.plant.time_step == 0.01                          # from the profile
+
+
 def test_keys_given_beside_a_profile_win():
     s = load_scenario(scenario_name="clutter", scenario_text=(
         "{physics: {profile: reference, sheet_collision: auto}, plant: {time_step: 0.003}}"))
@@ -99,7 +125,7 @@ def test_fast_profile_puts_a_half_space_under_the_objects_and_a_margin_on_the_pa
 
 def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can):
     """The fidelity guard in small: the same grasps (a centred one that holds, one 6 cm
-    beside the can that misses) get the same verdict under both profiles."""
+    beside the can that misses) get the same verdict under every profile."""
     from drake_grasp.lab import check_grasp, isolated_scene
 
     scene = isolated_scene("can_000", library, lying=True)
@@ -107,8 +133,8 @@ def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can)
         X = across_can(scene, library, offset_m=offset)
         verdicts = {p: check_grasp(None, X, scene=scene, library=library,
                                    scenario=load_scenario(physics_profile=p)).held
-                    for p in ("reference", "fast")}
-        assert verdicts == {"reference": held, "fast": held}, (offset, verdicts)
+                    for p in ("reference", "fast", "fast10")}
+        assert verdicts == {"reference": held, "fast": held, "fast10": held}, (offset, verdicts)
 
 
 def test_a_record_made_before_physics_profiles_replays_with_the_reference_settings():
