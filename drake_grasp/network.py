@@ -895,19 +895,9 @@ class DistanceCNN(nn.Module):
 
     # -- grid head ---------------------------------------------------------------------
 
-    def _grid_scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """Distances for M actions on each of B images from their distance grids: the
-        trilinear interpolation between the 8 grid nodes around each action, periodic in
-        theta (a parallel jaw turned by 180 degrees is the same grasp); x and y beyond
-        the grid are clamped to its edge.
-
-        Args:
-            grids: (B, T, N, N) from `image_features` (theta, y, x).
-            feats: (B, M, 4) action features.
-
-        Returns:
-            (B, M).
-        """
+    def _grid_corners(self, feats: torch.Tensor) -> list:
+        """The 8 grid nodes around each of M actions on B images and their trilinear
+        weights: [(flat node index (B, M), weight (B, M))] (see `_grid_scores`)."""
         cfg = self.config
         t_bins, n, _ = cfg.grid_shape()
         b, m = feats.shape[:2]
@@ -924,14 +914,77 @@ class DistanceCNN(nn.Module):
         iw = w.detach().floor().long().clamp(0, t_bins - 1)
         fu, fv, fw = u - iu, v - iv, w - iw
         iw1 = torch.remainder(iw + 1, t_bins)
-        flat = grids.reshape(b, -1)
-        out = 0.0
+        corners = []
         for kw, gw in ((iw, 1.0 - fw), (iw1, fw)):
             for kv, gv in ((iv, 1.0 - fv), (iv + 1, fv)):
                 for ku, gu in ((iu, 1.0 - fu), (iu + 1, fu)):
-                    idx = (kw * n + kv) * n + ku
-                    out = out + torch.gather(flat, 1, idx) * (gw * gv * gu)
+                    corners.append(((kw * n + kv) * n + ku, gw * gv * gu))
+        return corners
+
+    def _grid_scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """Distances for M actions on each of B images from their distance grids: the
+        trilinear interpolation between the 8 grid nodes around each action, periodic in
+        theta (a parallel jaw turned by 180 degrees is the same grasp); x and y beyond
+        the grid are clamped to its edge.
+
+        Args:
+            grids: (B, T, N, N) from `image_features` (theta, y, x).
+            feats: (B, M, 4) action features.
+
+        Returns:
+            (B, M).
+        """
+        flat = grids.reshape(grids.shape[0], -1)
+        out = 0.0
+        for idx, weight in self._grid_corners(feats):
+            out = out + torch.gather(flat, 1, idx) * weight
         return out
+
+    def grid_hidden(self, images: torch.Tensor) -> torch.Tensor:
+        """Grid head: the trunk up to IP2's input, lrelu(IP1(...)), (B, ip1). IP2 maps it
+        to the distance at every grid node; `score_grid_nodes` evaluates only the nodes
+        a set of actions needs."""
+        self._check_images(images)
+        if not self.grid:
+            raise ValueError(f"grid_hidden: a {self.config.action_fusion!r} net has no grid head")
+        x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
+        h = F.max_pool2d(self._lrelu(self.conv2(x)), 2).flatten(1)
+        return self._lrelu(self.ip1(h))
+
+    def score_grid_nodes(self, hidden: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """Distances for K actions on one image from `grid_hidden`, computing IP2 only at
+        the grid nodes around them (the controller's candidates lie within a few cm and
+        tens of degrees of the hand: about 1/20 of the 18 x 33 x 33 nodes). Equal to
+        `score_actions(image_features(...))` (same interpolation of the same node values;
+        IP2's rows are the same dot products, so the values agree to float rounding).
+
+        Args:
+            hidden: (ip1,) or (1, ip1), `grid_hidden` of one image.
+            actions: (K, 3) raw or (K, 4) features.
+
+        Returns:
+            Distances [m], (K,).
+        """
+        if hidden.ndim == 2 and hidden.shape[0] == 1:
+            hidden = hidden[0]
+        if tuple(hidden.shape) != (self.config.ip1,):
+            raise ValueError(f"hidden: expected shape ({self.config.ip1},) or (1, "
+                             f"{self.config.ip1}) (grid_hidden of one image), got "
+                             f"{tuple(hidden.shape)}")
+        feats = self._features(actions)
+        if feats.ndim != 2:
+            raise ValueError(
+                f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
+        corners = self._grid_corners(feats[None])
+        nodes, where = torch.unique(torch.cat([idx for idx, _ in corners], dim=1),
+                                    return_inverse=True)
+        z = F.linear(hidden, self.ip2.weight[nodes], self.ip2.bias[nodes])
+        values = self.config.output_scale_m * F.softplus(z)
+        k = feats.shape[0]
+        out = 0.0
+        for j, (_, weight) in enumerate(corners):
+            out = out + values[where[:, j * k:(j + 1) * k]] * weight
+        return out[0]
 
     def _score_features(self, features: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
         # features (..., C2, P, P) broadcast against offsets (..., C2): one row of IP1

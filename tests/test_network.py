@@ -646,6 +646,48 @@ def test_grid_interpolates_its_nodes_periodically_and_its_forms_agree(tmp_path):
         m.action_offsets(acts)
 
 
+def test_grid_nodes_only_where_the_actions_need_them_equal_the_whole_grid():
+    """`score_grid_nodes` (IP2 at the nodes around the actions: the controller's path)
+    gives `score_actions` on the whole grid, near the hand, over the whole view, across
+    the theta wrap and beyond the grid's edge."""
+    m = _model(seed=8, config=GRID)
+    images = _images(2, seed=9) * 0.3
+    grids = m.image_features(images)
+    hidden = m.grid_hidden(images)
+    assert hidden.shape == (2, GRID.ip1)
+    near = _raw_actions((40,), seed=10) * torch.tensor([0.3, 0.3, 30.0], dtype=torch.float64)
+    wide = _raw_actions((300,), seed=11) * torch.tensor([3.0, 3.0, 400.0], dtype=torch.float64)
+    edge = torch.tensor([[1.0, -1.0, -90.0], [0.0, 0.0, 179.9], [0.01, 0.0, -180.0]],
+                        dtype=torch.float64)
+    for b in range(2):
+        for actions in (near, wide, edge):
+            assert _max_rel(m.score_grid_nodes(hidden[b], actions),
+                            m.score_actions(grids[b], actions)) < 1e-12
+    assert m.score_grid_nodes(hidden[:1], near).shape == (40,)
+    with pytest.raises(ValueError, match="hidden"):
+        m.score_grid_nodes(hidden, near)
+    with pytest.raises(ValueError, match="grid head"):
+        _model(config=CFG).grid_hidden(images)
+
+
+def test_the_episode_scores_the_shipped_grid_net_at_its_needed_nodes():
+    """The controller's `score_candidates` on the shipped (float32) grid net agrees with
+    the whole grid's interpolation to float rounding."""
+    import numpy as np
+
+    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+
+    net = load_cnn("")
+    assert net.grid
+    rng = np.random.default_rng(12)
+    depth = (0.25 + 0.1 * rng.random((64, 64))).astype(np.float32)
+    actions = np.column_stack([rng.uniform(-0.04, 0.04, 128), rng.uniform(-0.04, 0.04, 128),
+                               rng.uniform(-0.8, 0.8, 128)]).astype(np.float32)
+    with torch.inference_mode():
+        whole = net.score_actions(net.image_features(net.preprocess(depth))[0], actions)
+    assert np.allclose(score_candidates(net, depth, actions), whole.numpy(), rtol=0, atol=1e-6)
+
+
 def test_grid_starts_from_a_tiled_net_at_its_zero_action():
     from drake_grasp.dense_training import init_from_tiled
 
