@@ -940,6 +940,11 @@ class DistanceCNN(nn.Module):
             out = out + torch.gather(flat, 1, idx) * weight
         return out
 
+    def _after_ip1_grid(self, hidden: torch.Tensor) -> torch.Tensor:
+        """The whole distance grid, (T, N, N), from one image's `grid_hidden`."""
+        z = self.ip2(hidden)
+        return (self.config.output_scale_m * F.softplus(z)).reshape(*self.config.grid_shape())
+
     def grid_hidden(self, images: torch.Tensor) -> torch.Tensor:
         """Grid head: the trunk up to IP2's input, lrelu(IP1(...)), (B, ip1). IP2 maps it
         to the distance at every grid node; `score_grid_nodes` evaluates only the nodes
@@ -954,7 +959,8 @@ class DistanceCNN(nn.Module):
     def score_grid_nodes(self, hidden: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for K actions on one image from `grid_hidden`, computing IP2 only at
         the grid nodes around them (the controller's candidates lie within a few cm and
-        tens of degrees of the hand: about 1/20 of the 18 x 33 x 33 nodes). Equal to
+        tens of degrees of the hand: about 1/20 of the 18 x 33 x 33 nodes; for more than
+        1/32 as many actions as nodes, IP2 runs over the whole grid). Equal to
         `score_actions(image_features(...))` (same interpolation of the same node values;
         IP2's rows are the same dot products, so the values agree to float rounding).
 
@@ -975,6 +981,11 @@ class DistanceCNN(nn.Module):
         if feats.ndim != 2:
             raise ValueError(
                 f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
+        if 4 * 8 * feats.shape[0] > self.ip2.out_features:
+            # Many actions (e.g. 2,048 over the whole view need ~40% of the nodes):
+            # gathering rows costs more than IP2 over the whole grid.
+            grids = self._after_ip1_grid(hidden)
+            return self._grid_scores(grids[None], feats[None])[0]
         corners = self._grid_corners(feats[None])
         nodes, where = torch.unique(torch.cat([idx for idx, _ in corners], dim=1),
                                     return_inverse=True)

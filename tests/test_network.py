@@ -659,8 +659,10 @@ def test_grid_nodes_only_where_the_actions_need_them_equal_the_whole_grid():
     wide = _raw_actions((300,), seed=11) * torch.tensor([3.0, 3.0, 400.0], dtype=torch.float64)
     edge = torch.tensor([[1.0, -1.0, -90.0], [0.0, 0.0, 179.9], [0.01, 0.0, -180.0]],
                         dtype=torch.float64)
+    # More than 1/32 as many actions as nodes: IP2 over the whole grid instead.
+    many = _raw_actions((700,), seed=13) * torch.tensor([3.0, 3.0, 400.0], dtype=torch.float64)
     for b in range(2):
-        for actions in (near, wide, edge):
+        for actions in (near, wide, edge, many):
             assert _max_rel(m.score_grid_nodes(hidden[b], actions),
                             m.score_actions(grids[b], actions)) < 1e-12
     assert m.score_grid_nodes(hidden[:1], near).shape == (40,)
