@@ -68,7 +68,8 @@ def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel], depth: np.nda
         images = model.preprocess(np.array(depth, np.float32))
         if model.grid:  # IP2 only at the grid nodes the candidates need
             hidden = model.grid_hidden(images)
-            return model.score_grid_nodes(hidden, np.asarray(actions, np.float32)).numpy().astype(float)
+            scores = model.score_grid_nodes(hidden, np.asarray(actions, np.float32))
+            return scores.numpy().astype(float)
         features = model.image_features(images)
         return model.score_actions(features[0], np.asarray(actions, np.float32)).numpy().astype(float)
 
