@@ -138,6 +138,19 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _trunk_widths(text: str) -> tuple[int, int, int]:
+    parts = text.split(",")
+    try:
+        widths = tuple(int(v) for v in parts)
+    except ValueError:
+        widths = ()
+    if len(widths) != 3 or min(widths) < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected three integers >= 1 (conv1 filters, conv2 filters, ip1 width), e.g. "
+            f"40,100,1000; got {text!r}")
+    return widths
+
+
 def _add_torque_ratio_flag(p) -> None:
     from drake_grasp.dataset import DatasetConfig
 
@@ -221,7 +234,8 @@ def _cmd_train_grid(args) -> int:
     metrics = train_grid([f for f in args.labels.split(",") if f], args.out,
                          test_data=args.test_data, init=args.init_weights, epochs=args.epochs,
                          batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
-                         threads=args.threads, checkpoint_minutes=args.checkpoint_minutes)
+                         threads=args.threads, checkpoint_minutes=args.checkpoint_minutes,
+                         trunk=args.trunk)
     last = metrics["epochs"][-1] if metrics["epochs"] else {}
     print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
                       **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
@@ -614,6 +628,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=_positive_int, default=2)
     p.add_argument("--checkpoint-minutes", type=_positive_float, default=5.0)
+    p.add_argument("--trunk", type=_trunk_widths, default=None, metavar="C1,C2,H",
+                   help="Conv1 filters, Conv2 filters and IP1 width (default: the paper's "
+                        "20,50,500), e.g. 40,100,1000 for a wider net; --init-weights must "
+                        "then have the same trunk")
     p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

@@ -21,6 +21,7 @@ camera height) count in the loss: beyond it the net cannot see what decides the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -205,6 +206,10 @@ def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr
             "lr": float(lr), "lr_decay": float(lr_decay), "seed": int(seed)}
 
 
+def _trunk(cfg: NetworkConfig) -> tuple[int, int, int]:
+    return (cfg.conv1_channels, cfg.conv2_channels, cfg.ip1)
+
+
 def _save_checkpoint(path: Path, state: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
@@ -215,6 +220,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
           checkpoint_minutes: float = 5.0, progress: bool = True,
+          trunk: tuple[int, int, int] | None = None,
           _stop_after_batches: int | None = None) -> dict:
     """Adam on the masked L1 over every in-view grid node, the learning rate times
     `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
@@ -224,7 +230,9 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
 
     `labels_dir`: one `build_labels` folder or a list of them (same grid). `init`: a
     paper ("tiled") net to start from (`init_from_tiled`) or a grid net to go on
-    training.
+    training. `trunk`: (Conv1 filters, Conv2 filters, IP1 width) in place of the label
+    folder's (the paper's 20, 50, 500), e.g. a wider net to test whether the trunk's
+    capacity limits the fit; `init` must then have the same trunk.
     """
     from tqdm import tqdm
 
@@ -243,9 +251,20 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     if any(c != configs[0] for c in configs):
         raise ValueError(f"{folders}: label folders made for different grids")
     cfg = NetworkConfig.from_dict(configs[0])
+    if trunk is not None:
+        if len(trunk) != 3:
+            raise ValueError(f"trunk: expected (conv1 filters, conv2 filters, ip1 width), "
+                             f"got {trunk!r}")
+        cfg = dataclasses.replace(cfg, conv1_channels=int(trunk[0]),
+                                  conv2_channels=int(trunk[1]), ip1=int(trunk[2]))
+    init_net = load_weights(init)[0] if init else None
+    if init_net is not None:
+        have = _trunk(init_net.config)
+        if have != _trunk(cfg):
+            raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
+                             f"{_trunk(cfg)}; start a run with another trunk from scratch")
     data = load_labels(folders)
     n_images = len(data["depth"])
-    init_net = load_weights(init)[0] if init else None
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
                          seed=seed)
     model = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))

@@ -100,6 +100,40 @@ def test_the_grid_net_learns_dense_labels(tmp_path):
     assert (tmp_path / "run" / "epoch10.safetensors").is_file()
 
 
+def test_a_grid_net_with_another_trunk_trains_saves_and_scores(tmp_path, capsys):
+    """`trunk` (`train-grid --trunk C1,C2,H`): the widths reach the saved net, which
+    loads and scores candidates as the controller does; a run of another trunk is
+    another run, and init weights of another trunk are refused."""
+    import numpy as np
+
+    from drake_grasp.cli import main
+    from drake_grasp.network import load_weights
+    from drake_grasp.systems.evaluator import score_candidates
+
+    _shard(tmp_path / "data", scenes=2, images=4)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=1, batch=4, lr=1e-3, threads=1, progress=False)
+    metrics = train(tmp_path / "grid", tmp_path / "wide", trunk=(8, 12, 40), **kw)
+    assert np.isfinite(metrics["epochs"][0]["train_l1_m"])
+    net, _ = load_weights(tmp_path / "wide" / "epoch1.safetensors")
+    cfg = net.config
+    assert (cfg.conv1_channels, cfg.conv2_channels, cfg.ip1, cfg.action_fusion) == (8, 12, 40, "grid")
+    rng = np.random.default_rng(0)
+    actions = np.column_stack([rng.uniform(-0.04, 0.04, 16), rng.uniform(-0.04, 0.04, 16),
+                               rng.uniform(-0.8, 0.8, 16)])
+    scores = score_candidates(net.float(), rng.uniform(0.2, 0.3, (64, 64)), actions)
+    assert scores.shape == (16,) and np.isfinite(scores).all()
+    with pytest.raises(ValueError, match="another training run.*config"):
+        train(tmp_path / "grid", tmp_path / "wide", trunk=(8, 12, 41), **kw)
+    with pytest.raises(ValueError, match=r"trunk \(conv1, conv2, ip1\) is \(8, 12, 40\)"):
+        train(tmp_path / "grid", tmp_path / "other", **{**kw, "init": str(
+            tmp_path / "wide" / "epoch1.safetensors")})
+    with pytest.raises(SystemExit):
+        main(["train-grid", "--labels", str(tmp_path / "grid"), "--out", str(tmp_path / "x"),
+              "--trunk", "8,12"])
+    assert "three integers" in capsys.readouterr().err
+
+
 def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
     from drake_grasp.network import load_weights
 
