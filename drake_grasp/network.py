@@ -780,15 +780,14 @@ class DistanceCNN(nn.Module):
         Returns:
             (B, C2, P, P): (B, 50, 13, 13) for the defaults.
         """
+        if self.grid:
+            return self._after_ip1_grid(self.grid_hidden(images))
         self._check_images(images)
         x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
         if self.window:
             fmap = self._lrelu(self.conv2(x))
             ref = self._reference_depth(images)[:, None, None, None]
             return torch.cat((fmap, ref.expand(-1, 1, *fmap.shape[2:])), dim=1)
-        if self.grid:
-            h = F.max_pool2d(self._lrelu(self.conv2(x)), 2).flatten(1)
-            return self._after_ip1(self.ip1(h)).reshape(-1, *self.config.grid_shape())
         return F.max_pool2d(self.conv2(x), 2)
 
     def action_offsets(self, actions: ArrayLike) -> torch.Tensor:
@@ -941,9 +940,10 @@ class DistanceCNN(nn.Module):
         return out
 
     def _after_ip1_grid(self, hidden: torch.Tensor) -> torch.Tensor:
-        """The whole distance grid, (T, N, N), from one image's `grid_hidden`."""
+        """The whole distance grid, (..., T, N, N), from `grid_hidden` (..., ip1)."""
         z = self.ip2(hidden)
-        return (self.config.output_scale_m * F.softplus(z)).reshape(*self.config.grid_shape())
+        return (self.config.output_scale_m * F.softplus(z)).reshape(
+            *hidden.shape[:-1], *self.config.grid_shape())
 
     def grid_hidden(self, images: torch.Tensor) -> torch.Tensor:
         """Grid head: the trunk up to IP2's input, lrelu(IP1(...)), (B, ip1). IP2 maps it
