@@ -84,6 +84,11 @@ def main(argv=None) -> dict:
                 raise SystemExit(f"{path.name} image {i}: the stored labels do not match the "
                                  f"distance to the stored grasps (max diff "
                                  f"{np.abs(recomputed - labels[i]).max():.2e} m)")
+            # The offsets were drawn inside the footprint (`sample_actions_in_view`): a
+            # check that `in_view` places the footprint where the dataset did.
+            if not in_view(moved[i][:, :2], hand[i], X_GC, fov).all():
+                raise SystemExit(f"{path.name} image {i}: a labelled offset lies outside "
+                                 "the computed footprint; the view geometry is wrong")
             vis = in_view(nearest[:, :2], hand[i], X_GC, fov)
             any_vis = bool(in_view(G[:, :2], hand[i], X_GC, fov).any())
             for m in range(len(labels[i])):
