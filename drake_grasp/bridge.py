@@ -1000,11 +1000,13 @@ def run_controller(port: int, *, host: str = LOOPBACK, timeout_s: float = 60.0) 
     link = connect(port, host=host, timeout_s=timeout_s)
     threads = None
     try:
+        from drake_grasp.systems.evaluator import needs_torch
+
         task, _ = link.expect("BRIDGE_TASK")
         try:
             side = ControllerSide(link, task)
             s = side.scenario
-            if s.policy in ("ctr", "cnn-only", "cnn-ctr") and not s.controller.weights.endswith(".onnx"):
+            if s.policy in ("ctr", "cnn-only", "cnn-ctr") and needs_torch(s.controller.weights):
                 import torch
 
                 threads = torch.get_num_threads()

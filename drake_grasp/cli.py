@@ -170,7 +170,8 @@ def _cmd_generate(args) -> int:
                            offsets_per_image=args.offsets_per_image,
                            scenes_per_shard=args.scenes_per_shard,
                            max_torque_ratio=args.max_torque_ratio,
-                           grasp_samples=args.grasp_samples)
+                           grasp_samples=args.grasp_samples,
+                           near_grasp_fraction=args.near_grasp_fraction)
     manifest = generate_dataset(out=args.out, num_scenes=args.scenes, split=args.split,
                                 seed=args.seed, scenario=scenario, config=config,
                                 workers=args.workers, scheduler=args.scheduler,
@@ -473,7 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
                    help="grasp this object: candidates restricted to its image region")
     p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn-grid/, the grid "
-                   "head; models/cnn/weights.safetensors is the paper's net)")
+                   "head; models/cnn/weights.safetensors is the paper's net); FILE,FILE,... "
+                   "scores with the mean of several nets (an ensemble)")
     p.add_argument("--seed", type=int, default=None,
                    help="trial seed (scene and noise); default: the scenario's seed")
     p.add_argument("--out", required=True, help="output folder")
@@ -525,6 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="surface points of the ground-truth grasp search per scene (default "
                         f"{DatasetConfig().grasp_samples}, ~0.12 s; more gives less noisy labels "
                         "at proportional cost: README *How exact the labels are*)")
+    p.add_argument("--near-grasp-fraction", type=float, default=0.0, metavar="F",
+                   help="draw this fraction of each scene's hand poses near a true grasp "
+                        "(within the controller's candidate range: 4 cm, 45 degrees) instead "
+                        "of at random (default 0, the paper's random poses; README *Views "
+                        "near a grasp*)")
     p.add_argument("--offsets-per-image", type=int, default=10,
                    help="labelled offsets per image (paper: 10)")
     p.add_argument("--scenes-per-shard", type=int, default=4,
@@ -739,7 +746,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
                         "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped grid head "
                         "models/cnn-grid/weights.safetensors (the paper's net: "
-                        "models/cnn/weights.safetensors). Its sha256 is part of the run's "
+                        "models/cnn/weights.safetensors); FILE,FILE,... scores with the "
+                        "mean of several nets (an ensemble). Its sha256 is part of the run's "
                         "identity")
     p.add_argument("--gpd-weights", default=None, metavar="FILE",
                    help="GPD grasp-classifier weights (safetensors from 'drake-grasp "

@@ -92,7 +92,8 @@ LOCK = "generate.lock"
 
 # `DatasetConfig` fields added after datasets were made, with the value those datasets used
 # (`DatasetConfig.identity` leaves them out at that value).
-_LATER_FIELD_DEFAULTS = {"grasp_samples": 400}
+_LATER_FIELD_DEFAULTS = {"grasp_samples": 400, "near_grasp_fraction": 0.0,
+                         "near_grasp_xy_m": 0.04, "near_grasp_theta_deg": 45.0}
 
 
 @dataclass
@@ -125,6 +126,16 @@ class DatasetConfig:
     # 400 labels a scene in ~0.12 s; two such searches differ by 6.6 mm of L1 and read
     # 7.8 mm high under 3 cm against a 10x denser one (README *How exact the labels are*).
     grasp_samples: int = 400
+    # The fraction of each scene's images whose hand pose is drawn near a true grasp
+    # instead (not in the paper; 0 keeps its random poses): a grasp of the scene at
+    # random, its (x, y) moved uniformly within +-near_grasp_xy_m and its theta (either
+    # way round: a 180-degree turn is the same grasp) within +-near_grasp_theta_deg, the
+    # camera height drawn as for the others. The defaults match the controller's
+    # candidate sampling (`controller.sample_xy_m`, `sample_theta_deg`): the views a
+    # converging controller sees.
+    near_grasp_fraction: float = 0.0
+    near_grasp_xy_m: float = 0.04
+    near_grasp_theta_deg: float = 45.0
     # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
@@ -152,6 +163,11 @@ class DatasetConfig:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
         if not 0 < self.camera_height_min_m <= self.camera_height_max_m:
             raise ValueError("camera_height_min_m/max_m: expected 0 < min <= max")
+        if not 0.0 <= self.near_grasp_fraction <= 1.0:
+            raise ValueError(f"near_grasp_fraction: expected 0 <= f <= 1, got {self.near_grasp_fraction}")
+        for name in ("near_grasp_xy_m", "near_grasp_theta_deg"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
 
 
 def _config_dict(scenario, config: DatasetConfig, split: str, seed: int) -> dict:
@@ -509,6 +525,11 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     X_GC = renderer.X_GC.translation()
     hand = np.stack([rng.uniform(cx - h, cx + h, K), rng.uniform(cy - h, cy + h, K),
                      cam_height + X_GC[2], rng.uniform(-180.0, 180.0, K)], axis=1)
+    near = int(round(config.near_grasp_fraction * K))
+    if near:  # the last `near` images, from a stream of their own (the others unchanged)
+        hand[K - near:] = near_grasp_poses(
+            np.random.default_rng([s_seed, 2]), grasps.xy_theta, near, z=hand[K - near:, 2],
+            xy_m=config.near_grasp_xy_m, theta_deg=config.near_grasp_theta_deg)
     depth = np.empty((K, scenario.camera.height, scenario.camera.width), np.float32)
     offsets = np.empty((K, M, 3))
     for k in range(K):
@@ -528,6 +549,19 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
         hand_pose=hand, offsets=offsets.astype(np.float32), labels=labels.astype(np.float32),
         grasp_pose=np.asarray(grasps.poses, float), grasp_width=np.asarray(grasps.widths, np.float32),
         grasp_xy_theta=np.asarray(grasps.xy_theta, float), timings=timings, attempt=attempt)
+
+
+def near_grasp_poses(rng: np.random.Generator, grasps_xy_theta: np.ndarray, n: int, *,
+                     z: np.ndarray, xy_m: float, theta_deg: float) -> np.ndarray:
+    """`n` hand poses [x, y, z, yaw_deg] near true grasps: for each a grasp of
+    `grasps_xy_theta` (G, 3) at random, (x, y) moved uniformly within +-`xy_m`, yaw the
+    grasp's theta or theta + 180 (the same grasp) moved uniformly within +-`theta_deg`
+    and wrapped to [-180, 180)."""
+    g = np.asarray(grasps_xy_theta, float)[rng.integers(0, len(grasps_xy_theta), n)]
+    yaw = g[:, 2] + 180.0 * rng.integers(0, 2, n) + rng.uniform(-theta_deg, theta_deg, n)
+    return np.column_stack([g[:, 0] + rng.uniform(-xy_m, xy_m, n),
+                            g[:, 1] + rng.uniform(-xy_m, xy_m, n), np.asarray(z, float),
+                            (yaw + 180.0) % 360.0 - 180.0])
 
 
 def fill_scene(scene_index: int, *, seed: int, split: str, scenario, config: DatasetConfig,

@@ -567,8 +567,10 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
         meshcat = StartMeshcat()
     threads = None
     # The ONNX backend (controller.weights *.onnx) needs no torch; it runs on 1 thread.
+    from drake_grasp.systems.evaluator import needs_torch
+
     if (scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
-            and not scenario.controller.weights.endswith(".onnx")):
+            and needs_torch(scenario.controller.weights)):
         import torch
 
         threads = torch.get_num_threads()

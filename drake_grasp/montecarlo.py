@@ -158,7 +158,8 @@ def config_hash(scenario_yaml: str) -> str:
 
 
 def weights_path(scenario) -> str | None:
-    """The CNN weights file a scenario's policy loads, None for policies without the CNN."""
+    """The CNN weights file a scenario's policy loads (comma-separated files for an
+    ensemble, `evaluator.weights_files`), None for policies without the CNN."""
     if scenario.policy not in CNN_POLICIES:
         return None
     if scenario.controller.weights:
@@ -188,6 +189,7 @@ def condition_identity(experiment: Experiment, condition: Condition, *,
     from pydrake.common.yaml import yaml_load_data
 
     from drake_grasp.scenario import dump_scenario
+    from drake_grasp.systems.evaluator import weights_files
 
     scenario = condition_scenario(experiment, condition, objects_dir=objects_dir)
     yaml = dump_scenario(scenario)
@@ -196,7 +198,8 @@ def condition_identity(experiment: Experiment, condition: Condition, *,
     weights = weights_path(scenario)
     gpd_weights = gpd_weights_path(scenario)
     return {**dataclasses.asdict(condition), "scenario": resolved,
-            "weights_sha256": None if weights is None else file_sha256(weights),
+            "weights_sha256": None if weights is None else ",".join(
+                file_sha256(f) for f in weights_files(weights)),
             "gpd_weights_sha256": None if gpd_weights is None else file_sha256(gpd_weights),
             "config_hash": config_hash(yaml)}
 
@@ -714,9 +717,17 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     if physics_profile:
         exp = dataclasses.replace(exp, physics_profile=physics_profile)
     if weights:
-        if not Path(weights).is_file():
-            raise ValueError(f"--weights {weights}: no such file (expected CNN weights: "
-                             "*.safetensors from `drake-grasp train`, or *.onnx)")
+        from drake_grasp.systems.evaluator import weights_files
+
+        try:
+            files = weights_files(weights)
+        except ValueError as e:
+            raise ValueError(f"--weights {weights}: {e}") from None
+        for f in files:
+            if not Path(f).is_file():
+                raise ValueError(f"--weights {weights}: {f}: no such file (expected CNN weights: "
+                                 "*.safetensors from `drake-grasp train`, or *.onnx; several "
+                                 "separated by commas for an ensemble)")
         exp = dataclasses.replace(exp, cnn_weights=str(weights))
     if gpd_weights:
         if not Path(gpd_weights).is_file():

@@ -267,7 +267,8 @@ class ControllerConfig:
     sample_theta_deg: float = 45.0
     # CNN weights; "" = the shipped models/cnn-grid/weights.safetensors (the grid head;
     # models/cnn/weights.safetensors is the paper's tiled net); an X.onnx file from
-    # `drake-grasp export-onnx` runs the CNN with onnxruntime instead of torch.
+    # `drake-grasp export-onnx` runs the CNN with onnxruntime instead of torch;
+    # "A,B,..." scores each candidate with the mean of those nets (`CnnEnsemble`).
     weights: str = ""
     # Open-loop policies (cnn-only) search this many actions over the whole view.
     global_candidates: int = 2048

@@ -92,6 +92,51 @@ def test_generation_is_deterministic(reference, tmp_path):
         np.testing.assert_array_equal(a[i]["depth"], b[i]["depth"])
 
 
+def test_near_grasp_images_look_near_a_true_grasp_and_leave_the_others_unchanged(
+        reference, tmp_path):
+    """`near_grasp_fraction`: the last images of each scene are posed near one of its
+    true grasps (within the configured range, so their zero-offset label is at most
+    the range's reach); the scenes, the other images and their labels are those of the
+    plain dataset; the plain config's identity (and so its folders' hash) is unchanged."""
+    from drake_grasp.grasps import distance_to_nearest_grasp
+
+    out, _ = reference
+    cfg = DatasetConfig(**TINY, near_grasp_fraction=0.34)  # 1 of 3 images per scene
+    assert "near_grasp_fraction" not in DatasetConfig(**TINY).identity()
+    assert cfg.identity()["near_grasp_fraction"] == 0.34
+    _generate(tmp_path / "near", config=cfg)
+    plain, near = DepthGraspDataset(out), DepthGraspDataset(tmp_path / "near")
+    assert len(plain) == len(near) == 9
+    reach = np.hypot(0.04, 0.04) + 0.001 * 45.0  # metric: m + 0.001 m/deg
+    for i in range(len(near)):
+        a, b = plain.image_record(i), near.image_record(i)
+        assert a["scene_spec"] == b["scene_spec"]
+        if i % 3 < 2:  # the random poses: the plain dataset's images and labels
+            np.testing.assert_array_equal(plain[i]["depth"], near[i]["depth"])
+            np.testing.assert_array_equal(plain[i]["labels"], near[i]["labels"])
+        else:
+            pose = np.asarray(b["hand_pose"])[[0, 1, 3]]
+            d = distance_to_nearest_grasp(pose[None], np.asarray(b["grasp_xy_theta"]))[0]
+            assert d <= reach and not np.array_equal(plain[i]["depth"], near[i]["depth"])
+    with pytest.raises(ValueError, match="near_grasp_fraction: expected 0 <= f <= 1, got 1.5"):
+        DatasetConfig(near_grasp_fraction=1.5).validate()
+
+
+def test_near_grasp_poses_stay_within_their_range():
+    rng = np.random.default_rng(0)
+    grasps = np.array([[0.5, 0.0, 10.0], [0.4, 0.1, 170.0]])
+    poses = dataset_module.near_grasp_poses(rng, grasps, 2000, z=np.full(2000, 0.1),
+                                            xy_m=0.02, theta_deg=30.0)
+    assert poses.shape == (2000, 4) and (poses[:, 2] == 0.1).all()
+    assert ((poses[:, 3] >= -180) & (poses[:, 3] < 180)).all()
+    # Each pose is within range of some grasp, in (x, y) and in theta modulo 180.
+    dxy = np.abs(poses[:, None, :2] - grasps[None, :, :2]).max(-1)
+    dth = np.abs((poses[:, None, 3] - grasps[None, :, 2] + 90.0) % 180.0 - 90.0)
+    assert ((dxy <= 0.02) & (dth <= 30.0)).any(1).all()
+    # Both grasps and both ways round are drawn.
+    assert len(np.unique(np.round(poses[:, 3] // 90))) == 4
+
+
 def test_killed_run_resumes_to_the_same_counts(reference, tmp_path, capfd):
     _, manifest = reference
     out = tmp_path / "killed"

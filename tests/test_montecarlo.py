@@ -411,6 +411,27 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     assert not (tmp_path / "run").exists()
 
 
+def test_weights_option_takes_an_ensemble_and_records_every_members_sha256(tmp_path):
+    """`evaluate --weights A,B`: the run's identity holds both files' sha256 in order; a
+    missing member or an empty item is refused, naming it, before any folder is made."""
+    from drake_grasp.assets import models_dir
+
+    grid = models_dir() / "cnn-grid" / "weights.safetensors"
+    paper = models_dir() / "cnn" / "weights.safetensors"
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=f"{grid},{paper}")
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    assert ident["ctr"]["weights_sha256"] == f"{file_sha256(grid)},{file_sha256(paper)}"
+    assert ident["gpd"]["weights_sha256"] is None
+    missing = tmp_path / "nope.safetensors"
+    with pytest.raises(ValueError, match=f"--weights .*: {missing}: no such file"):
+        evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
+                 weights=f"{grid},{missing}", progress=False)
+    with pytest.raises(ValueError, match="--weights .*empty item"):
+        evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
+                 weights=f"{grid},", progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(tmp_path):
     """`evaluate --gpd-weights FILE`: the gpd conditions load FILE, the run's identity
     holds its sha256, so a folder run with one classifier refuses a resume with a file

@@ -690,6 +690,38 @@ def test_the_episode_scores_the_shipped_grid_net_at_its_needed_nodes():
     assert np.allclose(score_candidates(net, depth, actions), whole.numpy(), rtol=0, atol=1e-6)
 
 
+def test_an_ensemble_scores_the_mean_of_its_members():
+    """`load_cnn("A,B")`: a `CnnEnsemble` whose distances are the mean of A's and B's (a
+    grid head and a tiled net together), with mirror averaging applied to each member."""
+    import numpy as np
+
+    from drake_grasp.assets import models_dir
+    from drake_grasp.systems.evaluator import (CnnEnsemble, load_cnn, needs_torch,
+                                               score_candidates)
+
+    grid, paper = (str(models_dir() / d / "weights.safetensors") for d in ("cnn-grid", "cnn"))
+    ens = load_cnn(f"{grid},{paper}")
+    assert isinstance(ens, CnnEnsemble) and len(ens.members) == 2
+    assert ens.members[0].grid and not ens.members[1].grid
+    rng = np.random.default_rng(3)
+    depth = (0.25 + 0.1 * rng.random((64, 64))).astype(np.float32)
+    actions = np.column_stack([rng.uniform(-0.04, 0.04, 16), rng.uniform(-0.04, 0.04, 16),
+                               rng.uniform(-45, 45, 16)]).astype(np.float32)
+    for mirror in (False, True):
+        a = score_candidates(ens.members[0], depth, actions, mirror=mirror)
+        b = score_candidates(ens.members[1], depth, actions, mirror=mirror)
+        assert np.abs(a - b).max() > 1e-4  # the members differ, so the mean is informative
+        got = score_candidates(ens, depth, actions, mirror=mirror)
+        assert np.allclose(got, 0.5 * (a + b), rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="empty item"):
+        load_cnn(f"{grid},,{paper}")
+    with pytest.raises(ValueError, match="itself an ensemble"):
+        CnnEnsemble([ens, ens.members[0]])
+    with pytest.raises(ValueError, match="at least 2"):
+        CnnEnsemble([ens.members[0]])
+    assert needs_torch("") and needs_torch(f"x.onnx,{grid}") and not needs_torch("x.onnx,y.onnx")
+
+
 def test_grid_starts_from_a_tiled_net_at_its_zero_action():
     from drake_grasp.dense_training import init_from_tiled
 

@@ -29,9 +29,42 @@ DEFAULT_WEIGHTS = "cnn-grid/weights.safetensors"
 PAPER_WEIGHTS = "cnn/weights.safetensors"
 
 
-def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxDistanceModel]:
+class CnnEnsemble:
+    """Several distance CNNs scored as one: a candidate's distance is the mean of the
+    members' (`score_candidates`). Members may mix backends and heads (a tiled paper net,
+    a grid head, an ONNX file); each costs its own pass per image. `load_cnn` builds one
+    from a comma-separated list of weights files (``controller.weights: A,B``)."""
+
+    def __init__(self, members) -> None:
+        self.members = tuple(members)
+        if len(self.members) < 2:
+            raise ValueError(f"CnnEnsemble: expected at least 2 members, got {len(self.members)}")
+        if any(isinstance(m, CnnEnsemble) for m in self.members):
+            raise ValueError("CnnEnsemble: a member is itself an ensemble (list its files instead)")
+
+
+def weights_files(weights: str) -> list[str]:
+    """The weights files a `controller.weights` value names: "" -> [the shipped default];
+    "A,B" -> [A, B] (an ensemble, `CnnEnsemble`). Raises ValueError on an empty item."""
+    if not weights:
+        return [str(models_dir() / DEFAULT_WEIGHTS)]
+    parts = [p.strip() for p in str(weights).split(",")]
+    if len(parts) > 1 and not all(parts):
+        raise ValueError(f"controller.weights: {weights!r} has an empty item; expected "
+                         "FILE or FILE,FILE,... (an ensemble)")
+    return parts
+
+
+def needs_torch(weights: str) -> bool:
+    """Whether `load_cnn(weights)` loads any torch member (not all of them ONNX files)."""
+    return not all(f.endswith(".onnx") for f in weights_files(weights))
+
+
+def load_cnn(weights: str = "", *, threads: int = 1
+             ) -> Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble]:
     """The distance CNN from a weights file; "" -> the shipped default, `models/cnn-grid/`
     (`DEFAULT_WEIGHTS`; the paper's tiled net is `models/cnn/`, `PAPER_WEIGHTS`).
+    Several files separated by commas load a `CnnEnsemble` of them (the mean distance).
 
     A path ending in ``.onnx`` (the image file of ``drake-grasp export-onnx``, its
     ``.head.onnx`` sibling beside it) loads the onnxruntime backend
@@ -39,7 +72,10 @@ def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxD
     episode); anything else is a safetensors file for torch (whose threads the episode
     sets process-wide).
     """
-    path = weights or str(models_dir() / DEFAULT_WEIGHTS)
+    files = weights_files(weights)
+    if len(files) > 1:
+        return CnnEnsemble(load_cnn(f, threads=threads) for f in files)
+    path = files[0]
     if str(path).endswith(".onnx"):
         return OnnxDistanceModel(path, threads=max(1, int(threads)))
     from drake_grasp.network import load_weights
@@ -48,12 +84,16 @@ def load_cnn(weights: str = "", *, threads: int = 1) -> Union[DistanceCNN, OnnxD
     return model.eval()
 
 
-def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel], depth: np.ndarray,
+def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble], depth: np.ndarray,
                      actions: np.ndarray, *, mirror: bool = False) -> np.ndarray:
     """Predicted distance [m] for each candidate action on one depth image (fast path).
 
     `mirror`: the mean of the scores on the image and on its mirror image with the
-    mirrored actions (`network.mirror_actions`; `controller.mirror_average`)."""
+    mirrored actions (`network.mirror_actions`; `controller.mirror_average`).
+    A `CnnEnsemble`: the mean of its members' scores."""
+    if isinstance(model, CnnEnsemble):
+        return np.mean([score_candidates(m, depth, actions, mirror=mirror)
+                        for m in model.members], axis=0)
     if mirror:
         from drake_grasp.network import mirror_actions, mirror_images
 
@@ -84,7 +124,7 @@ class DistanceEvaluator(LeafSystem):
         predicted_distances: (K,) metres.
     """
 
-    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel], *, score_fn=None,
+    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble], *, score_fn=None,
                  mirror: bool = False):
         """`model`: from `load_cnn` (torch or onnxruntime backend). `score_fn(depth,
         actions)` replaces `score_candidates(model, ..., mirror=mirror)` (e.g. a timed
