@@ -162,12 +162,9 @@ def weights_path(scenario) -> str | None:
     ensemble, `evaluator.weights_files`), None for policies without the CNN."""
     if scenario.policy not in CNN_POLICIES:
         return None
-    if scenario.controller.weights:
-        return scenario.controller.weights
-    from drake_grasp.assets import models_dir
-    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS
+    from drake_grasp.systems.evaluator import weights_files
 
-    return str(models_dir() / DEFAULT_WEIGHTS)
+    return ",".join(weights_files(scenario.controller.weights))
 
 
 def gpd_weights_path(scenario) -> str | None:
