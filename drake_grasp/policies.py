@@ -87,6 +87,33 @@ def min_depth_under_axis(depth: np.ndarray, focal_px: float, camera_xy_G, at_dep
     return float(valid.min()) if valid.size else float("inf")
 
 
+def image_points_W(depth: np.ndarray, focal_px: float, X_WC: np.ndarray,
+                 max_depth_m: float = np.inf) -> np.ndarray:
+    """World points (4, N), homogeneous, of the depth image's valid pixels (finite,
+    positive, nearer than `max_depth_m`), seen from the camera at `X_WC` (4x4, Drake's
+    camera frame: x right, y down, z along the view)."""
+    h, w = depth.shape[:2]
+    d = np.asarray(depth, float).reshape(h, w)
+    v, u = np.mgrid[0:h, 0:w]
+    ok = np.isfinite(d) & (d > 0) & (d < max_depth_m)
+    z = d[ok]
+    P_C = np.stack([(u[ok] - (w / 2 - 0.5)) * z / focal_px,
+                    (v[ok] - (h / 2 - 0.5)) * z / focal_px, z, np.ones_like(z)])
+    return np.asarray(X_WC, float) @ P_C
+
+
+def heights_in_hand_box(P_W: np.ndarray, X_WG: np.ndarray, half_x_m: float, half_y_m: float,
+                        *, return_x: bool = False):
+    """World heights of the points `P_W` (4, N, from `image_points_W`) that lie in the box
+    |x_G| <= half_x, |y_G| <= half_y of the grasp frame at `X_WG` (4x4). With `return_x`,
+    also each point's x_G (along the closing direction): (heights, x_G)."""
+    P_G = np.linalg.inv(np.asarray(X_WG, float)) @ P_W
+    keep = (np.abs(P_G[0]) <= half_x_m) & (np.abs(P_G[1]) <= half_y_m)
+    if return_x:
+        return P_W[2, keep], P_G[0, keep]
+    return P_W[2, keep]
+
+
 def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_WG: np.ndarray,
                         half_x_m: float, half_y_m: float, max_depth_m: float = np.inf,
                         *, return_x: bool = False):
@@ -98,19 +125,20 @@ def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_
     frame: the image may have been taken from another pose than the grasp's. With
     `return_x`, also each point's x_G (along the closing direction): (heights, x_G).
     """
-    h, w = depth.shape[:2]
-    d = np.asarray(depth, float).reshape(h, w)
-    v, u = np.mgrid[0:h, 0:w]
-    ok = np.isfinite(d) & (d > 0) & (d < max_depth_m)
-    z = d[ok]
-    P_C = np.stack([(u[ok] - (w / 2 - 0.5)) * z / focal_px,
-                    (v[ok] - (h / 2 - 0.5)) * z / focal_px, z, np.ones_like(z)])
-    P_W = np.asarray(X_WC, float) @ P_C
-    P_G = np.linalg.inv(np.asarray(X_WG, float)) @ P_W
-    keep = (np.abs(P_G[0]) <= half_x_m) & (np.abs(P_G[1]) <= half_y_m)
-    if return_x:
-        return P_W[2, keep], P_G[0, keep]
-    return P_W[2, keep]
+    return heights_in_hand_box(image_points_W(depth, focal_px, X_WC, max_depth_m), X_WG,
+                               half_x_m, half_y_m, return_x=return_x)
+
+
+def finger_overlap_m(P_W: np.ndarray, X_WG: np.ndarray, *, inner_x_m: float, outer_x_m: float,
+                     half_y_m: float) -> float:
+    """How far the highest point of `P_W` (4, N, from `image_points_W`) under either open
+    finger's footprint (inner_x <= |x_G| <= outer_x, |y_G| <= half_y in the grasp frame at
+    `X_WG`) rises above the grasp centre's height [m]; -inf when none is seen there.
+    Compare with the fingertips' depth below the centre: a larger value means a finger
+    would come down on that surface."""
+    heights, x = heights_in_hand_box(P_W, X_WG, outer_x_m, half_y_m, return_x=True)
+    under = heights[np.abs(x) >= inner_x_m]
+    return float(under.max() - X_WG[2, 3]) if under.size else -np.inf
 
 
 def widest_section_height(heights: np.ndarray, x_G: np.ndarray, *,

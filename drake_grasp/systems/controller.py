@@ -53,8 +53,10 @@ from drake_grasp.policies import (
     choose_action,
     displacement_norm,
     gaussian_noisy_displacement,
+    finger_overlap_m,
     grasp_height,
-    heights_under_grasp,
+    heights_in_hand_box,
+    image_points_W,
     widest_section_height,
     min_depth_under_axis,
     offset_fraction,
@@ -341,13 +343,19 @@ class GraspController(LeafSystem):
         """The grasp at `hand`'s (x, y, yaw), its height read from a depth image taken
         with the hand at `seen_from`: the fingertips above the support seen under the
         open hand, the pads `grasp_depth_below_top_m` below the top seen between them."""
+        return self._grasp_from_points(self._image_points(depth, seen_from), hand)
+
+    def _image_points(self, depth: np.ndarray, seen_from) -> np.ndarray:
+        """World points (4, N) of a depth image taken with the hand at `seen_from`."""
         X_WC = (hand_to_pose(seen_from) @ self._X_GC).GetAsMatrix4()
+        return image_points_W(depth, self._focal, X_WC, self._s.camera.depth_max_m)
+
+    def _grasp_from_points(self, P_W: np.ndarray, hand) -> tuple:
+        """`_grasp_from_depth` from the image's world points (`_image_points`)."""
         X_WG = hand_to_pose(hand).GetAsMatrix4()
-        far = self._s.camera.depth_max_m
-        between, x_between = heights_under_grasp(depth, self._focal, X_WC, X_WG, 0.5 * STROKE_M,
-                                                 PAD_HALF_WIDTH_M, far, return_x=True)
-        around = heights_under_grasp(depth, self._focal, X_WC, X_WG, FINGER_OUTER_X_M,
-                                     PAD_HALF_WIDTH_M, far)
+        between, x_between = heights_in_hand_box(P_W, X_WG, 0.5 * STROKE_M, PAD_HALF_WIDTH_M,
+                                                 return_x=True)
+        around = heights_in_hand_box(P_W, X_WG, FINGER_OUTER_X_M, PAD_HALF_WIDTH_M)
         # The object's widest section: only points above the support (the table or sheet
         # seen between the pads is not the object).
         support = float(np.min(around)) if np.size(around) else 0.0
@@ -358,6 +366,33 @@ class GraspController(LeafSystem):
                          support_margin_m=self._s.controller.support_margin_m,
                          widest_z=widest)
         return (hand[0], hand[1], min(z, hand[2]), hand[3])
+
+    def _fingers_clear(self, P_W: np.ndarray, grasp) -> bool:
+        """Whether no surface seen under the open fingers' footprints (widened by
+        `controller.finger_margin_m`) rises more than `controller.finger_clearance_m`
+        above the fingertips of `grasp` (x, y, z, yaw)."""
+        c = self._s.controller
+        over = finger_overlap_m(P_W, hand_to_pose(grasp).GetAsMatrix4(),
+                                inner_x_m=0.5 * STROKE_M, outer_x_m=FINGER_OUTER_X_M + c.finger_margin_m,
+                                half_y_m=PAD_HALF_WIDTH_M + c.finger_margin_m)
+        return over + FINGERTIP_Z_M <= c.finger_clearance_m
+
+    def _best_clear(self, depth: np.ndarray, hand, actions: np.ndarray,
+                    distances: np.ndarray) -> np.ndarray | None:
+        """`controller.finger_check`: the best-scored candidate whose grasp (its height
+        read from `depth` as the descent would read it) lets both open fingers come down
+        clear of the surfaces seen under them (`_fingers_clear`); None when none does.
+        Candidates are checked best first, so this usually costs one check."""
+        P_W = self._image_points(depth, hand)
+        poses = apply_actions([hand[0], hand[1], hand[3]], actions)
+        for i in np.argsort(distances, kind="stable"):
+            if not np.isfinite(distances[i]):
+                break
+            x, y, yaw = poses[i]
+            grasp = self._grasp_from_points(P_W, (x, y, hand[2], yaw))
+            if self._fingers_clear(P_W, grasp):
+                return np.asarray(actions[i], dtype=float)
+        return None
 
     def _target_mask(self, context, actions: np.ndarray, hand) -> np.ndarray | None:
         """Which candidates put the hand centre over the target object's pixels."""
@@ -437,6 +472,9 @@ class GraspController(LeafSystem):
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
         best, _ = choose_action(actions, distances)
+        if s.converging and c.finger_check:
+            clear = self._best_clear(depth, hand, actions, distances)
+            best = best if clear is None else clear
         ratio = c.converge_step_ratio if s.converging and c.converge_step_ratio > 0 else c.step_ratio
         command = ratio * best
         delta = self._noisy(command, s.iteration + 1)
