@@ -326,7 +326,7 @@ def _cmd_evaluate(args) -> int:
                       mirror_average=args.mirror_average,
                       converge_iterations=-1 if args.converge is None else args.converge,
                       distance_samples=0 if args.distance_samples is None
-                      else args.distance_samples, finger_check=args.finger_check)
+                      else args.distance_samples, hand_check=args.hand_check)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -767,11 +767,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="measure every trial's final distance (the paper's metric) against a "
                         "ground-truth search of N surface points (judge.distance_grasp_samples; "
                         "default: the scenarios', 400, the dataset's labels' search)")
-    p.add_argument("--finger-check", action="store_true",
+    p.add_argument("--hand-check", action="store_true",
                    help="the closed-loop conditions (ctr, cnn-ctr), while servoing at the stop "
-                        "height, follow the best-scored candidate whose open fingers come down "
-                        "clear of the surfaces the depth image shows under them "
-                        "(controller.finger_check; not in the paper)")
+                        "height, follow the best-scored candidate whose open hand (fingers, palm, "
+                        "housing) comes down clear of the surfaces the depth image shows under it "
+                        "(controller.hand_check; not in the paper)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

@@ -89,9 +89,9 @@ class Experiment:
     # >= 0: the closed-loop conditions (ctr, cnn-ctr) run with this
     # `controller.converge_iterations`; -1 keeps the scenario's. `evaluate --converge` sets it.
     ctr_converge_iterations: int = -1
-    # True: the closed-loop conditions (ctr, cnn-ctr) run with `controller.finger_check`
-    # on; False keeps the scenario's. `evaluate --finger-check` sets it.
-    ctr_finger_check: bool = False
+    # True: the closed-loop conditions (ctr, cnn-ctr) run with `controller.hand_check`
+    # on; False keeps the scenario's. `evaluate --hand-check` sets it.
+    ctr_hand_check: bool = False
     # > 0: every condition's judge measures the final distance against a ground-truth
     # search of this many surface points (`judge.distance_grasp_samples`); 0 keeps the
     # scenario's. `evaluate --distance-samples` sets it.
@@ -279,8 +279,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     if experiment.ctr_converge_iterations >= 0 and condition.policy in CLOSED_LOOP_POLICIES:
         s.controller = dataclasses.replace(
             s.controller, converge_iterations=experiment.ctr_converge_iterations)
-    if experiment.ctr_finger_check and condition.policy in CLOSED_LOOP_POLICIES:
-        s.controller = dataclasses.replace(s.controller, finger_check=True)
+    if experiment.ctr_hand_check and condition.policy in CLOSED_LOOP_POLICIES:
+        s.controller = dataclasses.replace(s.controller, hand_check=True)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
     if experiment.judge_distance_samples > 0:

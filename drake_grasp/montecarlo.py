@@ -72,8 +72,8 @@ class TrialTask:
     ctr_converge_iterations: int = -1
     # `Experiment.judge_distance_samples`.
     judge_distance_samples: int = 0
-    # `Experiment.ctr_finger_check`.
-    ctr_finger_check: bool = False
+    # `Experiment.ctr_hand_check`.
+    ctr_hand_check: bool = False
 
     @property
     def trial_id(self) -> str:
@@ -98,8 +98,8 @@ def task_experiment(task: TrialTask) -> Experiment:
     if task.judge_distance_samples > 0:
         experiment = dataclasses.replace(
             experiment, judge_distance_samples=task.judge_distance_samples)
-    if task.ctr_finger_check:
-        experiment = dataclasses.replace(experiment, ctr_finger_check=True)
+    if task.ctr_hand_check:
+        experiment = dataclasses.replace(experiment, ctr_hand_check=True)
     return experiment
 
 
@@ -127,7 +127,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
                       experiment.cnn_weights, experiment.gpd_weights,
                       experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
-                      experiment.judge_distance_samples, experiment.ctr_finger_check)
+                      experiment.judge_distance_samples, experiment.ctr_hand_check)
             for i in range(n) for c, spec in asked]
 
 
@@ -654,7 +654,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              fail_trials: tuple = (), force_new: bool = False,
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
              mirror_average: bool = False, converge_iterations: int = -1,
-             distance_samples: int = 0, finger_check: bool = False) -> dict:
+             distance_samples: int = 0, hand_check: bool = False) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -700,10 +700,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         distance_samples: > 0: every trial's final distance is measured against a
             ground-truth search of this many surface points (`judge.distance_grasp_samples`;
             the scenarios' 400 otherwise). Part of the run's identity.
-        finger_check: The closed-loop conditions (ctr, cnn-ctr) run with
-            `controller.finger_check` on (while servoing at the stop height, follow the
-            best candidate whose open fingers come down clear of the surfaces seen under
-            them); part of the run's identity through the conditions' scenarios.
+        hand_check: The closed-loop conditions (ctr, cnn-ctr) run with
+            `controller.hand_check` on (while servoing at the stop height, follow the
+            best candidate whose open hand comes down clear of the surfaces seen under
+            it); part of the run's identity through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -750,8 +750,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     elif distance_samples != 0:
         raise ValueError(f"--distance-samples: expected a positive number of surface points, "
                          f"got {distance_samples}")
-    if finger_check:
-        exp = dataclasses.replace(exp, ctr_finger_check=True)
+    if hand_check:
+        exp = dataclasses.replace(exp, ctr_hand_check=True)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

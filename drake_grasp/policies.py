@@ -13,6 +13,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from drake_grasp.grasps import (
+    FINGER_OUTER_X_M,
+    FINGERTIP_Z_M,
+    HOUSING_FRONT_Z_M,
+    HOUSING_RADIUS_M,
+    PAD_HALF_WIDTH_M,
+    PALM_FRONT_Z_M,
+    PALM_HALF_X_M,
+    PALM_HALF_Y_M,
+    STROKE_M,
+)
 from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
 
 # The policies that decide at every control step (CTR, and CTR after a one-shot start).
@@ -129,16 +140,31 @@ def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_
                                half_x_m, half_y_m, return_x=return_x)
 
 
-def finger_overlap_m(P_W: np.ndarray, X_WG: np.ndarray, *, inner_x_m: float, outer_x_m: float,
-                     half_y_m: float) -> float:
-    """How far the highest point of `P_W` (4, N, from `image_points_W`) under either open
-    finger's footprint (inner_x <= |x_G| <= outer_x, |y_G| <= half_y in the grasp frame at
-    `X_WG`) rises above the grasp centre's height [m]; -inf when none is seen there.
-    Compare with the fingertips' depth below the centre: a larger value means a finger
-    would come down on that surface."""
-    heights, x = heights_in_hand_box(P_W, X_WG, outer_x_m, half_y_m, return_x=True)
-    under = heights[np.abs(x) >= inner_x_m]
-    return float(under.max() - X_WG[2, 3]) if under.size else -np.inf
+def hand_overlap_m(P_W: np.ndarray, X_WG: np.ndarray, *, margin_m: float = 0.0) -> float:
+    """How far the points `P_W` (4, N, from `image_points_W`) under the open top-down hand
+    at `X_WG` (4x4) rise above the part of the hand over them [m]; -inf when none lies
+    under it. The parts and their fronts are the ground truth's collision model
+    (`grasps.py`): the fingers (tips `FINGERTIP_Z_M` below the grasp centre), the palm
+    (`PALM_FRONT_Z_M`) and the housing (`HOUSING_FRONT_Z_M`), each swept straight down,
+    their outlines widened by `margin_m`. The closing strip between the pads is left out:
+    that is the object to grasp, which `grasp_height` places the pads on. A positive
+    value: the descent would bring that part down on a surface the image shows."""
+    m = float(margin_m)
+    P_G = np.linalg.inv(np.asarray(X_WG, float)) @ P_W
+    ax, ay = np.abs(P_G[0]), np.abs(P_G[1])
+    centre = float(X_WG[2, 3])
+    strip = (ax < 0.5 * STROKE_M) & (ay <= PAD_HALF_WIDTH_M)
+    finger = (ax >= 0.5 * STROKE_M) & (ax <= FINGER_OUTER_X_M + m) & (ay <= PAD_HALF_WIDTH_M + m)
+    palm = (ax <= PALM_HALF_X_M + m) & (ay <= PALM_HALF_Y_M + m)
+    housing = ax * ax + ay * ay <= (HOUSING_RADIUS_M + m) ** 2
+    # The lowest part over each point (z_G points down: a front at z_G is at height
+    # centre - z_G).
+    bottom = np.full(ax.shape, np.inf)
+    bottom[housing] = centre - HOUSING_FRONT_Z_M
+    bottom[palm] = centre - PALM_FRONT_Z_M
+    bottom[finger] = centre - FINGERTIP_Z_M
+    keep = ~strip & np.isfinite(bottom)
+    return float(np.max(P_W[2, keep] - bottom[keep])) if keep.any() else -np.inf
 
 
 def widest_section_height(heights: np.ndarray, x_G: np.ndarray, *,

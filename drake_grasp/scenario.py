@@ -262,14 +262,15 @@ class ControllerConfig:
     support_margin_m: float = 0.004
     # While servoing at the stop height (`converge_iterations`), follow the best-scored
     # candidate whose grasp - its height read from the depth image as the descent reads
-    # it - brings neither open finger down on a surface seen under that finger's
-    # footprint (the pads' strip outside the stroke, widened by `finger_margin_m`): a
-    # surface may rise at most `finger_clearance_m` above the fingertips. When no
-    # candidate clears, the best-scored one as without the check. Not in the paper (its
-    # CNN alone chooses); off by default.
-    finger_check: bool = False
-    finger_clearance_m: float = 0.005
-    finger_margin_m: float = 0.0
+    # it - brings no part of the open hand (fingers, palm, housing: the ground truth's
+    # collision model, outlines widened by `hand_margin_m`) down on a surface the image
+    # shows under it, outside the closing strip: a surface may rise at most
+    # `hand_clearance_m` above the part over it. When no candidate clears, the
+    # best-scored one, as without the check. Not in the paper (its CNN alone chooses);
+    # off by default.
+    hand_check: bool = False
+    hand_clearance_m: float = 0.005
+    hand_margin_m: float = 0.0
     # Candidate actions per step, sampled uniformly in [-xy, xy]^2 x [-theta, theta]
     # around the current pose (the paper constrains sampling near the origin).
     num_candidates: int = 128
@@ -717,8 +718,8 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.converge_step_ratio": (0, 1, False, False, ""),
     "controller.max_yaw_from_start_deg": (0, 360, False, False, "deg"),
     "controller.support_margin_m": (0, 0.05, False, False, "m"),
-    "controller.finger_clearance_m": (-0.05, 0.05, False, False, "m"),
-    "controller.finger_margin_m": (0, 0.05, False, False, "m"),
+    "controller.hand_clearance_m": (-0.05, 0.05, False, False, "m"),
+    "controller.hand_margin_m": (0, 0.05, False, False, "m"),
     "controller.num_candidates": (1, 1_000_000, False, False, ""),
     "controller.sample_xy_m": (0, _INF, False, True, "m"),
     "controller.sample_theta_deg": (0, 180, False, False, "deg"),

@@ -621,23 +621,23 @@ def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch,
     assert [s for s in seen[1:]] == [("settle", moves)] * 4
 
 
-def test_finger_check_option_reaches_the_closed_loop_conditions_and_their_identity():
-    """`evaluate --finger-check`: the closed-loop conditions' trials run with
-    controller.finger_check on, the run's identity differs, the others are unchanged."""
+def test_hand_check_option_reaches_the_closed_loop_conditions_and_their_identity():
+    """`evaluate --hand-check`: the closed-loop conditions' trials run with
+    controller.hand_check on, the run's identity differs, the others are unchanged."""
     from drake_grasp.cli import build_parser
     from drake_grasp.experiments import trial_scenario
 
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_finger_check=True)
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_hand_check=True)
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
-    assert ident["ctr"]["scenario"]["controller"]["finger_check"] is True
-    assert base["ctr"]["scenario"]["controller"]["finger_check"] is False
+    assert ident["ctr"]["scenario"]["controller"]["hand_check"] is True
+    assert base["ctr"]["scenario"]["controller"]["hand_check"] is False
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
     for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
         run_exp = m.task_experiment(task)
         s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
-        assert s.controller.finger_check == (task.condition == "ctr")
+        assert s.controller.hand_check == (task.condition == "ctr")
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
-                                      "--finger-check"])
-    assert args.finger_check is True
+                                      "--hand-check"])
+    assert args.hand_check is True

@@ -53,8 +53,8 @@ from drake_grasp.policies import (
     choose_action,
     displacement_norm,
     gaussian_noisy_displacement,
-    finger_overlap_m,
     grasp_height,
+    hand_overlap_m,
     heights_in_hand_box,
     image_points_W,
     widest_section_height,
@@ -367,22 +367,21 @@ class GraspController(LeafSystem):
                          widest_z=widest)
         return (hand[0], hand[1], min(z, hand[2]), hand[3])
 
-    def _fingers_clear(self, P_W: np.ndarray, grasp) -> bool:
-        """Whether no surface seen under the open fingers' footprints (widened by
-        `controller.finger_margin_m`) rises more than `controller.finger_clearance_m`
-        above the fingertips of `grasp` (x, y, z, yaw)."""
+    def _hand_clear(self, P_W: np.ndarray, grasp) -> bool:
+        """Whether the open hand can come straight down to `grasp` (x, y, z, yaw): no
+        surface seen under its fingers, palm or housing (outside the closing strip;
+        outlines widened by `controller.hand_margin_m`) rises more than
+        `controller.hand_clearance_m` above that part's front (`hand_overlap_m`)."""
         c = self._s.controller
-        over = finger_overlap_m(P_W, hand_to_pose(grasp).GetAsMatrix4(),
-                                inner_x_m=0.5 * STROKE_M, outer_x_m=FINGER_OUTER_X_M + c.finger_margin_m,
-                                half_y_m=PAD_HALF_WIDTH_M + c.finger_margin_m)
-        return over + FINGERTIP_Z_M <= c.finger_clearance_m
+        over = hand_overlap_m(P_W, hand_to_pose(grasp).GetAsMatrix4(), margin_m=c.hand_margin_m)
+        return over <= c.hand_clearance_m
 
     def _best_clear(self, depth: np.ndarray, hand, actions: np.ndarray,
                     distances: np.ndarray) -> np.ndarray | None:
-        """`controller.finger_check`: the best-scored candidate whose grasp (its height
-        read from `depth` as the descent would read it) lets both open fingers come down
-        clear of the surfaces seen under them (`_fingers_clear`); None when none does.
-        Candidates are checked best first, so this usually costs one check."""
+        """`controller.hand_check`: the best-scored candidate whose grasp (its height read
+        from `depth` as the descent would read it) lets the open hand come down clear of
+        the surfaces seen under it (`_hand_clear`); None when none does. Candidates are
+        checked best first, so this usually costs one check."""
         P_W = self._image_points(depth, hand)
         poses = apply_actions([hand[0], hand[1], hand[3]], actions)
         for i in np.argsort(distances, kind="stable"):
@@ -390,7 +389,7 @@ class GraspController(LeafSystem):
                 break
             x, y, yaw = poses[i]
             grasp = self._grasp_from_points(P_W, (x, y, hand[2], yaw))
-            if self._fingers_clear(P_W, grasp):
+            if self._hand_clear(P_W, grasp):
                 return np.asarray(actions[i], dtype=float)
         return None
 
@@ -472,7 +471,7 @@ class GraspController(LeafSystem):
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
         best, _ = choose_action(actions, distances)
-        if s.converging and c.finger_check:
+        if s.converging and c.hand_check:
             clear = self._best_clear(depth, hand, actions, distances)
             best = best if clear is None else clear
         ratio = c.converge_step_ratio if s.converging and c.converge_step_ratio > 0 else c.step_ratio

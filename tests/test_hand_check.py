@@ -1,14 +1,14 @@
-"""controller.finger_check: while servoing at the stop height, CTR follows the best-scored
-candidate whose open fingers come down clear of the surfaces the depth image shows under
-them (`policies.finger_overlap_m`)."""
+"""controller.hand_check: while servoing at the stop height, CTR follows the best-scored
+candidate whose open hand comes down clear of the surfaces the depth image shows under
+it (`policies.hand_overlap_m`)."""
 
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from drake_grasp.grasps import FINGER_OUTER_X_M, FINGERTIP_Z_M, PAD_HALF_WIDTH_M, STROKE_M
-from drake_grasp.policies import finger_overlap_m, image_points_W
+from drake_grasp.grasps import FINGERTIP_Z_M
+from drake_grasp.policies import hand_overlap_m, image_points_W
 from drake_grasp.scenario import load_scenario
 from drake_grasp.station import gripper_frame_offsets, topdown_pose
 from drake_grasp.systems.controller import GraspController, Phase, hand_to_pose
@@ -21,21 +21,26 @@ def _points(xyz):
     return np.vstack([p, np.ones(p.shape[1])])
 
 
-def test_finger_overlap_counts_only_the_finger_footprints():
-    X_WG = np.eye(4)
-    X_WG[2, 3] = 0.03  # the grasp centre 3 cm up
-    kw = dict(inner_x_m=0.5 * STROKE_M, outer_x_m=FINGER_OUTER_X_M, half_y_m=PAD_HALF_WIDTH_M)
-    between = [[0.0, 0.0, 0.08], [0.04, 0.0, 0.07]]  # the object between the pads: ignored
-    beside = [[0.0, 0.02, 0.09], [0.07, 0.0, 0.09]]  # beside the fingers: ignored
-    assert finger_overlap_m(_points(between + beside), X_WG, **kw) == -np.inf
-    left = [[-0.05, 0.005, 0.045]]
-    assert finger_overlap_m(_points(between + beside + left), X_WG, **kw) == pytest.approx(0.015)
-    right = [[0.055, -0.01, 0.06]]
-    assert finger_overlap_m(_points(left + right), X_WG, **kw) == pytest.approx(0.03)
-    # The footprint follows the grasp's yaw: turned 90 degrees, x_G is world y.
-    X_WG[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
-    assert finger_overlap_m(_points(left), X_WG, **kw) == -np.inf
-    assert finger_overlap_m(_points([[0.005, -0.05, 0.045]]), X_WG, **kw) == pytest.approx(0.015)
+def test_hand_overlap_uses_the_ground_truths_hand_parts_outside_the_closing_strip():
+    X_WG = hand_to_pose((0.0, 0.0, 0.03, 0.0)).GetAsMatrix4()  # grasp centre 3 cm up
+    strip = [[0.0, 0.0, 0.2], [0.04, 0.01, 0.2]]  # the object between the pads: ignored
+    outside = [[0.07, 0.0, 0.2], [0.0, 0.045, 0.2]]  # beyond the palm and the housing
+    assert hand_overlap_m(_points(strip + outside), X_WG) == -np.inf
+    finger = [[-0.05, 0.005, 0.045]]  # under the left finger: its tip is at 0.011
+    assert hand_overlap_m(_points(strip + finger), X_WG) == pytest.approx(0.045 - 0.011)
+    palm = [[0.0, 0.013, 0.06], [0.062, 0.0, 0.06]]  # under the palm's front, at 0.055
+    assert hand_overlap_m(_points(strip + palm), X_WG) == pytest.approx(0.005)
+    housing = [[0.0, 0.03, 0.07]]  # under the housing's front, at 0.061
+    assert hand_overlap_m(_points(outside + housing), X_WG) == pytest.approx(0.009)
+    # The margin widens the outlines: a point 1 mm beside the palm (beyond the housing)
+    # counts with a 3 mm margin.
+    beside = [[-0.05, 0.016, 0.02]]
+    assert hand_overlap_m(_points(beside), X_WG) == -np.inf
+    assert hand_overlap_m(_points(beside), X_WG, margin_m=0.003) == pytest.approx(0.02 - 0.055)
+    # The outlines follow the grasp's yaw: turned 90 degrees, the fingers lie along y.
+    X_WG = hand_to_pose((0.0, 0.0, 0.03, 90.0)).GetAsMatrix4()
+    assert hand_overlap_m(_points(finger), X_WG) == -np.inf
+    assert hand_overlap_m(_points([[0.005, -0.05, 0.045]]), X_WG) == pytest.approx(0.034)
 
 
 def _depth_with_block(X_WC, f, lo, hi, top):
@@ -63,14 +68,14 @@ def test_image_points_put_the_block_where_it_was_drawn():
     assert np.allclose(P[2, P[2] <= 0.025], 0.0, atol=1e-6)
 
 
-def _run(finger_check: bool, clear_candidate: bool = True):
+def _run(hand_check: bool, clear_candidate: bool = True):
     """CTR at its first iteration with the stop rule firing at once (stop_distance_m
     beyond the table), two candidates: staying put (scored best) with a 5 cm block under
     the left finger's footprint, and 4 cm along y_G (scored second), clear of it unless
     `clear_candidate` is False (then the block is long enough to lie under both)."""
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 2, controller: {stop_distance_m: 0.4, step_ratio: 0.5, "
-        f"finger_check: {str(finger_check).lower()}}}}}"))
+        f"hand_check: {str(hand_check).lower()}}}}}"))
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], CAM_Z + X_GC.translation()[2], 0.0)
     ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC,
@@ -96,10 +101,10 @@ def _run(finger_check: bool, clear_candidate: bool = True):
     return s, ctrl, depth, start
 
 
-def test_finger_check_follows_the_best_candidate_whose_fingers_clear():
-    s, _, _, start = _run(finger_check=False)
+def test_hand_check_follows_the_best_candidate_whose_fingers_clear():
+    s, _, _, start = _run(hand_check=False)
     assert np.allclose(s.last_step.chosen, [0.0, 0.0, 0.0])
-    s, ctrl, depth, _ = _run(finger_check=True)
+    s, ctrl, depth, _ = _run(hand_check=True)
     assert np.allclose(s.last_step.chosen, [0.0, 0.04, 0.0])
     # Moved half way (step_ratio 0.5) along y_G.
     y_G = start.rotation().matrix()[:, 1]
@@ -110,16 +115,16 @@ def test_finger_check_follows_the_best_candidate_whose_fingers_clear():
     P = ctrl._image_points(depth, hand)
     grasp = ctrl._grasp_from_points(P, hand)
     assert grasp[2] - FINGERTIP_Z_M < 0.05 - 0.005
-    assert not ctrl._fingers_clear(P, grasp)
+    assert not ctrl._hand_clear(P, grasp)
 
 
-def test_finger_check_keeps_the_best_candidate_when_none_clears():
-    s, _, _, _ = _run(finger_check=True, clear_candidate=False)
+def test_hand_check_keeps_the_best_candidate_when_none_clears():
+    s, _, _, _ = _run(hand_check=True, clear_candidate=False)
     assert np.allclose(s.last_step.chosen, [0.0, 0.0, 0.0])
 
 
-@pytest.mark.parametrize("text", ["{controller: {finger_clearance_m: 0.2}}",
-                                  "{controller: {finger_margin_m: -0.001}}"])
-def test_finger_check_settings_are_range_checked(text):
-    with pytest.raises(ValueError, match="finger_"):
+@pytest.mark.parametrize("text", ["{controller: {hand_clearance_m: 0.2}}",
+                                  "{controller: {hand_margin_m: -0.001}}"])
+def test_hand_check_settings_are_range_checked(text):
+    with pytest.raises(ValueError, match="hand_"):
         load_scenario(scenario_name="isolation", scenario_text=text)
