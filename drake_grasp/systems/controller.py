@@ -360,7 +360,8 @@ class GraspController(LeafSystem):
         # seen between the pads is not the object).
         support = float(np.min(around)) if np.size(around) else 0.0
         on_object = between > support + self._s.controller.support_margin_m
-        widest = widest_section_height(between[on_object], x_between[on_object])
+        widest = (widest_section_height(between[on_object], x_between[on_object])
+                  if self._s.controller.grasp_at_widest_section else None)
         z = grasp_height(between, around, depth_below_top_m=self._s.scripted.grasp_depth_below_top_m,
                          fingertip_below_centre_m=FINGERTIP_Z_M,
                          support_margin_m=self._s.controller.support_margin_m,
