@@ -139,3 +139,31 @@ def test_cnn_only_reads_its_grasp_height_where_its_grasp_will_be():
 def test_execution_settings_are_range_checked(text):
     with pytest.raises(ValueError):
         load_scenario(scenario_name="isolation", scenario_text=text)
+
+
+@pytest.mark.parametrize("at_widest", [False, True])
+def test_controller_grasp_height_follows_grasp_at_widest_section(at_widest):
+    """The controller reads its grasp height from the image's world points: over a lying
+    4 cm-radius cylinder (axis along y_G) on the 2 mm sheet the pads go 2.5 cm under
+    its top, or down to its widest section with `controller.grasp_at_widest_section`."""
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        f"{{seed: 2, controller: {{grasp_at_widest_section: {str(at_widest).lower()}}}}}"))
+    _, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], START_CAMERA_HEIGHT_M + X_GC.translation()[2], 0.0)
+    ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC)
+    R, sheet = 0.04, 0.002
+    x = np.linspace(-R, R, 61)
+    xs, ys = np.meshgrid(x, np.linspace(-0.01, 0.01, 5))
+    zs = sheet + R + np.sqrt(R * R - xs * xs)
+    bare = np.linspace(0.05, 0.06, 5)  # the sheet beside the cylinder, under the fingers
+    pts = np.concatenate([np.stack([0.5 + xs.ravel(), ys.ravel(), zs.ravel()]),
+                          np.stack([0.5 + np.concatenate([bare, -bare]), np.zeros(10),
+                                    np.full(10, sheet)])], axis=1)
+    P_W = np.vstack([pts, np.ones(pts.shape[1])])
+    hand = (0.5, 0.0, 0.3, 0.0)
+    z = ctrl._grasp_from_points(P_W, hand)[2]
+    top = sheet + 2 * R
+    if at_widest:
+        assert sheet + R <= z <= sheet + R + 0.006
+    else:
+        assert z == pytest.approx(top - scenario.scripted.grasp_depth_below_top_m)
