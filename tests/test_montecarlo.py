@@ -477,23 +477,30 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     assert not (tmp_path / "run2").exists()
 
 
-def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp_path):
-    """`evaluate --mirror-average`: the CNN conditions' trials score with
-    controller.mirror_average on, the run's identity differs (a resume without the flag
-    is refused), the other conditions are unchanged."""
+def _check_controller_option(exp, field: str) -> None:
+    """An `Experiment` option that turns `controller.<field>` on for the CTR conditions:
+    it reaches their resolved scenarios and each trial's, changes their config hash, and
+    leaves the gpd and scripted conditions as they were."""
     from drake_grasp.experiments import trial_scenario
 
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_mirror_average=True)
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
-    assert ident["ctr"]["scenario"]["controller"]["mirror_average"] is True
-    assert base["ctr"]["scenario"]["controller"]["mirror_average"] is False
+    assert ident["ctr"]["scenario"]["controller"][field] is True
+    assert base["ctr"]["scenario"]["controller"][field] is False
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
     for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
         run_exp = m.task_experiment(task)
         s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
-        assert s.controller.mirror_average == (task.condition == "ctr")
+        assert getattr(s.controller, field) == (task.condition == "ctr")
+
+
+def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp_path):
+    """`evaluate --mirror-average`: the CNN conditions' trials score with
+    controller.mirror_average on, the run's identity differs (a resume without the flag
+    is refused), the other conditions are unchanged."""
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_mirror_average=True)
+    _check_controller_option(exp, "mirror_average")
     out = tmp_path / "run"
     out.mkdir()
     from drake_grasp.results import write_run_info
@@ -625,19 +632,9 @@ def test_hand_check_option_reaches_the_closed_loop_conditions_and_their_identity
     """`evaluate --hand-check`: the closed-loop conditions' trials run with
     controller.hand_check on, the run's identity differs, the others are unchanged."""
     from drake_grasp.cli import build_parser
-    from drake_grasp.experiments import trial_scenario
 
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_hand_check=True)
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
-    assert ident["ctr"]["scenario"]["controller"]["hand_check"] is True
-    assert base["ctr"]["scenario"]["controller"]["hand_check"] is False
-    assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
-    assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
-    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
-        assert s.controller.hand_check == (task.condition == "ctr")
+    _check_controller_option(dataclasses.replace(EXPERIMENTS["isolation"], ctr_hand_check=True),
+                             "hand_check")
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
                                       "--hand-check"])
     assert args.hand_check is True
