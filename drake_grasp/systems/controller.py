@@ -382,7 +382,7 @@ class GraspController(LeafSystem):
         """`controller.hand_check`: the best-scored candidate whose grasp (its height read
         from `depth` as the descent would read it) lets the open hand come down clear of
         the surfaces seen under it (`_hand_clear`); None when none does. Candidates are
-        checked best first, so this usually costs one check."""
+        checked best first, up to the first that clears."""
         P_W = self._image_points(depth, hand)
         poses = apply_actions([hand[0], hand[1], hand[3]], actions)
         for i in np.argsort(distances, kind="stable"):
