@@ -25,7 +25,7 @@ from pathlib import Path
 from drake_grasp.episode import simulate_episode
 from drake_grasp.grasps import FINGER_OUTER_X_M, FINGERTIP_Z_M, PAD_HALF_WIDTH_M, STROKE_M
 from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.policies import heights_under_grasp
+from drake_grasp.policies import heights_in_hand_box, image_points_W
 from drake_grasp.results import load_records
 from drake_grasp.scene import SceneSpec
 from drake_grasp.systems import controller as C
@@ -40,9 +40,9 @@ def _logged(self, depth, seen_from, hand):
     X_WG = C.hand_to_pose(out).GetAsMatrix4()
     res = {"hand": [float(v) for v in hand], "grasp": [float(v) for v in out]}
     tip = out[2] - FINGERTIP_Z_M
+    P_W = image_points_W(depth, self._focal, X_WC, self._s.camera.depth_max_m)
     for margin in (0.0, 0.005):
-        z, x = heights_under_grasp(depth, self._focal, X_WC, X_WG, FINGER_OUTER_X_M + margin,
-                                   PAD_HALF_WIDTH_M + margin, self._s.camera.depth_max_m,
+        z, x = heights_in_hand_box(P_W, X_WG, FINGER_OUTER_X_M + margin, PAD_HALF_WIDTH_M + margin,
                                    return_x=True)
         for side, sel in (("left", x < -0.5 * STROKE_M), ("right", x > 0.5 * STROKE_M)):
             zz = z[sel]

@@ -125,21 +125,6 @@ def heights_in_hand_box(P_W: np.ndarray, X_WG: np.ndarray, half_x_m: float, half
     return P_W[2, keep]
 
 
-def heights_under_grasp(depth: np.ndarray, focal_px: float, X_WC: np.ndarray, X_WG: np.ndarray,
-                        half_x_m: float, half_y_m: float, max_depth_m: float = np.inf,
-                        *, return_x: bool = False):
-    """World heights of the depth image's points that lie under the hand at `X_WG`.
-
-    Each valid pixel (finite, positive, nearer than `max_depth_m`) is back-projected
-    from the camera at `X_WC` (4x4, Drake's camera frame: x right, y down, z along the
-    view) and kept when it lies in the box |x_G| <= half_x, |y_G| <= half_y of the grasp
-    frame: the image may have been taken from another pose than the grasp's. With
-    `return_x`, also each point's x_G (along the closing direction): (heights, x_G).
-    """
-    return heights_in_hand_box(image_points_W(depth, focal_px, X_WC, max_depth_m), X_WG,
-                               half_x_m, half_y_m, return_x=return_x)
-
-
 def hand_overlap_m(P_W: np.ndarray, X_WG: np.ndarray, *, margin_m: float = 0.0) -> float:
     """How far the points `P_W` (4, N, from `image_points_W`) under the open top-down hand
     at `X_WG` (4x4) rise above the part of the hand over them [m]; -inf when none lies
