@@ -171,7 +171,9 @@ def _cmd_generate(args) -> int:
                            scenes_per_shard=args.scenes_per_shard,
                            max_torque_ratio=args.max_torque_ratio,
                            grasp_samples=args.grasp_samples,
-                           near_grasp_fraction=args.near_grasp_fraction)
+                           near_grasp_fraction=args.near_grasp_fraction,
+                           scene_kind=args.scene_kind,
+                           settle_max_time_s=args.settle_max_time)
     manifest = generate_dataset(out=args.out, num_scenes=args.scenes, split=args.split,
                                 seed=args.seed, scenario=scenario, config=config,
                                 workers=args.workers, scheduler=args.scheduler,
@@ -532,6 +534,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "(within the controller's candidate range: 4 cm, 45 degrees) instead "
                         "of at random (default 0, the paper's random poses; README *Views "
                         "near a grasp*)")
+    p.add_argument("--scene-kind", choices=["random", "clutter"], default="random",
+                   help="random: the paper's scenes, 1-5 objects spread out (default); "
+                        "clutter: the scenario's scene.clutter_objects poured into a pile "
+                        "as in the clutter experiments (set them with --scenario-text, e.g. "
+                        "'{scene: {clutter_objects: 10, region_half_extent_m: 0.06}}'; "
+                        "README *Training on piles*)")
+    p.add_argument("--settle-max-time", type=float, default=DatasetConfig().settle_max_time_s,
+                   metavar="S",
+                   help="simulated seconds a scene may take to come to rest before the next "
+                        f"seed reserved for it is drawn (default {DatasetConfig().settle_max_time_s};"
+                        " 10-object pours need about 6)")
     p.add_argument("--offsets-per-image", type=int, default=10,
                    help="labelled offsets per image (paper: 10)")
     p.add_argument("--scenes-per-shard", type=int, default=4,

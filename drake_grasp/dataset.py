@@ -93,7 +93,9 @@ LOCK = "generate.lock"
 # `DatasetConfig` fields added after datasets were made, with the value those datasets used
 # (`DatasetConfig.identity` leaves them out at that value).
 _LATER_FIELD_DEFAULTS = {"grasp_samples": 400, "near_grasp_fraction": 0.0,
-                         "near_grasp_xy_m": 0.04, "near_grasp_theta_deg": 45.0}
+                         "near_grasp_xy_m": 0.04, "near_grasp_theta_deg": 45.0,
+                         "scene_kind": "random"}
+SCENE_KINDS = ("random", "clutter")
 
 
 @dataclass
@@ -136,6 +138,11 @@ class DatasetConfig:
     near_grasp_fraction: float = 0.0
     near_grasp_xy_m: float = 0.04
     near_grasp_theta_deg: float = 45.0
+    # The scenes: `random` (the paper's: 1-5 objects of the scenario's
+    # num_objects_min..max spread over its region) or `clutter` (the scenario's
+    # scene.clutter_objects poured into a pile over its region, as the clutter
+    # experiments' piles; not in the paper's training set).
+    scene_kind: str = "random"
     # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
@@ -168,6 +175,11 @@ class DatasetConfig:
         for name in ("near_grasp_xy_m", "near_grasp_theta_deg"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if self.scene_kind not in SCENE_KINDS:
+            raise ValueError(f"scene_kind: expected one of {', '.join(SCENE_KINDS)}, "
+                             f"got {self.scene_kind!r}")
+        if not self.settle_max_time_s > 0.0:
+            raise ValueError(f"settle_max_time_s: expected > 0, got {self.settle_max_time_s}")
 
 
 def _config_dict(scenario, config: DatasetConfig, split: str, seed: int) -> dict:
@@ -203,17 +215,23 @@ def scene_object_count(seed: int, scene_index: int, low: int, high: int) -> int:
 
 
 def sample_dataset_scene(scenario, *, split: str, seed: int, scene_index: int, attempt: int,
-                         library):
-    """The (unsettled) scene of attempt `attempt` of dataset scene `scene_index`: a
-    `random` scene of the scenario's scene config with `scene_object_count` objects from
-    `split`, drawn with `scene_seed(seed, scene_index, attempt)`. `generate` and
-    `label-check` both sample through it."""
+                         library, kind: str = "random"):
+    """The (unsettled) scene of attempt `attempt` of dataset scene `scene_index`, drawn
+    with `scene_seed(seed, scene_index, attempt)` from the `split`'s objects: for `kind`
+    `random`, a random scene of the scenario's scene config with `scene_object_count`
+    objects; for `clutter`, the scenario's pile of scene.clutter_objects objects (poured
+    when settled). `generate` and `label-check` both sample through it."""
     from drake_grasp.scene import sample_scene
 
-    count = scene_object_count(seed, scene_index, scenario.scene.num_objects_min,
-                               scenario.scene.num_objects_max)
-    cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[],
-                              num_objects_min=count, num_objects_max=count)
+    if kind == "clutter":
+        cfg = dataclasses.replace(scenario.scene, kind="clutter", split=split, object_ids=[])
+    elif kind == "random":
+        count = scene_object_count(seed, scene_index, scenario.scene.num_objects_min,
+                                   scenario.scene.num_objects_max)
+        cfg = dataclasses.replace(scenario.scene, kind="random", split=split, object_ids=[],
+                                  num_objects_min=count, num_objects_max=count)
+    else:
+        raise ValueError(f"scene kind: expected one of {', '.join(SCENE_KINDS)}, got {kind!r}")
     return sample_scene(cfg, scene_seed(seed, scene_index, attempt), library)
 
 
@@ -500,7 +518,7 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
 
     s_seed = scene_seed(seed, scene_index, attempt)
     spec = sample_dataset_scene(scenario, split=split, seed=seed, scene_index=scene_index,
-                                attempt=attempt, library=library)
+                                attempt=attempt, library=library, kind=config.scene_kind)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
     plant_config.time_step = config.settle_time_step_s
     # The profile's sheet collision (the half space for `fast`); the step is the config's.
