@@ -122,6 +122,41 @@ def test_near_grasp_images_look_near_a_true_grasp_and_leave_the_others_unchanged
         DatasetConfig(near_grasp_fraction=1.5).validate()
 
 
+def test_clutter_scene_kind_pours_the_scenarios_pile(tmp_path):
+    """`scene_kind="clutter"`: each dataset scene is the scenario's pile of
+    scene.clutter_objects objects stacked in a column (poured when settled), drawn from
+    the scene's own seed; the kind enters the config's identity (the random default
+    leaves it unchanged); an unknown kind is refused by name."""
+    from drake_grasp.dataset import sample_dataset_scene
+    from drake_grasp.objects import load_library
+
+    library = load_library(None)
+    scenario = load_scenario(scenario_name="random",
+                             scenario_text="{scene: {clutter_objects: 3, region_half_extent_m: 0.02}}")
+    spec = sample_dataset_scene(scenario, split="train", seed=5, scene_index=1, attempt=0,
+                                library=library, kind="clutter")
+    assert spec.kind == "clutter" and len(spec.objects) == 3
+    assert spec.seed == scene_seed(5, 1, 0)
+    z = [o.xyz[2] for o in spec.objects]  # each object above the one before: a column
+    assert z[2] > z[1] > z[0] and max(np.ptp([o.xyz[0] for o in spec.objects]),
+                                      np.ptp([o.xyz[1] for o in spec.objects])) <= 0.1
+    random_spec = sample_dataset_scene(scenario, split="train", seed=5, scene_index=1,
+                                       attempt=0, library=library)
+    assert random_spec.kind == "random"
+    assert "scene_kind" not in DatasetConfig(**TINY).identity()
+    cfg = DatasetConfig(**TINY, scene_kind="clutter")
+    assert cfg.identity()["scene_kind"] == "clutter"
+    generate_dataset(out=tmp_path / "pile", num_scenes=1, split="train", seed=5,
+                     scenario=scenario, config=cfg, workers=1, progress=False)
+    (attempt, stored), = _stored_scenes(tmp_path / "pile").values()
+    assert stored["kind"] == "clutter" and stored["settled"]
+    assert 1 <= len(stored["objects"]) <= 3  # objects that fell off the table are dropped
+    with pytest.raises(ValueError, match="scene_kind: expected one of random, clutter, got 'pile'"):
+        DatasetConfig(scene_kind="pile").validate()
+    with pytest.raises(ValueError, match="settle_max_time_s: expected > 0, got 0.0"):
+        DatasetConfig(settle_max_time_s=0.0).validate()
+
+
 def test_near_grasp_poses_stay_within_their_range():
     rng = np.random.default_rng(0)
     grasps = np.array([[0.5, 0.0, 10.0], [0.4, 0.1, 170.0]])
