@@ -328,7 +328,8 @@ def _cmd_evaluate(args) -> int:
                       mirror_average=args.mirror_average,
                       converge_iterations=-1 if args.converge is None else args.converge,
                       distance_samples=0 if args.distance_samples is None
-                      else args.distance_samples, hand_check=args.hand_check)
+                      else args.distance_samples, hand_check=args.hand_check,
+                      ctr_text=args.ctr_text or "")
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -785,6 +786,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "height, follow the best-scored candidate whose open hand (fingers, palm, "
                         "housing) comes down clear of the surfaces the depth image shows under it "
                         "(controller.hand_check; not in the paper)")
+    p.add_argument("--ctr-text", default="", metavar="YAML",
+                   help="controller settings for the closed-loop conditions (ctr, cnn-ctr), "
+                        "a YAML mapping of controller.* keys applied after the experiment's "
+                        "(e.g. '{stop_distance_m: 0.2, end_camera_height_m: 0.21}'); part of "
+                        "the run's identity")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

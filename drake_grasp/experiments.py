@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drake_grasp.policies import CLOSED_LOOP_POLICIES
-from drake_grasp.scenario import Scenario, load_scenario
+from drake_grasp.scenario import Scenario, apply_controller_text, load_scenario
 
 
 # Policies that run the distance CNN (and so depend on its weights file).
@@ -92,6 +92,11 @@ class Experiment:
     # True: the closed-loop conditions (ctr, cnn-ctr) run with `controller.hand_check`
     # on; False keeps the scenario's. `evaluate --hand-check` sets it.
     ctr_hand_check: bool = False
+    # A YAML mapping of controller settings (`ControllerConfig` fields, e.g.
+    # "{stop_distance_m: 0.2}") for the closed-loop conditions (ctr, cnn-ctr), applied
+    # after everything above (`scenario.apply_controller_text`); "" changes nothing.
+    # `evaluate --ctr-text` sets it.
+    ctr_controller_text: str = ""
     # > 0: every condition's judge measures the final distance against a ground-truth
     # search of this many surface points (`judge.distance_grasp_samples`); 0 keeps the
     # scenario's. `evaluate --distance-samples` sets it.
@@ -281,6 +286,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
             s.controller, converge_iterations=experiment.ctr_converge_iterations)
     if experiment.ctr_hand_check and condition.policy in CLOSED_LOOP_POLICIES:
         s.controller = dataclasses.replace(s.controller, hand_check=True)
+    if experiment.ctr_controller_text and condition.policy in CLOSED_LOOP_POLICIES:
+        s = apply_controller_text(s, experiment.ctr_controller_text)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
     if experiment.judge_distance_samples > 0:

@@ -74,6 +74,8 @@ class TrialTask:
     judge_distance_samples: int = 0
     # `Experiment.ctr_hand_check`.
     ctr_hand_check: bool = False
+    # `Experiment.ctr_controller_text`.
+    ctr_controller_text: str = ""
 
     @property
     def trial_id(self) -> str:
@@ -100,6 +102,9 @@ def task_experiment(task: TrialTask) -> Experiment:
             experiment, judge_distance_samples=task.judge_distance_samples)
     if task.ctr_hand_check:
         experiment = dataclasses.replace(experiment, ctr_hand_check=True)
+    if task.ctr_controller_text:
+        experiment = dataclasses.replace(experiment,
+                                         ctr_controller_text=task.ctr_controller_text)
     return experiment
 
 
@@ -127,7 +132,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
                       experiment.cnn_weights, experiment.gpd_weights,
                       experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
-                      experiment.judge_distance_samples, experiment.ctr_hand_check)
+                      experiment.judge_distance_samples, experiment.ctr_hand_check,
+                      experiment.ctr_controller_text)
             for i in range(n) for c, spec in asked]
 
 
@@ -654,7 +660,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              fail_trials: tuple = (), force_new: bool = False,
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
              mirror_average: bool = False, converge_iterations: int = -1,
-             distance_samples: int = 0, hand_check: bool = False) -> dict:
+             distance_samples: int = 0, hand_check: bool = False,
+             ctr_text: str = "") -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -704,6 +711,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             `controller.hand_check` on (while servoing at the stop height, follow the
             best candidate whose open hand comes down clear of the surfaces seen under
             it); part of the run's identity through the conditions' scenarios.
+        ctr_text: A YAML mapping of controller settings for the closed-loop conditions
+            (`Experiment.ctr_controller_text`, e.g. "{stop_distance_m: 0.2}"), applied
+            last; part of the run's identity through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -752,6 +762,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
                          f"got {distance_samples}")
     if hand_check:
         exp = dataclasses.replace(exp, ctr_hand_check=True)
+    if ctr_text and ctr_text.strip():
+        exp = dataclasses.replace(exp, ctr_controller_text=ctr_text)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -8,6 +8,7 @@ resolved scenario is written beside every output with `yaml_dump_typed`.
 
 import copy
 import dataclasses
+import json
 import difflib
 import math
 import numbers
@@ -1035,6 +1036,35 @@ def load_scenario(
                 pass
         raise ValueError(f"{blame}: {e}") from None
     return scenario
+
+
+def apply_controller_text(scenario: Scenario, text: str) -> Scenario:
+    """`scenario` with the controller settings of `text`, a YAML mapping of
+    `ControllerConfig` fields (e.g. ``{stop_distance_m: 0.2}``), checked and validated as
+    `load_scenario`'s override text is (a ``profile`` key applies that controller profile
+    first). Blank text changes nothing.
+
+    Raises:
+        ValueError: not a YAML mapping, an unknown key, a value of the wrong type or out of
+            range; the message names the text, the dotted key and what was expected.
+    """
+    shown = text if len(text) <= 80 else text[:77] + "..."
+    where = f"--ctr-text {shown!r}"
+    mapping = _parse_yaml(text, where)
+    if mapping is None:
+        return scenario
+    if not isinstance(mapping, dict):
+        raise ValueError(f"{where}: expected a mapping of controller settings, e.g. "
+                         f"'{{stop_distance_m: 0.2}}', got {_describe(mapping)}")
+    override = {"controller": mapping}
+    _check_yaml(override, Scenario, where, "")
+    out = _load_typed(where, data=json.dumps(override), defaults=scenario)  # JSON is YAML
+    out = _apply_profile_given(override, out, where)
+    try:
+        out.validate()
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    return out
 
 
 def dump_scenario(scenario: Scenario) -> str:

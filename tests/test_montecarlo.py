@@ -1,6 +1,7 @@
 """Monte Carlo runs: records and a report, Dask, kill + resume, errors inside trials."""
 
 import dataclasses
+import re
 import os
 import shutil
 import signal
@@ -477,22 +478,23 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     assert not (tmp_path / "run2").exists()
 
 
-def _check_controller_option(exp, field: str) -> None:
-    """An `Experiment` option that turns `controller.<field>` on for the CTR conditions:
-    it reaches their resolved scenarios and each trial's, changes their config hash, and
-    leaves the gpd and scripted conditions as they were."""
+def _check_controller_option(exp, field: str, on=True, off=False) -> None:
+    """An `Experiment` option that sets `controller.<field>` from `off` (the isolation
+    experiment's) to `on` for the CTR conditions: it reaches their resolved scenarios and
+    each trial's, changes their config hash, and leaves the gpd and scripted conditions
+    as they were."""
     from drake_grasp.experiments import trial_scenario
 
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
-    assert ident["ctr"]["scenario"]["controller"][field] is True
-    assert base["ctr"]["scenario"]["controller"][field] is False
+    assert ident["ctr"]["scenario"]["controller"][field] == on
+    assert base["ctr"]["scenario"]["controller"][field] == off
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
     for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
         run_exp = m.task_experiment(task)
         s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
-        assert getattr(s.controller, field) == (task.condition == "ctr")
+        assert getattr(s.controller, field) == (on if task.condition == "ctr" else off)
 
 
 def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp_path):
@@ -638,3 +640,24 @@ def test_hand_check_option_reaches_the_closed_loop_conditions_and_their_identity
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
                                       "--hand-check"])
     assert args.hand_check is True
+
+
+def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(tmp_path):
+    """`evaluate --ctr-text YAML`: the closed-loop conditions' trials run with those
+    controller settings, the run's identity differs, the others are unchanged; an unknown
+    key or a value out of range is refused by name before anything is written."""
+    from drake_grasp.cli import build_parser
+
+    exp = dataclasses.replace(EXPERIMENTS["isolation"],
+                              ctr_controller_text="{stop_distance_m: 0.2}")
+    _check_controller_option(exp, "stop_distance_m", on=0.2, off=0.14)
+    for text, message in [("{stop_distanc_m: 0.2}", "unknown key 'controller.stop_distanc_m'"),
+                          ("{end_camera_height_m: 0.5}", "controller.end_camera_height_m: got 0.5"),
+                          ("[0.2]", "expected a mapping of controller settings")]:
+        with pytest.raises(ValueError, match=re.escape(message)):
+            evaluate(experiment="isolation", out=tmp_path / "run", trials=1, ctr_text=text,
+                     progress=False)
+    assert not (tmp_path / "run").exists()
+    args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
+                                      "--ctr-text", "{stop_distance_m: 0.2}"])
+    assert args.ctr_text == "{stop_distance_m: 0.2}"
