@@ -8,8 +8,8 @@ resolved scenario is written beside every output with `yaml_dump_typed`.
 
 import copy
 import dataclasses
-import json
 import difflib
+import json
 import math
 import numbers
 import typing

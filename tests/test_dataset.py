@@ -155,6 +155,11 @@ def test_clutter_scene_kind_pours_the_scenarios_pile(tmp_path):
         DatasetConfig(scene_kind="pile").validate()
     with pytest.raises(ValueError, match="settle_max_time_s: expected > 0, got 0.0"):
         DatasetConfig(settle_max_time_s=0.0).validate()
+    from drake_grasp.cli import build_parser
+
+    args = build_parser().parse_args(["generate", "--scenes", "1", "--split", "train", "--out",
+                                      "x", "--scene-kind", "clutter", "--settle-max-time", "6"])
+    assert (args.scene_kind, args.settle_max_time) == ("clutter", 6.0)
 
 
 def test_near_grasp_poses_stay_within_their_range():
