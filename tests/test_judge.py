@@ -158,6 +158,7 @@ def test_a_finger_landing_on_the_can_is_a_collision(library, monkeypatch):
     assert r.details["failure_class"] == "collision", r.failure_reason
     hit = r.details["judge"]["collision"]
     assert hit["object_id"] == "can_000" and hit["gripper_body"].endswith("finger")
+    assert hit["gripper_bodies"] == [hit["gripper_body"]]  # the other finger lands beside it
     descend, close = (r.details["judge"]["phase_start_s"][p] for p in ("descend", "close"))
     assert descend <= hit["time_s"] < close
     assert r.details["judge"]["target_push_m"] < 0.02  # touched, not pushed away

@@ -182,7 +182,11 @@ class JudgeHistory:
     target: int | None = None              # object nearest the grasp axis then
     push_m: float | None = None            # its horizontal move until the pads touched it
     pads_touched_target_s: float | None = None
-    collision: tuple | None = None         # (time, gripper body name, object index)
+    # (time, gripper body name, object index, names of every gripper body touching an
+    # object then): the first sample with a touch; the name is the lowest-indexed body
+    # touching the first object (base, left finger, right finger in the model's order), so
+    # a touch by both fingers within one sample names the left: the names say which.
+    collision: tuple | None = None
     closed: bool = False                   # the closing ended
     held: int | None = None                # object touching both pads when it ended
     lost: tuple | None = None              # (time, phase): the held object left a pad
@@ -310,11 +314,12 @@ class GraspJudge(LeafSystem):
         pairs = None
         if phase == "descend" and s.collision is None:
             pairs = self._pairs(context)
-            for i, b in enumerate(self._objects):
-                hit = touching(pairs, b, self._gripper)
-                if hit:
-                    s = replace(s, collision=(t, self._gripper[min(hit)], i))
-                    break
+            hits = [(i, touching(pairs, b, self._gripper)) for i, b in enumerate(self._objects)]
+            hits = [(i, hit) for i, hit in hits if hit]
+            if hits:
+                i, hit = hits[0]
+                names = tuple(sorted({self._gripper[g] for _, h in hits for g in h}))
+                s = replace(s, collision=(t, self._gripper[min(hit)], i, names))
         if phase == "close" and s.push_m is None and s.target is not None:
             pairs = self._pairs(context) if pairs is None else pairs
             if touching(pairs, self._objects[s.target], self._pads):
@@ -351,7 +356,7 @@ class GraspJudge(LeafSystem):
             "pads_touched_target_s": s.pads_touched_target_s,
             "collision": (None if s.collision is None else {
                 "time_s": round(float(s.collision[0]), 4), "gripper_body": s.collision[1],
-                "object_id": self._ids[s.collision[2]]}),
+                "object_id": self._ids[s.collision[2]], "gripper_bodies": list(s.collision[3])}),
             "held_object_id": self._ids[s.held] if s.held is not None else None,
             "left_pads": (None if s.lost is None else
                           {"time_s": round(float(s.lost[0]), 4), "phase": s.lost[1]}),
@@ -382,7 +387,7 @@ class GraspJudge(LeafSystem):
                     f"pushed-away: {name} moved {100 * s.push_m:.1f} cm before the closing "
                     f"pads touched it, and nothing was held"), **out)
             if s.collision is not None:
-                t, body, i = s.collision
+                t, body, i, _ = s.collision
                 return GraspJudgement(failure="collision", reason=(
                     f"collision: the gripper's {body} touched {self._ids[i]} during the "
                     f"descent (t = {t:.2f} s), and nothing was held"), **out)
