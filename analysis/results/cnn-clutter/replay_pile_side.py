@@ -8,13 +8,7 @@ from drake_grasp.montecarlo import recorded_scenario
 from drake_grasp.results import load_records
 from drake_grasp.scene import SceneSpec
 
-PLANT, CTX, POSES = [None], [None], []
-_build = E.build_episode_diagram
-def build(*a, **k):
-    ed = _build(*a, **k)
-    PLANT[0] = ed.station.plant
-    return ed
-E.build_episode_diagram = build
+POSES = []
 _fd = E.final_distance
 def logged(plant, ctx, station, *a, **k):  # the hand where closing starts: after the descent
     POSES.append(plant.GetFrameByName("grasp_frame").CalcPoseInWorld(ctx))
