@@ -523,7 +523,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images-per-scene", type=int, default=40,
                    help="camera poses per scene (paper: 40)")
     _add_torque_ratio_flag(p)
-    from drake_grasp.dataset import DatasetConfig
+    from drake_grasp.dataset import SCENE_KINDS, DatasetConfig
 
     p.add_argument("--grasp-samples", type=_positive_int, default=DatasetConfig().grasp_samples,
                    metavar="N",
@@ -535,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(within the controller's candidate range: 4 cm, 45 degrees) instead "
                         "of at random (default 0, the paper's random poses; README *Views "
                         "near a grasp*)")
-    p.add_argument("--scene-kind", choices=["random", "clutter"], default="random",
+    p.add_argument("--scene-kind", choices=list(SCENE_KINDS), default="random",
                    help="random: the paper's scenes, 1-5 objects spread out (default); "
                         "clutter: the scenario's scene.clutter_objects poured into a pile "
                         "as in the clutter experiments (set them with --scenario-text, e.g. "

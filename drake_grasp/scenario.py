@@ -1021,9 +1021,7 @@ def load_scenario(
             override = {k: v for k, v in override.items()
                         if not (isinstance(k, str) and k.startswith("_"))}
         if override is not None:  # blank or comment-only text overrides nothing
-            _check_yaml(override, Scenario, text_where, "")
-            scenario = _load_typed(text_where, data=scenario_text, defaults=scenario)
-            scenario = _apply_profile_given(override, scenario, text_where)
+            scenario = _apply_override(scenario, override, scenario_text, text_where)
     try:
         scenario.validate()
     except ValueError as e:
@@ -1036,6 +1034,15 @@ def load_scenario(
                 pass
         raise ValueError(f"{blame}: {e}") from None
     return scenario
+
+
+def _apply_override(scenario: Scenario, override, text: str, where: str) -> Scenario:
+    """`scenario` with the parsed override mapping `override` (the YAML `text`) applied:
+    its keys checked against the schema, loaded over `scenario`, and the profiles it names
+    applied (the caller validates)."""
+    _check_yaml(override, Scenario, where, "")
+    scenario = _load_typed(where, data=text, defaults=scenario)
+    return _apply_profile_given(override, scenario, where)
 
 
 def apply_controller_text(scenario: Scenario, text: str) -> Scenario:
@@ -1057,9 +1064,7 @@ def apply_controller_text(scenario: Scenario, text: str) -> Scenario:
         raise ValueError(f"{where}: expected a mapping of controller settings, e.g. "
                          f"'{{stop_distance_m: 0.2}}', got {_describe(mapping)}")
     override = {"controller": mapping}
-    _check_yaml(override, Scenario, where, "")
-    out = _load_typed(where, data=json.dumps(override), defaults=scenario)  # JSON is YAML
-    out = _apply_profile_given(override, out, where)
+    out = _apply_override(scenario, override, json.dumps(override), where)  # JSON is YAML
     try:
         out.validate()
     except ValueError as e:
