@@ -9,13 +9,19 @@ search, and reports:
 - the L1 and mean difference against the dense search (the sparse search's bias: a
   sparser set of true grasps is farther away), by label range,
 - the scenes where the searches disagree by more than 2 cm on average (an object whose
-  few grasps one search finds and another misses).
+  few grasps one search finds and another misses),
+- the within-image Spearman rank correlation between two searches' distances of the
+  controller's candidates (`--candidates` per image, drawn as `cnn_metrics` draws them:
+  within 4 cm and 45 degrees of the image's hand pose): how well a perfect predictor of
+  one search's labels can rank against another search's - the ceiling of
+  `cnn_metrics`' `spearman_mean` set by the labels' own noise.
 
 This is the floor under any network's test L1 measured on such labels.
 
     python analysis/label_noise.py --scenes 100 --out analysis/results/label-noise
 
-Writes OUT/summary.json (and OUT/labels.npz with every label set); --workers splits the
+Writes OUT/summary.json (and OUT/labels.npz with every label set; with --save-candidates
+OUT/candidates.npz, every candidate's distance under each search); --workers splits the
 scenes over processes.
 """
 
@@ -31,8 +37,9 @@ import numpy as np
 DENSE_FACTOR = 10
 
 
-def _scene_task(index, seed, split, num_samples):
+def _scene_task(index, seed, split, num_samples, candidates=128):
     from drake_grasp.actions import apply_actions
+    from drake_grasp.policies import sample_candidates
     from drake_grasp.dataset import DatasetConfig, SceneSamples, generate_scene
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
@@ -52,6 +59,13 @@ def _scene_task(index, seed, split, num_samples):
     spec = SceneSpec.from_dict(json.loads(r.spec_json))
     moved = apply_actions(r.hand_pose[:, [0, 1, 3]], r.offsets.astype(float)).reshape(-1, 3)
     labels = {"dataset": r.labels.reshape(-1).astype(float)}
+    # The controller's candidates around every image's hand pose (cnn_metrics' defaults).
+    rng = np.random.default_rng([index, seed, 11])
+    cand = np.stack([sample_candidates(rng, candidates, xy_m=0.04, theta_deg=45.0)
+                     for _ in range(len(r.hand_pose))])
+    cand_moved = apply_actions(r.hand_pose[:, [0, 1, 3]], cand).reshape(-1, 3)
+    ranked = {"dataset": distance_to_nearest_grasp(cand_moved, r.grasp_xy_theta)
+              .reshape(len(r.hand_pose), candidates)}
     timings = {}
     for name, stream, samples in (("a", 2, num_samples), ("b", 3, num_samples),
                                   ("dense", 4, DENSE_FACTOR * num_samples)):
@@ -62,8 +76,10 @@ def _scene_task(index, seed, split, num_samples):
         timings[name] = time.perf_counter() - t0
         labels[name] = (distance_to_nearest_grasp(moved, g.xy_theta) if len(g)
                         else np.full(len(moved), np.inf))
+        ranked[name] = (distance_to_nearest_grasp(cand_moved, g.xy_theta).reshape(
+            len(r.hand_pose), candidates) if len(g) else np.full(cand.shape[:2], np.inf))
     return {"scene_index": index, "objects": [o.object_id for o in spec.objects],
-            "labels": labels, "search_s": timings}
+            "labels": labels, "candidates": ranked, "search_s": timings}
 
 
 def _l1_mm(x, y) -> float:
@@ -78,11 +94,18 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="test", choices=("train", "test"))
     p.add_argument("--num-samples", type=int, default=400,
                    help="the search size the dataset uses (grasps.find_grasps' default)")
+    p.add_argument("--candidates", type=int, default=128,
+                   help="controller candidates per image for the ranking ceiling")
+    p.add_argument("--save-candidates", action="store_true",
+                   help="also write OUT/candidates.npz (every candidate's distance under "
+                        "each search; 15 MB for 100 scenes)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
     if args.scenes < 1:
         raise SystemExit(f"--scenes: expected >= 1, got {args.scenes}")
+    if args.candidates < 2:
+        raise SystemExit(f"--candidates: expected >= 2 (a ranking), got {args.candidates}")
 
     from drake_grasp.montecarlo import parallel_map
     from drake_grasp.results import atomic_write_text
@@ -90,7 +113,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = [r for r in parallel_map(_scene_task, [(i, args.seed, args.split, args.num_samples)
+    rows = [r for r in parallel_map(_scene_task, [(i, args.seed, args.split, args.num_samples,
+                                                   args.candidates)
                                                   for i in range(args.scenes)],
                                     workers=args.workers, desc="label-noise") if r is not None]
     L = {k: np.concatenate([r["labels"][k] for r in rows]) for k in rows[0]["labels"]}
@@ -113,6 +137,22 @@ def main(argv=None) -> int:
                           "l1_dataset_a_mm": _l1_mm(d[ok], a[ok]),
                           "labels_without_grasp": int((~ok).sum())})
     pairs = [("dataset", "a"), ("a", "b"), ("dataset", "dense"), ("a", "dense")]
+    from drake_grasp.cnn_metrics import spearman
+
+    C = {k: np.concatenate([r["candidates"][k] for r in rows]) for k in rows[0]["candidates"]}
+    rows_ok = np.all([np.isfinite(v).all(axis=1) for v in C.values()], axis=0)
+    ranking = {"images": int(rows_ok.sum()), "candidates": args.candidates}
+    for x, y in pairs:
+        rho = spearman(C[x][rows_ok], C[y][rows_ok])
+        best_x = C[x][rows_ok].argmin(axis=1)
+        regret = C[y][rows_ok][np.arange(rows_ok.sum()), best_x] - C[y][rows_ok].min(axis=1)
+        ranking[f"{x}/{y}"] = {
+            "spearman_mean": round(float(np.nanmean(rho)), 4),
+            "spearman_median": round(float(np.nanmedian(rho)), 4),
+            "constant_rows": int(np.isnan(rho).sum()),
+            # the candidate x ranks first, judged by y: as cnn_metrics' regret / top-1
+            "regret_mean_mm": round(1000.0 * float(regret.mean()), 2),
+            "top1_within_1cm": round(float(np.mean(regret <= 0.01)), 4)}
     summary = {
         "scenes": len(rows), "seed": args.seed, "split": args.split,
         "num_samples": args.num_samples, "dense_num_samples": DENSE_FACTOR * args.num_samples,
@@ -121,6 +161,7 @@ def main(argv=None) -> int:
         "median_abs_diff_mm": {f"{x}/{y}": round(1000.0 * float(np.median(np.abs(F[x] - F[y]))), 2)
                                for x, y in pairs},
         "by_range": by_range,
+        "candidate_ranking": ranking,
         "scenes_with_l1_over_20mm": {
             "dataset/a or a/b": sum(max(s["l1_a_b_mm"], s["l1_dataset_a_mm"]) > 20 for s in per_scene)},
         "search_s_mean": {k: round(float(np.mean([r["search_s"][k] for r in rows])), 3)
@@ -129,6 +170,8 @@ def main(argv=None) -> int:
         "wall_s": round(time.perf_counter() - t0, 1), "date": time.strftime("%Y-%m-%d"),
     }
     np.savez_compressed(out / "labels.npz", **L)
+    if args.save_candidates:
+        np.savez_compressed(out / "candidates.npz", **C)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     print(json.dumps({k: v for k, v in summary.items() if k != "per_scene"}, indent=1))
     return 0
