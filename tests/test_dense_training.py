@@ -169,3 +169,67 @@ def test_a_moved_label_folder_resumes_its_run(tmp_path):
     (tmp_path / "grid").rename(tmp_path / "moved")
     metrics = train(tmp_path / "moved", tmp_path / "run", **kw)
     assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
+
+
+def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_path):
+    """`train(batch_norm=True)` (`train-grid --batch-norm`): the BatchNorms fold into
+    Conv1, Conv2 and IP1 exactly (the folded plain net equals the module in eval mode);
+    from trained weights they start as the identity (the folded net at step 0 is the
+    init net); a killed run resumes to the unbroken one's weights; it is another run."""
+    from drake_grasp.cli import main
+    from drake_grasp.dense_training import BatchNormTrunk
+    from drake_grasp.network import DistanceCNN, load_weights, save_weights
+
+    gen = torch.Generator().manual_seed(3)
+    net = DistanceCNN(GRID_CONFIG, generator=gen).double()
+    bn = BatchNormTrunk(net)
+    images = net.preprocess(np.random.default_rng(0).uniform(0.15, 0.35, (6, 64, 64)))
+    bn.train()
+    for _ in range(3):  # running statistics away from their defaults
+        bn.image_features(images + 0.3 * torch.randn(images.shape, generator=gen,
+                                                     dtype=images.dtype))
+    with torch.no_grad():
+        for b in (bn.bn1, bn.bn2, bn.bn3):
+            b.weight.uniform_(-2.0, 2.0, generator=gen)  # negative scales fold too
+            b.bias.uniform_(-0.5, 0.5, generator=gen)
+    bn.eval()
+    folded = bn.folded()
+    assert type(folded) is DistanceCNN and folded.config == net.config
+    with torch.no_grad():
+        want, got = bn.image_features(images), folded.image_features(images)
+    assert torch.allclose(want, got, rtol=0, atol=1e-12), float((want - got).abs().max())
+    assert not torch.equal(want, net.image_features(images))  # the BatchNorms did something
+
+    # From trained weights: the identity at the start.
+    bn2 = BatchNormTrunk(net)
+    bn2.start_as_identity(images)
+    with torch.no_grad():
+        assert torch.allclose(bn2.folded().image_features(images), net.image_features(images),
+                              rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="grid net expected"):
+        BatchNormTrunk(DistanceCNN())
+
+    # Training end to end: resumes bit for bit; the epoch file is a plain grid net.
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    init = tmp_path / "init.safetensors"
+    save_weights(DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(1)), init,
+                 metadata={})
+    kw = dict(test_data=None, init=str(init), epochs=2, batch=4, lr=1e-3, threads=1,
+              progress=False, batch_norm=True)
+    train(tmp_path / "grid", tmp_path / "whole", **kw)
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", **kw)
+    a, _ = load_weights(tmp_path / "whole" / "epoch2.safetensors")
+    b, _ = load_weights(tmp_path / "broken" / "epoch2.safetensors")
+    assert a.config == GRID_CONFIG
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.equal(x, y), name
+    with pytest.raises(ValueError, match="another training run.*batch_norm"):
+        train(tmp_path / "grid", tmp_path / "whole", **{**kw, "batch_norm": False})
+    assert main(["train-grid", "--labels", str(tmp_path / "grid"), "--out",
+                 str(tmp_path / "cli"), "--epochs", "1", "--batch", "4", "--threads", "1",
+                 "--batch-norm"]) == 0
+    run = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    assert run["identity"]["batch_norm"] is True
