@@ -233,3 +233,20 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
                  "--batch-norm"]) == 0
     run = json.loads((tmp_path / "cli" / "metrics.json").read_text())
     assert run["identity"]["batch_norm"] is True
+
+
+def test_a_run_on_relabelled_data_of_the_same_shapes_is_another_run(tmp_path):
+    """The run's identity holds the labels' bytes, not only their names and sizes."""
+    _shard(tmp_path / "data", scenes=1, images=4)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False)
+    train(tmp_path / "grid", tmp_path / "run", _stop_after_batches=1, **kw)
+    part = next((tmp_path / "grid").glob("shard-*.npz"))
+    with np.load(part) as z:
+        data = dict(z)
+    data["grid"] = np.where(np.isfinite(data["grid"]), data["grid"] + np.float16(0.01), data["grid"])
+    size = part.stat().st_size
+    np.savez(part, **data)
+    assert part.stat().st_size == size
+    with pytest.raises(ValueError, match="another training run.*labels"):
+        train(tmp_path / "grid", tmp_path / "run", **kw)
