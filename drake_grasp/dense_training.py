@@ -193,9 +193,9 @@ class BatchNormTrunk(torch.nn.Module):
     `DistanceCNN` (same file format, same fast paths, nothing new to load or run), equal
     to this module in eval mode up to float rounding.
 
-    Batch statistics rescale every layer's inputs as training moves the weights, which lets
-    Adam take larger steps without the output saturating: the paper's trunk trains faster
-    with it (README, *Batch-normalized training*).
+    Measured on the same data and batches at Adam 1e-3: after 2 epochs the paper's trunk
+    ranks the controller's candidates better with it than without (README,
+    *Batch-normalized training*).
     """
 
     def __init__(self, net: DistanceCNN):
