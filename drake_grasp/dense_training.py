@@ -217,7 +217,8 @@ class BatchNormTrunk(torch.nn.Module):
         return self.net.preprocess(depth)
 
     def _pre_activations(self, images: torch.Tensor):
-        """Conv1's, Conv2's and IP1's outputs before their BatchNorms (for `start_as_identity`)."""
+        """Conv1's, Conv2's and IP1's outputs, each before its BatchNorm (the layers between
+        them with theirs)."""
         lrelu = self.net._lrelu
         z1 = self.net.conv1(images)
         x = F.max_pool2d(lrelu(self.bn1(z1)), 2)
@@ -228,10 +229,8 @@ class BatchNormTrunk(torch.nn.Module):
     def image_features(self, images: torch.Tensor) -> torch.Tensor:
         """The grid of distances, (B, T, N, N), as `DistanceCNN.image_features`."""
         self.net._check_images(images)
-        lrelu = self.net._lrelu
-        x = F.max_pool2d(lrelu(self.bn1(self.net.conv1(images))), 2)
-        h = F.max_pool2d(lrelu(self.bn2(self.net.conv2(x))), 2).flatten(1)
-        return self.net._after_ip1_grid(lrelu(self.bn3(self.net.ip1(h))))
+        z3 = self._pre_activations(images)[2]
+        return self.net._after_ip1_grid(self.net._lrelu(self.bn3(z3)))
 
     @torch.no_grad()
     def start_as_identity(self, images: torch.Tensor) -> None:
