@@ -163,6 +163,14 @@ def widest_section_height(heights: np.ndarray, x_G: np.ndarray, *,
     `edge_m` of the outermost x_G on each side span a range of heights; the lower
     quartile of each side is taken (about 3 mm above a 3 cm can's axis). Returns the
     mean of the two sides, or None when no points are given.
+
+    Returns None too when that height lies deeper below the highest point than the
+    points span along the closing direction: a convex section lying on the table is
+    about half as deep to its widest part as it is wide (a lying can: its radius against
+    its diameter), while an object standing taller than it is wide shows the camera a
+    side wall, whose lower points are not a widest section but the wall. The descent
+    would bring the palm (2.5 cm above the pad centres) down on that object's top, and a
+    tall one topples (the standing flashlight of isolation seeds 5 and 6).
     """
     z = np.asarray(heights, float)
     x = np.asarray(x_G, float)
@@ -172,7 +180,10 @@ def widest_section_height(heights: np.ndarray, x_G: np.ndarray, *,
         return None
     left = z[x <= x.min() + edge_m]
     right = z[x >= x.max() - edge_m]
-    return 0.5 * (float(np.percentile(left, 25)) + float(np.percentile(right, 25)))
+    widest = 0.5 * (float(np.percentile(left, 25)) + float(np.percentile(right, 25)))
+    if float(z.max()) - widest > float(x.max() - x.min()):
+        return None
+    return widest
 
 
 def grasp_height(between: np.ndarray, around: np.ndarray, *, depth_below_top_m: float,

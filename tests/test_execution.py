@@ -86,6 +86,29 @@ def test_grasp_height_goes_down_to_the_widest_section_seen_between_the_pads():
                         **kw) == pytest.approx(sheet + 0.08 - 0.025)
 
 
+def test_widest_section_is_not_read_off_a_standing_objects_side_wall():
+    """A flashlight standing 18.6 cm tall on the 2 mm sheet, 3.6 cm wide: seen from the
+    wrist camera (5 cm beside the grasp axis) its top disk and the side wall facing the
+    camera. The wall's lower points are not a widest section (the palm would come down
+    on the top): no widest section, the pads go 2.5 cm under the top. A lying cylinder
+    of the same width keeps its widest section."""
+    from drake_grasp.policies import widest_section_height
+
+    kw = dict(depth_below_top_m=0.025, fingertip_below_centre_m=0.019, support_margin_m=0.004)
+    R, sheet, top = 0.018, 0.002, 0.186
+    x_top = np.linspace(-R, R, 25)
+    phi = np.linspace(np.deg2rad(200), np.deg2rad(340), 15)  # the wall facing the camera
+    x_wall, z_wall = np.meshgrid(R * np.cos(phi), np.linspace(sheet + 0.01, top, 20))
+    x = np.concatenate([x_top, x_wall.ravel()])
+    z = np.concatenate([np.full_like(x_top, top), z_wall.ravel()])
+    assert widest_section_height(z, x) is None
+    assert grasp_height(z, np.concatenate([z, [sheet]]), widest_z=None,
+                        **kw) == pytest.approx(top - 0.025)
+    # Lying, the same 3.6 cm across: the widest section is at its axis.
+    z_lying = sheet + R + np.sqrt(R * R - x_top * x_top)
+    assert sheet + R <= widest_section_height(z_lying, x_top) <= sheet + R + 0.006
+
+
 @pytest.mark.parametrize("where,stops", [("axis", True), ("centre", False)])
 def test_stop_rule_looks_under_the_grasp_axis(where, stops):
     # An object 13.9 cm from the sensor: under the grasp axis it lies ~22 px off the
