@@ -263,9 +263,10 @@ class ControllerConfig:
     support_margin_m: float = 0.004
     # The pads go lower than `scripted.grasp_depth_below_top_m` under the top, to the
     # object's widest section seen between them (`policies.widest_section_height`),
-    # where that lies deeper. On a standing object whose side wall the camera sees, the
-    # wall's lower points read as the widest section and the palm comes down on the top;
-    # still, clutter without it grasped 6.3 points less (analysis/results/widest-section/).
+    # where that lies deeper; clutter without it grasped 6.3 points less
+    # (analysis/results/widest-section/). A "widest section" deeper below the top than
+    # the object is wide is a standing object's side wall seen by the camera, and is not
+    # used (analysis/results/standing-objects/).
     grasp_at_widest_section: bool = True
     # While servoing at the stop height (`converge_iterations`), follow the best-scored
     # candidate whose grasp - its height read from the depth image as the descent reads
