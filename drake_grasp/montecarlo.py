@@ -954,11 +954,37 @@ def recorded_scenario(scenario_yaml: str):
     return scenario
 
 
+def recorded_weights(scenario, run_info: dict, condition: str, *, source: str = "run.json"):
+    """The scenario with the CNN weights its run loaded. A record written with
+    `controller.weights: ""` ran the default of its day; run.json holds that file's sha256
+    (`condition_identity`). When it is not today's default, the shipped weights file with
+    that sha256 (any `models/*/weights.safetensors`) is named instead, so that the record
+    replays as it ran. Records without a sha256 (older run.json, no CNN) are returned as
+    they are. Raises ValueError (naming `source`, the condition and the sha256) when no
+    shipped file has it."""
+    from drake_grasp.assets import models_dir
+    from drake_grasp.systems.evaluator import weights_files
+
+    if scenario.policy not in CNN_POLICIES or scenario.controller.weights:
+        return scenario
+    sha = next((c.get("weights_sha256") for c in run_info.get("conditions", [])
+                if c.get("name") == condition), None)
+    if not sha or sha == ",".join(file_sha256(f) for f in weights_files("")):
+        return scenario
+    for f in sorted(models_dir().glob("*/weights.safetensors")):
+        if file_sha256(f) == sha:
+            return dataclasses.replace(
+                scenario, controller=dataclasses.replace(scenario.controller, weights=str(f)))
+    raise ValueError(f"{source}: condition {condition!r} ran the default CNN of its day "
+                     f"(weights sha256 {sha}), which no shipped models/*/weights.safetensors "
+                     "is; replay it with the package that recorded it")
+
+
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):
     """Re-runs one recorded trial exactly (its resolved scenario, and for clutter attempts
     the pile it started from) and writes its episode files with the replay page."""
     from drake_grasp.episode import run_episode
-    from drake_grasp.results import load_records, replay_path
+    from drake_grasp.results import RUN_INFO_FILE, load_records, read_run_info, replay_path
     from drake_grasp.scene import SceneSpec
 
     results_dir = Path(results_dir)
@@ -974,6 +1000,9 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     except ValueError as e:
         raise ValueError(f"{results_dir}: trial {trial_id!r} was recorded by drake_grasp "
                          f"{rec.code_version}; {e}. Replay it with that version.") from None
+    if (results_dir / RUN_INFO_FILE).is_file():
+        scenario = recorded_weights(scenario, read_run_info(results_dir), rec.condition,
+                                    source=str(results_dir / RUN_INFO_FILE))
     scene = SceneSpec.from_dict(rec.extra["scene"]) if "scene" in rec.extra else None
     page = replay_path(results_dir, trial_id)
     out = Path(out) if out else page.with_suffix("")

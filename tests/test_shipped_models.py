@@ -42,24 +42,60 @@ def test_weights_are_the_last_epoch_in_the_metrics(shipped):
 
 
 GRID = models_dir() / "cnn-grid"
+GRID_BN = models_dir() / "cnn-grid-bn"
 
 
-def test_the_grid_weights_are_the_last_epoch_of_their_run():
-    model, meta = load_weights(GRID / "weights.safetensors")
-    metrics = json.loads((GRID / "metrics.json").read_text())
+@pytest.mark.parametrize("folder", [GRID, GRID_BN], ids=["cnn-grid", "cnn-grid-bn"])
+def test_the_grid_weights_are_the_last_epoch_of_their_run(folder):
+    model, meta = load_weights(folder / "weights.safetensors")
+    metrics = json.loads((folder / "metrics.json").read_text())
     assert model.config.action_fusion == "grid"
     assert meta["identity"] == metrics["identity"]
     assert meta["identity"]["config"] == meta["config"]
     assert meta["epoch"] == len(metrics["epochs"]) == metrics["epochs"][-1]["epoch"]
 
 
-def test_the_episodes_default_cnn_is_the_grid_head_and_the_paper_net_stays_shipped():
+def test_the_episodes_default_cnn_is_the_batchnorm_grid_head_and_the_others_stay_shipped():
     from drake_grasp.montecarlo import weights_path
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS, PAPER_WEIGHTS, load_cnn
+    from drake_grasp.systems.evaluator import (DEFAULT_WEIGHTS, GRID_WEIGHTS, PAPER_WEIGHTS,
+                                               load_cnn)
 
-    assert models_dir() / DEFAULT_WEIGHTS == GRID / "weights.safetensors"
+    assert models_dir() / DEFAULT_WEIGHTS == GRID_BN / "weights.safetensors"
+    assert models_dir() / GRID_WEIGHTS == GRID / "weights.safetensors"
     assert load_cnn("").config.action_fusion == "grid"
+    assert load_cnn(str(models_dir() / GRID_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / PAPER_WEIGHTS)).config.action_fusion == "tiled"
     ctr = load_scenario(scenario_text="{policy: ctr}")
-    assert weights_path(ctr) == str(GRID / "weights.safetensors")
+    assert weights_path(ctr) == str(GRID_BN / "weights.safetensors")
+
+def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path):
+    """A trial recorded with `controller.weights: ""` ran the default of its day; its
+    run.json holds that file's sha256. `recorded_weights` names the shipped file with that
+    sha256 when it is not today's default, keeps today's default, keeps explicit weights,
+    and refuses a sha256 no shipped file has, naming it."""
+    import dataclasses
+
+    from drake_grasp.montecarlo import recorded_weights
+    from drake_grasp.provenance import file_sha256
+    from drake_grasp.scenario import load_scenario
+
+    ctr = load_scenario(scenario_text="{policy: ctr}")
+    assert ctr.controller.weights == ""
+
+    def run_info(path):
+        return {"conditions": [{"name": "gpd", "weights_sha256": None},
+                               {"name": "ctr", "weights_sha256": file_sha256(path)}]}
+
+    grid = GRID / "weights.safetensors"
+    got = recorded_weights(ctr, run_info(grid), "ctr")
+    assert got.controller.weights == str(grid)
+    assert recorded_weights(ctr, run_info(GRID_BN / "weights.safetensors"), "ctr") is ctr
+    explicit = dataclasses.replace(ctr, controller=dataclasses.replace(
+        ctr.controller, weights=str(GRID_BN / "weights.safetensors")))
+    assert recorded_weights(explicit, run_info(grid), "ctr") is explicit
+    assert recorded_weights(ctr, {"conditions": []}, "ctr") is ctr  # no sha256 recorded
+    other = tmp_path / "other.safetensors"
+    other.write_bytes(b"not shipped")
+    with pytest.raises(ValueError, match=f"run.json: condition 'ctr' .*{file_sha256(other)}"):
+        recorded_weights(ctr, run_info(other), "ctr")
