@@ -274,13 +274,11 @@ def _fingerprint(folder) -> str:
     GB."""
     import hashlib
 
+    from drake_grasp.provenance import file_sha256
+
     h = hashlib.sha256()
     for part in sorted(Path(folder).glob("shard-*.npz")):
-        part_hash = hashlib.sha256()
-        with open(part, "rb") as f:
-            for block in iter(lambda: f.read(1 << 22), b""):
-                part_hash.update(block)
-        h.update(f"{part.name}:{part_hash.hexdigest()};".encode())
+        h.update(f"{part.name}:{file_sha256(part)};".encode())
     return h.hexdigest()
 
 
