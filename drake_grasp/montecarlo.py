@@ -969,10 +969,11 @@ def recorded_weights(scenario, run_info: dict, condition: str, *, source: str = 
         return scenario
     sha = next((c.get("weights_sha256") for c in run_info.get("conditions", [])
                 if c.get("name") == condition), None)
-    if not sha or sha == ",".join(file_sha256(f) for f in weights_files("")):
+    default = weights_files("")[0]
+    if not sha or sha == file_sha256(default):
         return scenario
     for f in sorted(models_dir().glob("*/weights.safetensors")):
-        if file_sha256(f) == sha:
+        if f != Path(default) and file_sha256(f) == sha:
             return dataclasses.replace(
                 scenario, controller=dataclasses.replace(scenario.controller, weights=str(f)))
     raise ValueError(f"{source}: condition {condition!r} ran the default CNN of its day "
