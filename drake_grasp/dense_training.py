@@ -151,12 +151,26 @@ def load_labels(folders) -> dict:
         if not found:
             raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
         parts += found
-    data = {k: [] for k in ("depth", "grid", "hand_z")}
+    # Filled in place: concatenating lists of parts would hold every label twice at the
+    # peak (300,000 images of float16 grids are 14 GB).
+    counts = []
     for p in parts:
         with np.load(p) as z:
+            counts.append(len(z["hand_z"]))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    data = None
+    for p, lo, hi in zip(parts, offsets[:-1], offsets[1:]):
+        with np.load(p) as z:
+            if data is None:
+                data = {k: np.empty((offsets[-1], *z[k].shape[1:]), z[k].dtype)
+                        for k in ("depth", "grid", "hand_z")}
             for k in data:
-                data[k].append(z[k])
-    return {k: np.concatenate(v) for k, v in data.items()}
+                part = z[k]
+                if part.shape[1:] != data[k].shape[1:] or len(part) != hi - lo:
+                    raise ValueError(f"{p}: '{k}' has shape {part.shape}, expected "
+                                     f"({hi - lo}, {', '.join(map(str, data[k].shape[1:]))})")
+                data[k][lo:hi] = part
+    return data
 
 
 def view_masks(hand_z, cfg: NetworkConfig, camera_z_G_m: float, *,

@@ -250,3 +250,24 @@ def test_a_run_on_relabelled_data_of_the_same_shapes_is_another_run(tmp_path):
     assert part.stat().st_size == size
     with pytest.raises(ValueError, match="another training run.*labels"):
         train(tmp_path / "grid", tmp_path / "run", **kw)
+
+
+def test_load_labels_fills_folders_and_shards_in_order_and_names_a_misshapen_part(tmp_path):
+    rng = np.random.default_rng(0)
+    parts = {}
+    for folder, shard, n in (("a", 0, 3), ("a", 1, 2), ("b", 0, 4)):
+        (tmp_path / folder).mkdir(exist_ok=True)
+        part = {"depth": rng.random((n, 64, 64)).astype(np.float16),
+                "grid": rng.random((n, 18, 33, 33)).astype(np.float16),
+                "hand_z": rng.random(n).astype(np.float32)}
+        np.savez(tmp_path / folder / f"shard-{shard:05d}.npz", **part)
+        parts[folder, shard] = part
+    data = load_labels([tmp_path / "a", tmp_path / "b"])
+    for k in ("depth", "grid", "hand_z"):
+        expected = np.concatenate([parts["a", 0][k], parts["a", 1][k], parts["b", 0][k]])
+        assert data[k].dtype == expected.dtype
+        np.testing.assert_array_equal(data[k], expected)
+    bad = dict(parts["b", 0], grid=parts["b", 0]["grid"][:, :9])
+    np.savez(tmp_path / "b" / "shard-00001.npz", **bad)
+    with pytest.raises(ValueError, match=r"shard-00001.npz: 'grid' has shape \(4, 9, 33, 33\)"):
+        load_labels([tmp_path / "a", tmp_path / "b"])
