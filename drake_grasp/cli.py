@@ -238,7 +238,7 @@ def _cmd_train_grid(args) -> int:
                          test_data=args.test_data, init=args.init_weights, epochs=args.epochs,
                          batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
                          threads=args.threads, checkpoint_minutes=args.checkpoint_minutes,
-                         trunk=args.trunk, batch_norm=args.batch_norm)
+                         trunk=args.trunk, batch_norm=args.batch_norm, device=args.device)
     last = metrics["epochs"][-1] if metrics["epochs"] else {}
     print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
                       **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
@@ -658,6 +658,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train with a BatchNorm after Conv1, Conv2 and IP1 (folded into "
                         "them in the weights written: a plain grid net); from "
                         "--init-weights they start as the identity")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="where the batches run: auto (a GPU when torch sees one), cpu or "
+                        "cuda; may differ when resuming")
     p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

@@ -21,6 +21,7 @@ camera height) count in the loss: beyond it the net cannot see what decides the 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import math
@@ -323,7 +324,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
           checkpoint_minutes: float = 5.0, progress: bool = True,
           trunk: tuple[int, int, int] | None = None, batch_norm: bool = False,
-          _stop_after_batches: int | None = None) -> dict:
+          device: str = "cpu", _stop_after_batches: int | None = None) -> dict:
     """Adam on the masked L1 over every in-view grid node, the learning rate times
     `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
     `out`/checkpoint.pt every `checkpoint_minutes` and after every epoch: re-running the
@@ -336,14 +337,20 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     folder's (the paper's 20, 50, 500), e.g. a wider net to test whether the trunk's
     capacity limits the fit; `init` must then have the same trunk. `batch_norm`: train
     through a `BatchNormTrunk` (from `init`, its BatchNorms start as the identity on 1,000
-    of the training images); the epoch files hold the folded plain grid net.
+    of the training images); the epoch files hold the folded plain grid net. `device`:
+    where the batches run, "cpu", "cuda" or "auto" (a GPU when torch sees one); the
+    labels stay in memory on the CPU, the test metrics run on the CPU, and a run may
+    resume on another device.
     """
     from tqdm import tqdm
 
     from drake_grasp.results import atomic_write_text
     from drake_grasp.station import gripper_frame_offsets
 
+    from drake_grasp.training import _device
+
     torch.set_num_threads(threads)
+    device = _device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
@@ -373,21 +380,18 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                          seed=seed, batch_norm=batch_norm)
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay)
     ckpt_path = out / "checkpoint.pt"
     epoch, batch_index, total, count = 0, 0, 0.0, 0
     metrics = {"identity": identity, "epochs": []}
-    if ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, weights_only=True)
+    ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu") \
+        if ckpt_path.exists() else None
+    if ckpt is not None:
         if ckpt["identity"] != identity:
             diff = sorted(k for k in {**ckpt["identity"], **identity}
                           if ckpt["identity"].get(k) != identity.get(k))
             raise ValueError(f"{out}: holds another training run (differs in {diff}); "
                              "use another out folder")
         model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["opt"])
-        sched.load_state_dict(ckpt["sched"])
         epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
         total, count = ckpt["total"], ckpt["count"]
         metrics = json.loads(ckpt["metrics"])
@@ -400,6 +404,14 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             sample = np.sort(np.random.default_rng([seed, 1]).choice(
                 n_images, min(n_images, 1000), replace=False))
             model.start_as_identity(model.preprocess(data["depth"][sample].astype(np.float32)))
+    # The optimizer is made (and its state loaded) after the move, so that its state
+    # lives where the parameters do.
+    model.to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay)
+    if ckpt is not None:
+        opt.load_state_dict(ckpt["opt"])
+        sched.load_state_dict(ckpt["sched"])
     camera_z = float(gripper_frame_offsets()[2].translation()[2])
 
     def checkpoint():
@@ -418,9 +430,9 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                    unit="batch", disable=not progress)
         for start in starts[batch_index:]:
             idx = np.sort(order[start:start + batch])
-            images = model.preprocess(data["depth"][idx].astype(np.float32))
-            target = torch.from_numpy(data["grid"][idx].astype(np.float32))
-            mx = torch.from_numpy(view_masks(data["hand_z"][idx], cfg, camera_z))
+            images = model.preprocess(data["depth"][idx].astype(np.float32)).to(device)
+            target = torch.from_numpy(data["grid"][idx].astype(np.float32)).to(device)
+            mx = torch.from_numpy(view_masks(data["hand_z"][idx], cfg, camera_z)).to(device)
             mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
             mask = mask & torch.isfinite(target)
             pred = model.image_features(images)
@@ -450,7 +462,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             sched.step()
         row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
                "lr": lr * lr_decay ** epoch}
-        trained = model.folded() if batch_norm else model
+        trained = (model.folded() if batch_norm else copy.deepcopy(model)).cpu()
         save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
                      metadata={"trainer": "dense_training", "epoch": epoch + 1,
                                "identity": identity})

@@ -154,6 +154,24 @@ def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
         train(tmp_path / "grid", tmp_path / "broken", **{**kw, "lr": 2e-3})
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
+    """`device`: the checkpoint moves between devices; the GPU's float arithmetic
+    differs from the CPU's in the last bits, so the weights agree to a tolerance."""
+    from drake_grasp.network import load_weights
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False)
+    train(tmp_path / "grid", tmp_path / "cpu", device="cpu", **kw)
+    train(tmp_path / "grid", tmp_path / "mixed", device="cpu", _stop_after_batches=4, **kw)
+    train(tmp_path / "grid", tmp_path / "mixed", device="cuda", **kw)
+    a, _ = load_weights(tmp_path / "cpu" / "epoch2.safetensors")
+    b, _ = load_weights(tmp_path / "mixed" / "epoch2.safetensors")
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5, msg=name)
+
+
 def test_cli_refuses_a_folder_that_holds_no_labels(tmp_path, capsys):
     from drake_grasp.cli import main
 
