@@ -476,9 +476,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kinematic noise on commanded displacements (default: the scenario's)")
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
                    help="grasp this object: candidates restricted to its image region")
-    p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn-grid-bn/, the grid "
-                   "head trained with BatchNorm; models/cnn-grid/weights.safetensors is the "
-                   "grid head before it, models/cnn/weights.safetensors the paper's net); FILE,FILE,... "
+    p.add_argument("--weights", default=None, help="CNN weights file (default: models/cnn-grid-bn12/, the grid "
+                   "head trained with BatchNorm on 7,500 scenes; models/cnn-grid-bn/ and "
+                   "models/cnn-grid/ are the grid heads before it, models/cnn/ the paper's "
+                   "net, each weights.safetensors); FILE,FILE,... "
                    "scores with the mean of several nets (an ensemble)")
     p.add_argument("--seed", type=int, default=None,
                    help="trial seed (scene and noise); default: the scenario's seed")
@@ -767,9 +768,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
                         "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped grid head "
-                        "models/cnn-grid-bn/weights.safetensors (the grid head before it: "
-                        "models/cnn-grid/weights.safetensors; the paper's net: "
-                        "models/cnn/weights.safetensors); FILE,FILE,... scores with the "
+                        "models/cnn-grid-bn12/weights.safetensors (the grid heads before it: "
+                        "models/cnn-grid-bn/ and models/cnn-grid/; the paper's net: "
+                        "models/cnn/; each weights.safetensors); FILE,FILE,... scores with the "
                         "mean of several nets (an ensemble). Its sha256 is part of the run's "
                         "identity")
     p.add_argument("--gpd-weights", default=None, metavar="FILE",

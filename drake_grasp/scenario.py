@@ -284,10 +284,11 @@ class ControllerConfig:
     num_candidates: int = 128
     sample_xy_m: float = 0.04
     sample_theta_deg: float = 45.0
-    # CNN weights; "" = the shipped models/cnn-grid-bn/weights.safetensors (the grid head
-    # trained with BatchNorm; models/cnn-grid/weights.safetensors is the grid head before
-    # it, models/cnn/weights.safetensors the paper's tiled net); an X.onnx file from
-    # `drake-grasp export-onnx` runs the CNN with onnxruntime instead of torch;
+    # CNN weights; "" = the shipped models/cnn-grid-bn12/weights.safetensors (the grid head
+    # trained with BatchNorm on 7,500 scenes; models/cnn-grid-bn/ and models/cnn-grid/ are
+    # the grid heads before it, models/cnn/ the paper's tiled net, each weights.safetensors);
+    # an X.onnx file from `drake-grasp export-onnx` runs the CNN with onnxruntime instead
+    # of torch;
     # "A,B,..." scores each candidate with the mean of those nets (`CnnEnsemble`).
     weights: str = ""
     # Open-loop policies (cnn-only) search this many actions over the whole view.
