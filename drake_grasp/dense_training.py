@@ -346,7 +346,6 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
 
     from drake_grasp.results import atomic_write_text
     from drake_grasp.station import gripper_frame_offsets
-
     from drake_grasp.training import _device
 
     torch.set_num_threads(threads)
