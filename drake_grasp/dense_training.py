@@ -153,7 +153,7 @@ def load_labels(folders) -> dict:
             raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
         parts += found
     # Filled in place: concatenating lists of parts would hold every label twice at the
-    # peak (300,000 images of float16 grids are 14 GB).
+    # peak (300,000 images, float16 depth and grids, take 14 GB).
     counts = []
     for p in parts:
         with np.load(p) as z:
