@@ -411,6 +411,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     if ckpt is not None:
         opt.load_state_dict(ckpt["opt"])
         sched.load_state_dict(ckpt["sched"])
+        del ckpt  # its tensors are copied into the model and optimizer
     camera_z = float(gripper_frame_offsets()[2].translation()[2])
 
     def checkpoint():
