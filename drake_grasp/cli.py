@@ -667,7 +667,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "
                        "latest checkpoint (an unfinished run) as a weights file for the "
                        "controller; the run may go on")
-    p.add_argument("run", help="the run's output folder (train --out)")
+    p.add_argument("run", help="the run's output folder (train --out or train-grid --out)")
     p.add_argument("--out", required=True, help="weights file to write (*.safetensors)")
     p.set_defaults(func=_cmd_checkpoint_weights)
 

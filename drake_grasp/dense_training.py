@@ -319,6 +319,41 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     tmp.replace(path)
 
 
+def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
+    """`checkpoint-weights` for a `train-grid` run: the weights of its checkpoint.pt
+    (within an epoch, or after its last finished one) as a plain grid net (a BatchNorm
+    run's BatchNorms folded in, as its epoch files are). Reads only; the run may go on.
+
+    Returns the weights' metadata: {"trainer", "checkpoint_epoch" (epochs finished),
+    "checkpoint_next_batch" (batches done in the unfinished epoch), "iterations"
+    (batches done in all), "identity"}.
+
+    Raises:
+        FileNotFoundError: No checkpoint.pt in `run_dir`.
+        ValueError: A checkpoint that is not a `train-grid` one (named).
+    """
+    ckpt_path = Path(run_dir) / "checkpoint.pt"
+    if not ckpt_path.is_file():
+        raise FileNotFoundError(f"{ckpt_path}: not found (is {run_dir} a `drake-grasp "
+                                "train-grid` output folder?)")
+    ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+    identity = ckpt.get("identity") if isinstance(ckpt, dict) else None
+    if not isinstance(identity, dict) or "config" not in identity or "model" not in ckpt:
+        raise ValueError(f"{ckpt_path}: not a `train-grid` checkpoint (expected the keys "
+                         "'identity' with a 'config', and 'model')")
+    net = DistanceCNN(NetworkConfig.from_dict(identity["config"]))
+    model = BatchNormTrunk(net) if identity.get("batch_norm") else net
+    model.load_state_dict(ckpt["model"])
+    trained = model.folded() if identity.get("batch_norm") else net
+    batches_per_epoch = math.ceil(int(identity["images"]) / int(identity["batch"]))
+    metadata = {"trainer": "dense_training", "checkpoint_epoch": int(ckpt["epoch"]),
+                "checkpoint_next_batch": int(ckpt["batch_index"]),
+                "iterations": int(ckpt["epoch"]) * batches_per_epoch + int(ckpt["batch_index"]),
+                "identity": identity}
+    save_weights(trained, path, metadata=metadata)
+    return metadata
+
+
 def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,

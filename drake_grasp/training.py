@@ -446,8 +446,9 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     can be tried in the controller before it ends. Reads only; the run may go on.
 
     Args:
-        run_dir: The run's output folder (`train`'s `out`): checkpoint.pt and
-            train_config.json.
+        run_dir: The run's output folder: `train`'s (checkpoint.pt and
+            train_config.json) or `train-grid`'s (checkpoint.pt alone;
+            `dense_training.export_checkpoint_weights`).
         path: The weights file to write (``*.safetensors``).
 
     Returns:
@@ -461,6 +462,11 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     """
     run_dir = Path(run_dir)
     ckpt_path, config_path = run_dir / "checkpoint.pt", run_dir / "train_config.json"
+    if ckpt_path.is_file() and not config_path.exists():
+        # No train_config.json: a `train-grid` run (its config is in the checkpoint).
+        from drake_grasp import dense_training
+
+        return dense_training.export_checkpoint_weights(run_dir, path)
     for f in (ckpt_path, config_path):
         if not f.is_file():
             raise FileNotFoundError(f"{f}: not found (is {run_dir} a `drake-grasp train` "

@@ -289,3 +289,47 @@ def test_load_labels_fills_folders_and_shards_in_order_and_names_a_misshapen_par
     np.savez(tmp_path / "b" / "shard-00001.npz", **bad)
     with pytest.raises(ValueError, match=r"shard-00001.npz: 'grid' has shape \(4, 9, 33, 33\)"):
         load_labels([tmp_path / "a", tmp_path / "b"])
+
+
+def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, capsys):
+    """`drake-grasp checkpoint-weights` on a `train-grid` run (no train_config.json): a
+    BatchNorm run's checkpoint comes out folded, equal to the epoch file at an epoch's
+    end; within an epoch it says how far the run got."""
+    from drake_grasp.cli import main
+    from drake_grasp.dense_training import export_checkpoint_weights
+    from drake_grasp.network import DistanceCNN, load_weights, save_weights
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    init = tmp_path / "init.safetensors"
+    save_weights(DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(1)), init,
+                 metadata={})
+    kw = dict(test_data=None, init=str(init), epochs=1, batch=4, lr=1e-3, threads=1,
+              progress=False, batch_norm=True)
+    train(tmp_path / "grid", tmp_path / "run", **kw)
+    assert main(["checkpoint-weights", str(tmp_path / "run"), "--out",
+                 str(tmp_path / "end.safetensors")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == {
+        "out": str(tmp_path / "end.safetensors"), "checkpoint_epoch": 1,
+        "checkpoint_next_batch": 0, "iterations": 3}
+    a, _ = load_weights(tmp_path / "run" / "epoch1.safetensors")
+    b, meta = load_weights(tmp_path / "end.safetensors")
+    assert b.config == GRID_CONFIG and meta["identity"]["batch_norm"] is True
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.equal(x, y), name
+
+    # Killed after 2 of epoch 1's 3 batches: the weights of those 2 batches.
+    train(tmp_path / "grid", tmp_path / "killed", _stop_after_batches=2, **kw)
+    m = export_checkpoint_weights(tmp_path / "killed", tmp_path / "mid.safetensors")
+    assert (m["checkpoint_epoch"], m["checkpoint_next_batch"], m["iterations"]) == (0, 2, 2)
+    mid, _ = load_weights(tmp_path / "mid.safetensors")
+    start, _ = load_weights(init)
+    assert not torch.equal(mid.state_dict()["conv1.weight"], start.state_dict()["conv1.weight"])
+    assert not torch.equal(mid.state_dict()["conv1.weight"], a.state_dict()["conv1.weight"])
+
+    (tmp_path / "other").mkdir()
+    torch.save({"epoch": 0}, tmp_path / "other" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"other/checkpoint.pt: not a `train-grid` checkpoint"):
+        export_checkpoint_weights(tmp_path / "other", tmp_path / "x.safetensors")
+    with pytest.raises(FileNotFoundError, match="nothing/checkpoint.pt: not found"):
+        export_checkpoint_weights(tmp_path / "nothing", tmp_path / "x.safetensors")
