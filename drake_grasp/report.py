@@ -1033,10 +1033,13 @@ def make_report(results_dir: str | os.PathLike, *, out_dir: str | os.PathLike | 
 
 # --------------------------------------------------------------------------- several experiments
 
-def _load_many(results_dirs: Sequence[str | os.PathLike]) -> list[Results]:
+def _load_many(results_dirs: Sequence[str | os.PathLike], *,
+               one_per_experiment: bool = True) -> list[Results]:
     if not results_dirs:
         raise ValueError("no results dirs given")
     loaded = [load_results(d) for d in results_dirs]
+    if not one_per_experiment:
+        return loaded
     seen: dict[str, Path] = {}
     for res in loaded:
         exp = canonical_experiment(res.experiment)
@@ -1133,13 +1136,16 @@ def plot_figure5(loaded: Sequence[Results], path: str | os.PathLike, *, bin_m: f
 def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike, *,
                   bin_m: float = BIN_M, max_m: float = HIST_MAX_M) -> Path:
     """Figure 5 from sim-distance (and perception) results dirs into `out_path` (PNG).
+    Several dirs of one experiment may share the figure (e.g. arms run separately on the
+    same seed), each Figure 5 condition from one of them.
 
     Raises:
-        ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named).
+        ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named),
+            or two dirs hold the same condition.
     """
     if not (bin_m > 0 and max_m > bin_m):
         raise ValueError(f"need 0 < bin_m < max_m, got bin_m={bin_m}, max_m={max_m}")
-    loaded = _load_many(results_dirs)
+    loaded = _load_many(results_dirs, one_per_experiment=False)
     path = plot_figure5(loaded, out_path, bin_m=bin_m, max_m=max_m)
     if path is None:
         names = ", ".join(str(r.results_dir) for r in loaded)

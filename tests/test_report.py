@@ -218,6 +218,18 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
     assert table1.main([str(iso), "--out", str(tmp_path / "t1.md")]) == 0
     text = (tmp_path / "t1.md").read_text()
     assert "| Objects in isolation (`isolation`) | 97.5% (39/40) |" in text and "100.0% (40/40)" in text
+    # Arms of one experiment run into separate folders share the figure; one arm in two
+    # folders is refused, naming both.
+    ctr_only, gpd_only = tmp_path / "sim-ctr", tmp_path / "sim-gpd"
+    _fill(ctr_only, "sim-distance", {"ctr": SIM_SPEC["ctr"]})
+    _fill(gpd_only, "sim-distance", {"gpd": SIM_SPEC["gpd"]})
+    assert figure5.main([str(ctr_only), str(gpd_only), "--out", str(tmp_path / "f5b.png")]) == 0
+    assert (tmp_path / "f5b.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit) as e:
+        figure5.main([str(ctr_only), str(sim_dir), "--out", str(tmp_path / "f5c.png")])
+    assert e.value.code == 2
+    assert f"'ctr' is in both {ctr_only} and {sim_dir}" in capsys.readouterr().err
+    assert not (tmp_path / "f5c.png").exists()
     with pytest.raises(SystemExit) as e:  # no Figure 5 arm there: a clear error, exit 2
         figure5.main([str(iso / "none")])
     assert e.value.code == 2
