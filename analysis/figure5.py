@@ -25,7 +25,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="results dirs holding the Figure 5 conditions: init, ctr, ctr_noise, "
                              "gpd, gpd_noise (left panel) and cnn-only, cnn-ctr (right panel); "
                              "each condition may appear in one dir only (several dirs of one "
-                             "experiment are fine, e.g. arms run separately on the same seed)")
+                             "experiment are fine, e.g. arms run separately on the same seed); "
+                             "DIR@init,gpd takes only those conditions from DIR")
     parser.add_argument("--out", required=True, help="PNG file to write (atomically)")
     parser.add_argument("--bin-cm", type=float, default=100 * BIN_M,
                         help="histogram bin width in cm (default: the paper's 3)")

@@ -31,6 +31,7 @@ import math
 import os
 import re
 import statistics
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -1137,15 +1138,35 @@ def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.
                   bin_m: float = BIN_M, max_m: float = HIST_MAX_M) -> Path:
     """Figure 5 from sim-distance (and perception) results dirs into `out_path` (PNG).
     Several dirs of one experiment may share the figure (e.g. arms run separately on the
-    same seed), each Figure 5 condition from one of them.
+    same seed), each Figure 5 condition from one of them; ``DIR@init,gpd`` takes only
+    those conditions from DIR.
 
     Raises:
         ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named),
-            or two dirs hold the same condition.
+            two dirs hold the same condition, or a condition named after ``@`` has no
+            records in its dir.
     """
     if not (bin_m > 0 and max_m > bin_m):
         raise ValueError(f"need 0 < bin_m < max_m, got bin_m={bin_m}, max_m={max_m}")
-    loaded = _load_many(results_dirs, one_per_experiment=False)
+    selections = []
+    for entry in results_dirs:
+        path, at, names = str(entry).rpartition("@") if "@" in Path(str(entry)).name \
+            else (str(entry), "", "")
+        wanted = [n.strip() for n in names.split(",") if n.strip()] if at else None
+        if at and not wanted:
+            raise ValueError(f"{entry}: no condition named after '@' (expected DIR@cond,cond)")
+        selections.append((path, wanted))
+    loaded = _load_many([p for p, _ in selections], one_per_experiment=False)
+    for i, (res, (path, wanted)) in enumerate(zip(loaded, selections)):
+        if wanted is None:
+            continue
+        have = {r.condition for r in res.records}
+        missing = [n for n in wanted if n not in have]
+        if missing:
+            raise ValueError(f"{path}: no records of condition(s) {missing} (it holds "
+                             f"{sorted(have)})")
+        loaded[i] = dataclasses.replace(res, records=[r for r in res.records
+                                                      if r.condition in wanted])
     path = plot_figure5(loaded, out_path, bin_m=bin_m, max_m=max_m)
     if path is None:
         names = ", ".join(str(r.results_dir) for r in loaded)

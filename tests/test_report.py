@@ -230,6 +230,14 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
     assert e.value.code == 2
     assert f"'ctr' is in both {ctr_only} and {sim_dir}" in capsys.readouterr().err
     assert not (tmp_path / "f5c.png").exists()
+    # DIR@conditions: only those arms of DIR; a condition DIR does not hold is named.
+    assert figure5.main([f"{sim_dir}@init,gpd,gpd_noise", str(ctr_only),
+                         "--out", str(tmp_path / "f5d.png")]) == 0
+    assert (tmp_path / "f5d.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit) as e:
+        figure5.main([f"{ctr_only}@ctr,cnn-only", "--out", str(tmp_path / "f5e.png")])
+    assert e.value.code == 2
+    assert "no records of condition(s) ['cnn-only'] (it holds ['ctr'])" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:  # no Figure 5 arm there: a clear error, exit 2
         figure5.main([str(iso / "none")])
     assert e.value.code == 2
