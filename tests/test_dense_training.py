@@ -189,6 +189,19 @@ def test_a_moved_label_folder_resumes_its_run(tmp_path):
     assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
 
 
+def _labels_and_a_grid_net(tmp_path):
+    """Dense labels of a small dataset in tmp_path/grid, and a random grid net to start
+    from (its weights file, returned)."""
+    from drake_grasp.network import DistanceCNN, save_weights
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    init = tmp_path / "init.safetensors"
+    save_weights(DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(1)), init,
+                 metadata={})
+    return init
+
+
 def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_path):
     """`train(batch_norm=True)` (`train-grid --batch-norm`): the BatchNorms fold into
     Conv1, Conv2 and IP1 exactly (the folded plain net equals the module in eval mode);
@@ -196,7 +209,7 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
     init net); a killed run resumes to the unbroken one's weights; it is another run."""
     from drake_grasp.cli import main
     from drake_grasp.dense_training import BatchNormTrunk
-    from drake_grasp.network import DistanceCNN, load_weights, save_weights
+    from drake_grasp.network import DistanceCNN, load_weights
 
     gen = torch.Generator().manual_seed(3)
     net = DistanceCNN(GRID_CONFIG, generator=gen).double()
@@ -228,11 +241,7 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
         BatchNormTrunk(DistanceCNN())
 
     # Training end to end: resumes bit for bit; the epoch file is a plain grid net.
-    _shard(tmp_path / "data", scenes=2, images=6)
-    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
-    init = tmp_path / "init.safetensors"
-    save_weights(DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(1)), init,
-                 metadata={})
+    init = _labels_and_a_grid_net(tmp_path)
     kw = dict(test_data=None, init=str(init), epochs=2, batch=4, lr=1e-3, threads=1,
               progress=False, batch_norm=True)
     train(tmp_path / "grid", tmp_path / "whole", **kw)
@@ -297,13 +306,9 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
     end; within an epoch it says how far the run got."""
     from drake_grasp.cli import main
     from drake_grasp.dense_training import export_checkpoint_weights
-    from drake_grasp.network import DistanceCNN, load_weights, save_weights
+    from drake_grasp.network import load_weights
 
-    _shard(tmp_path / "data", scenes=2, images=6)
-    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
-    init = tmp_path / "init.safetensors"
-    save_weights(DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(1)), init,
-                 metadata={})
+    init = _labels_and_a_grid_net(tmp_path)
     kw = dict(test_data=None, init=str(init), epochs=1, batch=4, lr=1e-3, threads=1,
               progress=False, batch_norm=True)
     train(tmp_path / "grid", tmp_path / "run", **kw)
