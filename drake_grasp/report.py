@@ -25,13 +25,13 @@ conditions carry distance statistics only.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
 import os
 import re
 import statistics
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
