@@ -319,6 +319,12 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     tmp.replace(path)
 
 
+def _plain_net(model) -> DistanceCNN:
+    """The plain grid net a training model stands for, as the epoch files hold it: a
+    `BatchNormTrunk` folded, a plain net copied (training goes on with the original)."""
+    return model.folded() if isinstance(model, BatchNormTrunk) else copy.deepcopy(model)
+
+
 def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     """`checkpoint-weights` for a `train-grid` run: the weights of its checkpoint.pt
     (within an epoch, or after its last finished one) as a plain grid net (a BatchNorm
@@ -336,7 +342,9 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     if not ckpt_path.is_file():
         raise FileNotFoundError(f"{ckpt_path}: not found (is {run_dir} a `drake-grasp "
                                 "train-grid` output folder?)")
-    ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+    from drake_grasp.training import load_checkpoint
+
+    ckpt = load_checkpoint(ckpt_path)
     identity = ckpt.get("identity") if isinstance(ckpt, dict) else None
     if not isinstance(identity, dict) or "config" not in identity or "model" not in ckpt:
         raise ValueError(f"{ckpt_path}: not a `train-grid` checkpoint (expected the keys "
@@ -344,7 +352,7 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     net = DistanceCNN(NetworkConfig.from_dict(identity["config"]))
     model = BatchNormTrunk(net) if identity.get("batch_norm") else net
     model.load_state_dict(ckpt["model"])
-    trained = model.folded() if identity.get("batch_norm") else net
+    trained = _plain_net(model)
     batches_per_epoch = math.ceil(int(identity["images"]) / int(identity["batch"]))
     metadata = {"trainer": "dense_training", "checkpoint_epoch": int(ckpt["epoch"]),
                 "checkpoint_next_batch": int(ckpt["batch_index"]),
@@ -381,7 +389,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
 
     from drake_grasp.results import atomic_write_text
     from drake_grasp.station import gripper_frame_offsets
-    from drake_grasp.training import _device
+    from drake_grasp.training import _device, load_checkpoint
 
     torch.set_num_threads(threads)
     device = _device(device)
@@ -417,8 +425,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     ckpt_path = out / "checkpoint.pt"
     epoch, batch_index, total, count = 0, 0, 0.0, 0
     metrics = {"identity": identity, "epochs": []}
-    ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu") \
-        if ckpt_path.exists() else None
+    ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
     if ckpt is not None:
         if ckpt["identity"] != identity:
             diff = sorted(k for k in {**ckpt["identity"], **identity}
@@ -497,7 +504,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             sched.step()
         row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
                "lr": lr * lr_decay ** epoch}
-        trained = (model.folded() if batch_norm else copy.deepcopy(model)).cpu()
+        trained = _plain_net(model).cpu()
         save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
                      metadata={"trainer": "dense_training", "epoch": epoch + 1,
                                "identity": identity})
