@@ -1,0 +1,92 @@
+"""analysis/heightmap_fcn.py: the metric height map puts a box where the grid head's
+pixel convention puts it, at its height; the net maps it to the grid's shape; training
+writes its model and resumes without repeating an epoch."""
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location(
+        "heightmap_fcn", ROOT / "analysis" / "heightmap_fcn.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _box_image(H, cam_h, centre_xy, half_m, top_h):
+    """A flat table at cam_h below the camera and a box of side 2 half_m, top at top_h
+    above the table, centred at `centre_xy` (camera-axis offsets, x along the image's
+    columns, y along its rows, as `DistanceCNN._window_grid` maps them)."""
+    cfg = H.GRID_CONFIG
+    f, size = cfg.focal_px, cfg.image_size
+    c = np.arange(size) - (size / 2.0 - 0.5)
+    depth = np.full((size, size), cam_h, np.float32)
+    top = cam_h - top_h
+    x = c[None, :] * top / f
+    y = c[:, None] * top / f
+    inside = (np.abs(x - centre_xy[0]) <= half_m) & (np.abs(y - centre_xy[1]) <= half_m)
+    depth[inside] = top
+    return depth
+
+
+def test_height_map_places_a_box_at_its_metric_position_and_height():
+    H = _module()
+    cam_h, centre, half, top_h = 0.25, (-0.06, 0.04), 0.02, 0.05
+    hand_z = cam_h + H.camera_z_G()
+    m = H.height_maps(_box_image(H, cam_h, centre, half, top_h)[None], np.array([hand_z]))
+    assert m.shape == (1, 2, H.LATTICE, H.LATTICE) and m.dtype == np.float16
+    heights = m[0, 0].astype(np.float32) / H.HEIGHT_SCALE
+    cells = (np.arange(H.LATTICE) - (H.LATTICE - 1) / 2) * H.CELL_M
+    # Every cell inside the box holds its top; the table more than two cells (the
+    # filling's reach, which closes the box's occlusion shadow) outside it is at 0.
+    dx = np.abs(cells[None, :] - centre[0])
+    dy = np.abs(cells[:, None] - centre[1])
+    inside = (dx <= half - H.CELL_M / 2) & (dy <= half - H.CELL_M / 2)
+    assert inside.sum() >= 49 and np.all(np.abs(heights[inside] - top_h) < 1e-3)
+    outside = ((dx > half + 2.5 * H.CELL_M) | (dy > half + 2.5 * H.CELL_M)) & (m[0, 1] > 0)
+    assert outside.sum() > 1000 and np.all(heights[outside] == 0)
+    # The view mask is the camera's footprint on the table.
+    half_view = cam_h * math.tan(math.radians(H.GRID_CONFIG.camera_fov_deg) / 2)
+    view_cols = np.nonzero(m[0, 1, H.LATTICE // 2] > 0)[0]
+    assert abs(cells[view_cols].max() - half_view) <= H.CELL_M
+    assert heights[m[0, 1] == 0].max() == 0
+
+
+def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
+    H = _module()
+    t_bins, n, _ = H.GRID_CONFIG.grid_shape()
+    net = H.HeightmapFCN(width=8, dilations=(1, 2))
+    out = net(torch.zeros(3, 2, H.LATTICE, H.LATTICE))
+    assert out.shape == (3, t_bins, n, n) and bool((out > 0).all())
+
+    rng = np.random.default_rng(0)
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    k = 8
+    depth = np.stack([_box_image(H, 0.25, rng.uniform(-0.05, 0.05, 2), 0.02, 0.05)
+                      for _ in range(k)]).astype(np.float16)
+    grid = rng.uniform(0.0, 0.2, (k, t_bins, n, n)).astype(np.float16)
+    np.savez(labels / "shard-00000.npz", depth=depth, grid=grid,
+             hand_z=np.full(k, 0.25 + H.camera_z_G(), np.float32))
+    run = tmp_path / "run"
+    H.train([str(labels)], "", run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
+            threads=1)
+    saved = torch.load(run / "model.pt", weights_only=False)
+    log = saved["state"]["log"]
+    assert [e["epoch"] for e in log] == [1, 2] and saved["state"]["epoch"] == 2
+    assert all(math.isfinite(e["train_l1_m"]) for e in log)
+    before = json.dumps(log)
+    H.train([str(labels)], "", run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
+            threads=1)  # finished: nothing is trained or logged again
+    assert json.dumps(torch.load(run / "model.pt", weights_only=False)["state"]["log"]) == before
+    data = {"depth": depth, "grid": grid, "hand_z": np.full(k, 0.25 + H.camera_z_G(), np.float32)}
+    result = H.metrics(H.predict_fcn(str(run / "model.pt"), data), data, images=k)
+    assert result["nodes"] > 0 and result["dense_l1_mm"] > 0
