@@ -18,7 +18,7 @@ Both nets are measured on the held-out dense grids (`data/paper_test_grid`, the 
 each image's view, as the training loss takes them):
 
     python analysis/heightmap_fcn.py train --labels data/near0_grid,data/clutter_train_grid \
-        --test data/paper_test_grid --out data/fcn_pilot --minutes 40
+        --out data/fcn_pilot --minutes 40
     python analysis/heightmap_fcn.py compare --test data/paper_test_grid \
         --fcn data/fcn_pilot/model.pt --weights models/cnn-grid-bn12/weights.safetensors \
         --out analysis/results/heightmap-fcn/compare.json
@@ -127,14 +127,23 @@ def _masks(hand_z: np.ndarray) -> torch.Tensor:
     return mx[:, None, :, None] & mx[:, None, None, :]
 
 
-def train(labels: list[str], test: str, out: Path, *, minutes: float, epochs: int,
-          batch: int, lr: float, width: int, seed: int, threads: int) -> None:
+def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: int,
+          lr: float, width: int, seed: int, threads: int, max_images: int = 0) -> None:
+    """Adam on the masked L1 over the in-view nodes, cosine decay over `epochs`;
+    `max_images` > 0 trains on a random subset of that many images (seeded), for a
+    learning curve over data."""
     from tqdm import tqdm
 
     torch.set_num_threads(threads)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     data = load_labels(labels)
+    if 0 < max_images < len(data["hand_z"]):
+        keep = np.sort(np.random.default_rng([seed, 7]).choice(
+            len(data["hand_z"]), max_images, replace=False))
+        data = {k: v[keep] for k, v in data.items()}
+    elif max_images < 0:
+        raise ValueError(f"max_images: expected >= 0 (0 = all), got {max_images}")
     maps = height_maps(data["depth"], data["hand_z"])
     grids, hand_z = data["grid"], data["hand_z"]
     del data
@@ -143,9 +152,17 @@ def train(labels: list[str], test: str, out: Path, *, minutes: float, epochs: in
     model = HeightmapFCN(width)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     state = {"epoch": 0, "batch_index": 0, "train_s": 0.0, "log": []}
+    identity = {"labels": [str(x) for x in labels], "max_images": int(max_images),
+                "epochs": int(epochs), "batch": int(batch), "lr": float(lr),
+                "width": int(width), "seed": int(seed)}
     ckpt = out / "checkpoint.pt"
     if ckpt.exists():
         saved = torch.load(ckpt, weights_only=False)
+        if saved.get("identity") != identity:
+            theirs = saved.get("identity") or {}
+            diff = sorted(k for k in identity if theirs.get(k) != identity[k])
+            raise ValueError(f"{ckpt}: holds another training run (differs in {diff}); "
+                             "use another --out folder")
         model.load_state_dict(saved["model"])
         opt.load_state_dict(saved["opt"])
         state = saved["state"]
@@ -154,7 +171,7 @@ def train(labels: list[str], test: str, out: Path, *, minutes: float, epochs: in
     def save():
         tmp = out / "checkpoint.pt.tmp"
         torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state,
-                    "width": width}, tmp)
+                    "width": width, "identity": identity}, tmp)
         tmp.replace(ckpt)
 
     budget_s = minutes * 60.0
@@ -195,7 +212,8 @@ def train(labels: list[str], test: str, out: Path, *, minutes: float, epochs: in
             state["epoch"] += 1
             state["batch_index"] = 0
         save()
-    torch.save({"model": model.state_dict(), "width": width, "state": state}, out / "model.pt")
+    torch.save({"model": model.state_dict(), "width": width, "state": state,
+                "identity": identity}, out / "model.pt")
 
 
 def _load_test(test: str):
@@ -280,8 +298,9 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
     t.add_argument("--labels", required=True, help="comma-separated dense-labels folders")
-    t.add_argument("--test", required=True)
     t.add_argument("--out", required=True)
+    t.add_argument("--max-images", type=int, default=0,
+                   help="train on a seeded random subset of this many images (0: all)")
     t.add_argument("--minutes", type=float, default=40.0)
     t.add_argument("--epochs", type=int, default=4)
     t.add_argument("--batch", type=int, default=32)
@@ -296,8 +315,9 @@ def main(argv=None) -> int:
     c.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     if a.cmd == "train":
-        train(a.labels.split(","), a.test, Path(a.out), minutes=a.minutes, epochs=a.epochs,
-              batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads)
+        train(a.labels.split(","), Path(a.out), minutes=a.minutes, epochs=a.epochs,
+              batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads,
+              max_images=a.max_images)
         return 0
     data = _load_test(a.test)
     result = {"test": a.test, "images": len(data["grid"])}

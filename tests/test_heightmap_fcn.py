@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,16 +78,19 @@ def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
     np.savez(labels / "shard-00000.npz", depth=depth, grid=grid,
              hand_z=np.full(k, 0.25 + H.camera_z_G(), np.float32))
     run = tmp_path / "run"
-    H.train([str(labels)], "", run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
+    H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
             threads=1)
     saved = torch.load(run / "model.pt", weights_only=False)
     log = saved["state"]["log"]
     assert [e["epoch"] for e in log] == [1, 2] and saved["state"]["epoch"] == 2
     assert all(math.isfinite(e["train_l1_m"]) for e in log)
     before = json.dumps(log)
-    H.train([str(labels)], "", run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
+    H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
             threads=1)  # finished: nothing is trained or logged again
     assert json.dumps(torch.load(run / "model.pt", weights_only=False)["state"]["log"]) == before
+    with pytest.raises(ValueError, match=r"another training run \(differs in \['width'\]\)"):
+        H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=16, seed=0,
+                threads=1)
     data = {"depth": depth, "grid": grid, "hand_z": np.full(k, 0.25 + H.camera_z_G(), np.float32)}
     result = H.metrics(H.predict_fcn(str(run / "model.pt"), data), data, images=k)
     assert result["nodes"] > 0 and result["dense_l1_mm"] > 0
