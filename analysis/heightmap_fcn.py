@@ -134,6 +134,18 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     learning curve over data."""
     from tqdm import tqdm
 
+    if max_images < 0:
+        raise ValueError(f"max_images: expected >= 0 (0 = all), got {max_images}")
+    identity = {"labels": [str(x) for x in labels], "max_images": int(max_images),
+                "epochs": int(epochs), "batch": int(batch), "lr": float(lr),
+                "width": int(width), "seed": int(seed)}
+    ckpt = out / "checkpoint.pt"
+    saved = torch.load(ckpt, weights_only=False) if ckpt.exists() else None
+    if saved is not None and saved.get("identity") != identity:
+        theirs = saved.get("identity") or {}
+        diff = sorted(k for k in identity if theirs.get(k) != identity[k])
+        raise ValueError(f"{ckpt}: holds another training run (differs in {diff}); "
+                         "use another --out folder")
     torch.set_num_threads(threads)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -142,8 +154,6 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
         keep = np.sort(np.random.default_rng([seed, 7]).choice(
             len(data["hand_z"]), max_images, replace=False))
         data = {k: v[keep] for k, v in data.items()}
-    elif max_images < 0:
-        raise ValueError(f"max_images: expected >= 0 (0 = all), got {max_images}")
     maps = height_maps(data["depth"], data["hand_z"])
     grids, hand_z = data["grid"], data["hand_z"]
     del data
@@ -152,17 +162,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     model = HeightmapFCN(width)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     state = {"epoch": 0, "batch_index": 0, "train_s": 0.0, "log": []}
-    identity = {"labels": [str(x) for x in labels], "max_images": int(max_images),
-                "epochs": int(epochs), "batch": int(batch), "lr": float(lr),
-                "width": int(width), "seed": int(seed)}
-    ckpt = out / "checkpoint.pt"
-    if ckpt.exists():
-        saved = torch.load(ckpt, weights_only=False)
-        if saved.get("identity") != identity:
-            theirs = saved.get("identity") or {}
-            diff = sorted(k for k in identity if theirs.get(k) != identity[k])
-            raise ValueError(f"{ckpt}: holds another training run (differs in {diff}); "
-                             "use another --out folder")
+    if saved is not None:
         model.load_state_dict(saved["model"])
         opt.load_state_dict(saved["opt"])
         state = saved["state"]
@@ -214,11 +214,6 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
         save()
     torch.save({"model": model.state_dict(), "width": width, "state": state,
                 "identity": identity}, out / "model.pt")
-
-
-def _load_test(test: str):
-    data = load_labels([test])
-    return data
 
 
 def _node_offsets():
@@ -319,7 +314,7 @@ def main(argv=None) -> int:
               batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads,
               max_images=a.max_images)
         return 0
-    data = _load_test(a.test)
+    data = load_labels([a.test])
     result = {"test": a.test, "images": len(data["grid"])}
     if a.fcn:
         result[a.fcn] = metrics(predict_fcn(a.fcn, data), data)
