@@ -30,6 +30,7 @@ resumes a stopped run (the batches of epoch e are a permutation seeded by e).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -44,7 +45,8 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drake_grasp.dense_training import GRID_CONFIG, load_labels, view_masks  # noqa: E402
+from drake_grasp.dense_training import (  # noqa: E402
+    GRID_CONFIG, grid_node_actions, load_labels, view_masks)
 
 CELL_M = 0.005
 LATTICE_HALF_M = 0.18
@@ -52,7 +54,9 @@ LATTICE = int(round(2 * LATTICE_HALF_M / CELL_M)) + 1  # 73 cells, centres -18..
 HEIGHT_SCALE = 10.0  # input height in decimetres
 
 
+@functools.lru_cache(maxsize=None)
 def camera_z_G() -> float:
+    """The camera's height in the gripper frame (read once; `_masks` needs it per batch)."""
     from drake_grasp.station import gripper_frame_offsets
     return float(gripper_frame_offsets()[2].translation()[2])
 
@@ -216,14 +220,6 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
                 "identity": identity}, out / "model.pt")
 
 
-def _node_offsets():
-    t, n, _ = GRID_CONFIG.grid_shape()
-    half = (n - 1) // 2
-    xy = (np.arange(n) - half) * GRID_CONFIG.grid_step_m
-    th = -90.0 + np.arange(t) * GRID_CONFIG.grid_theta_step_deg
-    return xy, th
-
-
 def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) -> dict:
     """Dense L1 over the in-view nodes, by label bin, and within-image Spearman over the
     nodes the controller's candidates cover (|x|, |y| <= 4 cm from the hand, |theta| <= 45
@@ -239,12 +235,10 @@ def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) 
         sel = (lab >= lo) & (lab < hi)
         bins.append({"label_mm": [lo * 1e3, None if hi == np.inf else hi * 1e3],
                      "nodes": int(sel.sum()), "l1_mm": float(err[sel].mean() * 1e3)})
-    xy, th = _node_offsets()
-    # The hand sits at grid offset (-camera_x, -camera_y) from the camera's axis.
-    hx = -GRID_CONFIG.camera_x_G_m
-    hy = -GRID_CONFIG.camera_y_G_m
-    near = ((np.abs(th)[:, None, None] <= 45.0) & (np.abs(xy - hy)[None, :, None] <= 0.04)
-            & (np.abs(xy - hx)[None, None, :] <= 0.04))
+    # A node's action is the hand's displacement (x, y, theta), so "near" reads off it.
+    actions = grid_node_actions(GRID_CONFIG).reshape(*GRID_CONFIG.grid_shape(), 3)
+    near = ((np.abs(actions[..., 2]) <= 45.0) & (np.abs(actions[..., 0]) <= 0.04)
+            & (np.abs(actions[..., 1]) <= 0.04))
     rng = np.random.default_rng(seed)
     chosen = rng.choice(len(grid), min(images, len(grid)), replace=False)
     rhos, top1 = [], []
@@ -284,7 +278,7 @@ def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarra
     with torch.inference_mode():
         for lo in range(0, len(data["depth"]), batch):
             x = net.preprocess(data["depth"][lo:lo + batch].astype(np.float32))
-            out.append(net._after_ip1_grid(net.grid_hidden(x)).numpy())
+            out.append(net.image_features(x).numpy())  # a grid net's whole grid
     return np.concatenate(out)
 
 
