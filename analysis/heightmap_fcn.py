@@ -52,6 +52,12 @@ CELL_M = 0.005
 LATTICE_HALF_M = 0.18
 LATTICE = int(round(2 * LATTICE_HALF_M / CELL_M)) + 1  # 73 cells, centres -18..18 cm
 HEIGHT_SCALE = 10.0  # input height in decimetres
+# A grid node is a "grasp node" when a true grasp lies within half the diagonal of its
+# 1 cm x 1 cm x 10 degree cell (the metric weighs 10 degrees as 1 cm): every grasp over
+# the grid has one, and the distance transform of the grasp nodes is the label to within
+# that half-diagonal.
+GRASP_NODE_M = 0.5 * math.sqrt(3.0) * GRID_CONFIG.grid_step_m
+GRASP_POS_WEIGHT = 10.0  # grasp nodes are 0.7% of the in-view nodes
 
 
 @functools.lru_cache(maxsize=None)
@@ -103,10 +109,14 @@ def height_maps(depth: np.ndarray, hand_z: np.ndarray, *, batch: int = 2000) -> 
 
 
 class HeightmapFCN(nn.Module):
-    """(B, 2, 73, 73) height map -> (B, 18, 33, 33) distances [m] at the grid's nodes."""
+    """(B, 2, 73, 73) height map -> (B, 18, 33, 33) distances [m] at the grid's nodes;
+    with `grasp_head`, also (B, 18, 33, 33) logits of "a true grasp lies within
+    `GRASP_NODE_M` of this node" (`outputs`)."""
 
-    def __init__(self, width: int = 32, dilations=(1, 2, 4, 8, 4, 2, 1)):
+    def __init__(self, width: int = 32, dilations=(1, 2, 4, 8, 4, 2, 1), *,
+                 grasp_head: bool = False):
         super().__init__()
+        self.grasp_head = grasp_head
         self.stem = nn.Sequential(
             nn.Conv2d(2, width, 3, padding=1), nn.BatchNorm2d(width), nn.LeakyReLU(0.01),
             nn.Conv2d(width, width, 3, stride=2, padding=1), nn.BatchNorm2d(width),
@@ -114,16 +124,23 @@ class HeightmapFCN(nn.Module):
         self.blocks = nn.ModuleList(
             nn.Sequential(nn.Conv2d(width, width, 3, padding=d, dilation=d),
                           nn.BatchNorm2d(width), nn.LeakyReLU(0.01)) for d in dilations)
-        self.head = nn.Conv2d(width, GRID_CONFIG.grid_shape()[0], 1)
+        t_bins = GRID_CONFIG.grid_shape()[0]
+        self.head = nn.Conv2d(width, t_bins * (2 if grasp_head else 1), 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def outputs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The distances [m] and the grasp logits (None without a grasp head)."""
         h = self.stem(x)
         for block in self.blocks:
             h = h + block(h)
         n = GRID_CONFIG.grid_shape()[1]
         crop = (h.shape[-1] - n) // 2
         z = self.head(h)[:, :, crop:crop + n, crop:crop + n]
-        return GRID_CONFIG.output_scale_m * F.softplus(z)
+        t_bins = GRID_CONFIG.grid_shape()[0]
+        distances = GRID_CONFIG.output_scale_m * F.softplus(z[:, :t_bins])
+        return distances, (z[:, t_bins:] if self.grasp_head else None)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.outputs(x)[0]
 
 
 def _masks(hand_z: np.ndarray) -> torch.Tensor:
@@ -131,11 +148,29 @@ def _masks(hand_z: np.ndarray) -> torch.Tensor:
     return mx[:, None, :, None] & mx[:, None, None, :]
 
 
+def grasp_map_distances(logits: np.ndarray, hand_z: np.ndarray, threshold: float) -> np.ndarray:
+    """(B, 18, 33, 33) distances [m] from each node to the nearest in-view node whose
+    grasp probability is at least `threshold` (the Euclidean distance transform on the
+    grid's 1 cm lattice, periodic over theta's 180 degrees); NaN for an image with none."""
+    from scipy.ndimage import distance_transform_edt
+
+    t_bins = GRID_CONFIG.grid_shape()[0]
+    pos = (logits >= math.log(threshold / (1.0 - threshold))) & _masks(hand_z).numpy()
+    out = np.full(logits.shape, np.nan, np.float32)
+    for i in np.flatnonzero(pos.reshape(len(pos), -1).any(axis=1)):
+        wrapped = np.concatenate([~pos[i]] * 3, axis=0)  # theta periodic: the middle copy
+        edt = distance_transform_edt(wrapped)[t_bins:2 * t_bins]
+        out[i] = edt * GRID_CONFIG.grid_step_m
+    return out
+
+
 def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: int,
-          lr: float, width: int, seed: int, threads: int, max_images: int = 0) -> None:
+          lr: float, width: int, seed: int, threads: int, max_images: int = 0,
+          grasp_weight: float = 0.0) -> None:
     """Adam on the masked L1 over the in-view nodes, cosine decay over `epochs`;
     `max_images` > 0 trains on a random subset of that many images (seeded), for a
-    learning curve over data."""
+    learning curve over data. `grasp_weight` > 0 adds the grasp head, trained with that
+    weight on the binary cross-entropy of "label <= GRASP_NODE_M" over the same nodes."""
     from tqdm import tqdm
 
     if max_images < 0:
@@ -143,6 +178,8 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     identity = {"labels": [str(x) for x in labels], "max_images": int(max_images),
                 "epochs": int(epochs), "batch": int(batch), "lr": float(lr),
                 "width": int(width), "seed": int(seed)}
+    if grasp_weight:
+        identity["grasp_weight"] = float(grasp_weight)
     ckpt = out / "checkpoint.pt"
     saved = torch.load(ckpt, weights_only=False) if ckpt.exists() else None
     if saved is not None and saved.get("identity") != identity:
@@ -163,7 +200,8 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     del data
     print(f"{len(maps)} images; height maps in {time.perf_counter() - t0:.0f} s", flush=True)
     torch.manual_seed(seed)
-    model = HeightmapFCN(width)
+    model = HeightmapFCN(width, grasp_head=grasp_weight > 0)
+    pos_weight = torch.tensor(GRASP_POS_WEIGHT)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     state = {"epoch": 0, "batch_index": 0, "train_s": 0.0, "log": []}
     if saved is not None:
@@ -175,7 +213,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     def save():
         tmp = out / "checkpoint.pt.tmp"
         torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state,
-                    "width": width, "identity": identity}, tmp)
+                    "width": width, "grasp_head": model.grasp_head, "identity": identity}, tmp)
         tmp.replace(ckpt)
 
     budget_s = minutes * 60.0
@@ -189,7 +227,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
         for g in opt.param_groups:
             g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * state["epoch"] / epochs))
         model.train()
-        total = count = 0.0
+        total = count = bce_total = 0.0
         bar = tqdm(starts[state["batch_index"]:], desc=f"epoch {state['epoch'] + 1}",
                    mininterval=30)
         for s in bar:
@@ -197,12 +235,19 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
             x = torch.from_numpy(maps[idx].astype(np.float32))
             target = torch.from_numpy(grids[idx].astype(np.float32))
             mask = _masks(hand_z[idx]).expand_as(target) & torch.isfinite(target)
-            pred = model(x)
+            pred, logits = model.outputs(x)
             loss = (pred - target).abs()[mask].mean()
+            l1 = loss.item()
+            if logits is not None:
+                is_grasp = (target <= GRASP_NODE_M).float()
+                bce = F.binary_cross_entropy_with_logits(logits[mask], is_grasp[mask],
+                                                         pos_weight=pos_weight)
+                loss = loss + grasp_weight * bce
+                bce_total += bce.item() * len(idx)
             opt.zero_grad()
             loss.backward()
             opt.step()
-            total += loss.item() * len(idx)
+            total += l1 * len(idx)
             count += len(idx)
             state["batch_index"] += 1
             state["train_s"] = base_s + time.perf_counter() - start
@@ -211,13 +256,15 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
                 break
         state["log"].append({"epoch": state["epoch"] + 1, "batches_to": state["batch_index"],
                              "train_l1_m": total / max(count, 1), "train_s": state["train_s"]})
+        if model.grasp_head:
+            state["log"][-1]["train_bce"] = bce_total / max(count, 1)
         print(json.dumps(state["log"][-1]), flush=True)
         if not stopped:
             state["epoch"] += 1
             state["batch_index"] = 0
         save()
-    torch.save({"model": model.state_dict(), "width": width, "state": state,
-                "identity": identity}, out / "model.pt")
+    torch.save({"model": model.state_dict(), "width": width, "grasp_head": model.grasp_head,
+                "state": state, "identity": identity}, out / "model.pt")
 
 
 def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) -> dict:
@@ -257,17 +304,52 @@ def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) 
             "top1_within_1cm": float(np.mean(top1))}
 
 
-def predict_fcn(path: str, data: dict, *, batch: int = 200) -> np.ndarray:
+def predict_fcn(path: str, data: dict, *, batch: int = 200) -> tuple[np.ndarray, np.ndarray | None]:
+    """A trained FCN's distances and (with a grasp head; else None) grasp logits."""
     saved = torch.load(path, weights_only=False)
-    model = HeightmapFCN(saved["width"])
+    model = HeightmapFCN(saved["width"], grasp_head=saved.get("grasp_head", False))
     model.load_state_dict(saved["model"])
     model.eval()
     maps = height_maps(data["depth"], data["hand_z"])
-    out = []
+    dist, logits = [], []
     with torch.inference_mode():
         for lo in range(0, len(maps), batch):
-            out.append(model(torch.from_numpy(maps[lo:lo + batch].astype(np.float32))).numpy())
-    return np.concatenate(out)
+            d, z = model.outputs(torch.from_numpy(maps[lo:lo + batch].astype(np.float32)))
+            dist.append(d.numpy())
+            logits.append(None if z is None else z.numpy())
+    return np.concatenate(dist), (None if logits[0] is None else np.concatenate(logits))
+
+
+GRASP_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def grasp_map_variants(dist: np.ndarray, logits: np.ndarray, hand_z: np.ndarray,
+                       threshold: float) -> dict:
+    """Distances from the grasp head at `threshold`: the grasp map's distance transform
+    (the distance head in images without a grasp node), and the smaller of the two."""
+    edt = grasp_map_distances(logits, hand_z, threshold)
+    return {"grasp map": np.where(np.isnan(edt), dist, edt),
+            "min(grasp map, distance head)": np.fmin(edt, dist)}
+
+
+def compare_grasp_head(fcn: str, test: dict, val: dict) -> dict:
+    """The grasp head's variants, each at the probability threshold with the lowest
+    dense L1 on `val` (never on the test set), measured on `test`."""
+    val_dist, val_logits = predict_fcn(fcn, val)
+    by_threshold = {}
+    for t in GRASP_THRESHOLDS:
+        for name, pred in grasp_map_variants(val_dist, val_logits, val["hand_z"], t).items():
+            by_threshold.setdefault(name, {})[t] = metrics(pred, val, images=500)["dense_l1_mm"]
+    del val_dist, val_logits
+    dist, logits = predict_fcn(fcn, test)
+    result = {"distance head": metrics(dist, test)}
+    for name, l1s in by_threshold.items():
+        best = min(l1s, key=l1s.get)
+        pred = grasp_map_variants(dist, logits, test["hand_z"], best)[name]
+        result[name] = {"threshold": best, "val_dense_l1_mm_by_threshold": l1s,
+                        **metrics(pred, test)}
+        del pred
+    return result
 
 
 def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarray:
@@ -297,21 +379,32 @@ def main(argv=None) -> int:
     t.add_argument("--width", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--grasp-weight", type=float, default=0.0,
+                   help="> 0: add the grasp head, its cross-entropy weighted so")
     c = sub.add_parser("compare")
     c.add_argument("--test", required=True)
     c.add_argument("--fcn", default="")
+    c.add_argument("--val", default="", help="dense-labels folder(s) on which a grasp "
+                   "head's threshold is chosen (required for an FCN with a grasp head)")
     c.add_argument("--weights", default="", help="comma-separated grid-head weights files")
     c.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     if a.cmd == "train":
         train(a.labels.split(","), Path(a.out), minutes=a.minutes, epochs=a.epochs,
               batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads,
-              max_images=a.max_images)
+              max_images=a.max_images, grasp_weight=a.grasp_weight)
         return 0
     data = load_labels([a.test])
     result = {"test": a.test, "images": len(data["grid"])}
-    if a.fcn:
-        result[a.fcn] = metrics(predict_fcn(a.fcn, data), data)
+    if a.fcn and torch.load(a.fcn, weights_only=False).get("grasp_head"):
+        if not a.val:
+            raise SystemExit(f"{a.fcn} has a grasp head: --val FOLDER[,FOLDER] is needed "
+                             "to choose its threshold")
+        result[a.fcn] = compare_grasp_head(a.fcn, data, load_labels(a.val.split(",")))
+        result["val"] = a.val
+        print(a.fcn, json.dumps(result[a.fcn]), flush=True)
+    elif a.fcn:
+        result[a.fcn] = metrics(predict_fcn(a.fcn, data)[0], data)
         print(a.fcn, json.dumps(result[a.fcn]), flush=True)
     for w in filter(None, a.weights.split(",")):
         result[w] = metrics(predict_grid_net(w, data), data)

@@ -92,5 +92,54 @@ def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
         H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=16, seed=0,
                 threads=1)
     data = {"depth": depth, "grid": grid, "hand_z": np.full(k, 0.25 + H.camera_z_G(), np.float32)}
-    result = H.metrics(H.predict_fcn(str(run / "model.pt"), data), data, images=k)
+    result = H.metrics(H.predict_fcn(str(run / "model.pt"), data)[0], data, images=k)
     assert result["nodes"] > 0 and result["dense_l1_mm"] > 0
+
+
+def test_grasp_map_distances_are_the_metric_to_the_nearest_grasp_node():
+    H = _module()
+    t_bins, n, _ = H.GRID_CONFIG.grid_shape()
+    hand_z = np.array([0.30 + H.camera_z_G(), 0.30 + H.camera_z_G()])  # a wide view
+    logits = np.full((2, t_bins, n, n), -10.0, np.float32)
+    logits[0, 1, 16, 16] = 3.0            # p = 0.95 at theta bin 1, the centre node
+    logits[1, 5, 10, 10] = -0.5           # p = 0.38: under the threshold
+    d = H.grasp_map_distances(logits, hand_z, threshold=0.5)
+    assert np.isnan(d[1]).all()
+    step = H.GRID_CONFIG.grid_step_m
+    T, Y, X = np.meshgrid(np.arange(t_bins), np.arange(n), np.arange(n), indexing="ij")
+    dt = np.minimum(np.abs(T - 1), t_bins - np.abs(T - 1))  # theta wraps at 180 degrees
+    expected = step * np.sqrt(dt**2 + (Y - 16) ** 2 + (X - 16) ** 2)
+    assert np.allclose(d[0], expected, atol=1e-6)
+    assert d[0, t_bins - 1, 16, 16] == pytest.approx(2 * step)  # -90 deg is 20 deg from -70
+
+
+def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_path):
+    H = _module()
+    t_bins, n, _ = H.GRID_CONFIG.grid_shape()
+    net = H.HeightmapFCN(width=8, dilations=(1,), grasp_head=True)
+    dist, logits = net.outputs(torch.zeros(2, 2, H.LATTICE, H.LATTICE))
+    assert dist.shape == logits.shape == (2, t_bins, n, n)
+    rng = np.random.default_rng(1)
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    k = 4
+    depth = np.stack([_box_image(H, 0.25, rng.uniform(-0.05, 0.05, 2), 0.02, 0.05)
+                      for _ in range(k)]).astype(np.float16)
+    grid = rng.uniform(0.0, 0.2, (k, t_bins, n, n)).astype(np.float16)
+    hand_z = np.full(k, 0.25 + H.camera_z_G(), np.float32)
+    np.savez(labels / "shard-00000.npz", depth=depth, grid=grid, hand_z=hand_z)
+    run = tmp_path / "run"
+    H.train([str(labels)], run, minutes=5, epochs=1, batch=2, lr=1e-3, width=8, seed=0,
+            threads=1, grasp_weight=1.0)
+    saved = torch.load(run / "model.pt", weights_only=False)
+    assert saved["grasp_head"] and math.isfinite(saved["state"]["log"][0]["train_bce"])
+    data = {"depth": depth, "grid": grid, "hand_z": hand_z}
+    dist, logits = H.predict_fcn(str(run / "model.pt"), data)
+    assert logits is not None and logits.shape == dist.shape
+    logits[0] = -20.0  # image 0 has no grasp node: both variants give the distance head
+    logits[1, 0, 16, 16] = 20.0
+    v = H.grasp_map_variants(dist, logits, hand_z, 0.5)
+    assert np.array_equal(v["grasp map"][0], dist[0])
+    assert np.array_equal(v["min(grasp map, distance head)"][0], dist[0])
+    assert v["grasp map"][1, 0, 16, 16] == 0.0
+    assert np.all(v["min(grasp map, distance head)"] <= dist)
