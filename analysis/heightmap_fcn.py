@@ -332,6 +332,18 @@ def grasp_map_variants(dist: np.ndarray, logits: np.ndarray, hand_z: np.ndarray,
             "min(grasp map, distance head)": np.fmin(edt, dist)}
 
 
+def grasp_node_oracle(data: dict) -> dict:
+    """The grasp map's floor: the distance transform of the labels' own grasp nodes
+    (label <= GRASP_NODE_M, in view), measured on the images that have one."""
+    grid = data["grid"].astype(np.float32)
+    logits = np.where(grid <= GRASP_NODE_M, 10.0, -10.0).astype(np.float32)  # NaN: -10
+    edt = grasp_map_distances(logits, data["hand_z"], 0.5)
+    has = ~np.isnan(edt.reshape(len(edt), -1)).all(axis=1)
+    kept = {k: v[has] for k, v in data.items()}
+    return {"images_with_a_grasp_node": int(has.sum()), "images": len(has),
+            **metrics(edt[has], kept)}
+
+
 def compare_grasp_head(fcn: str, test: dict, val: dict) -> dict:
     """The grasp head's variants, each at the probability threshold with the lowest
     dense L1 on `val` (never on the test set), measured on `test`."""
@@ -387,6 +399,8 @@ def main(argv=None) -> int:
     c.add_argument("--val", default="", help="dense-labels folder(s) on which a grasp "
                    "head's threshold is chosen (required for an FCN with a grasp head)")
     c.add_argument("--weights", default="", help="comma-separated grid-head weights files")
+    c.add_argument("--oracle", action="store_true",
+                   help="also the distance transform of the labels' own grasp nodes")
     c.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     if a.cmd == "train":
@@ -406,6 +420,9 @@ def main(argv=None) -> int:
     elif a.fcn:
         result[a.fcn] = metrics(predict_fcn(a.fcn, data)[0], data)
         print(a.fcn, json.dumps(result[a.fcn]), flush=True)
+    if a.oracle:
+        result["grasp-node oracle"] = grasp_node_oracle(data)
+        print("grasp-node oracle", json.dumps(result["grasp-node oracle"]), flush=True)
     for w in filter(None, a.weights.split(",")):
         result[w] = metrics(predict_grid_net(w, data), data)
         print(w, json.dumps(result[w]), flush=True)

@@ -143,3 +143,18 @@ def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_p
     assert np.array_equal(v["min(grasp map, distance head)"][0], dist[0])
     assert v["grasp map"][1, 0, 16, 16] == 0.0
     assert np.all(v["min(grasp map, distance head)"] <= dist)
+
+
+def test_grasp_node_oracle_recovers_labels_that_are_a_distance_transform():
+    H = _module()
+    t_bins, n, _ = H.GRID_CONFIG.grid_shape()
+    hand_z = np.full(3, 0.30 + H.camera_z_G(), np.float32)
+    logits = np.full((3, t_bins, n, n), -10.0, np.float32)
+    logits[0, 3, 12, 20] = logits[1, 9, 16, 16] = logits[1, 9, 5, 25] = 10.0
+    grid = H.grasp_map_distances(logits, hand_z, 0.5)
+    grid[2] = 0.2  # no grasp node: left out
+    data = {"depth": np.zeros((3, 64, 64), np.float16), "grid": grid.astype(np.float16),
+            "hand_z": hand_z}
+    result = H.grasp_node_oracle(data)
+    assert result["images_with_a_grasp_node"] == 2 and result["images"] == 3
+    assert result["dense_l1_mm"] < 0.1  # float16 rounding of the labels only
