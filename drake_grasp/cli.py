@@ -329,7 +329,7 @@ def _cmd_evaluate(args) -> int:
                       converge_iterations=-1 if args.converge is None else args.converge,
                       distance_samples=0 if args.distance_samples is None
                       else args.distance_samples, hand_check=args.hand_check,
-                      ctr_text=args.ctr_text or "")
+                      ctr_text=args.ctr_text or "", failure_memory_m=args.failure_memory)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -801,6 +801,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "a YAML mapping of controller.* keys applied after the experiment's "
                         "(e.g. '{stop_distance_m: 0.2, end_camera_height_m: 0.21}'); part of "
                         "the run's identity")
+    p.add_argument("--failure-memory", type=float, default=0.0, metavar="M",
+                   help="in clutter runs every policy avoids, within M metres of the grasp "
+                        "metric, the grasps of its earlier attempts of the run that lifted "
+                        "nothing (failure_memory.radius_m; not in the paper; default off)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

@@ -605,6 +605,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
     depth_port = station.diagram.GetOutputPort("depth_image")
     frames, steps = [], []
     distance = None
+    closed = False  # whether the policy closed the gripper
     detection = None  # gpd: the judge's check of its detection (`detection_check`)
     dt = 1.0 / scenario.camera.fps
     t = 0.0
@@ -620,6 +621,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                 steps.append(last)
         # The paper's metric is taken where the hand stands when the fingers start to
         # close (INIT: where it started).
+        closed = closed or mode == "close"
         if distance is None and (mode == "close" or (mode == "done" and scenario.policy == "init")):
             distance = final_distance(plant, plant_context, station, scene, library, scenario.seed,
                                       num_samples=scenario.judge.distance_grasp_samples)
@@ -685,6 +687,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  "stop_reason": outcome.get("stop_reason"),
                  "final_mode": policy.mode_name(policy_context),
                  "hand_at_close_xy_yaw": distance["hand_xy_yaw"],
+                 "gripper_closed": closed,
                  "num_true_grasps": distance["num_true_grasps"],
                  "simulation_wall_time_s": loop_wall_s,
                  "num_depth_frames": len(frames),

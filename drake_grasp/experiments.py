@@ -101,6 +101,10 @@ class Experiment:
     # search of this many surface points (`judge.distance_grasp_samples`); 0 keeps the
     # scenario's. `evaluate --distance-samples` sets it.
     judge_distance_samples: int = 0
+    # > 0: every condition runs with `failure_memory.radius_m` set so (a clutter run's
+    # policy avoids its own earlier failed grasps; not in the paper); 0 keeps the
+    # scenario's (off). `evaluate --failure-memory` sets it.
+    failure_memory_m: float = 0.0
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -293,6 +297,9 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     if experiment.judge_distance_samples > 0:
         s.judge = dataclasses.replace(
             s.judge, distance_grasp_samples=experiment.judge_distance_samples)
+    if experiment.failure_memory_m > 0:
+        s.failure_memory = dataclasses.replace(s.failure_memory,
+                                               radius_m=experiment.failure_memory_m)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,

@@ -573,8 +573,26 @@ class Detections:
     num_cloud_points: int
     timings: dict = field(default_factory=dict)
 
-    def best(self) -> np.ndarray | None:
-        return self.poses[0].copy() if len(self.poses) else None
+    def best(self, avoid_xy_yaw: np.ndarray | None = None, radius_m: float = 0.0
+             ) -> np.ndarray | None:
+        """The best detection; with `avoid_xy_yaw` ((K, 3) planar grasps x, y, yaw_deg)
+        the best one whose planar grasp (centre, closing direction projected onto the
+        table) is farther than `radius_m` from all of them in the grasp metric, the best
+        one when none is (`scenario.FailureMemoryConfig`)."""
+        if not len(self.poses):
+            return None
+        if avoid_xy_yaw is not None and len(avoid_xy_yaw) and radius_m > 0.0:
+            from drake_grasp.grasps import grasp_distance
+
+            R = self.poses[:, :3, :3]
+            planar = np.column_stack([self.poses[:, 0, 3], self.poses[:, 1, 3],
+                                      np.rad2deg(np.arctan2(R[:, 1, 0], R[:, 0, 0]))])
+            near = grasp_distance(planar[:, None, :],
+                                  np.asarray(avoid_xy_yaw, float)[None, :, :]).min(axis=1)
+            clear = np.flatnonzero(near > radius_m)
+            if len(clear):
+                return self.poses[clear[0]].copy()
+        return self.poses[0].copy()
 
 
 @dataclass
@@ -622,9 +640,11 @@ def make_detector(scenario, classifier: GraspClassifier | ClassifierEnsemble | N
                            center_xy=tuple(float(v) for v in scenario.scene.center_xy_m),
                            search=HandSearch(approach_max_tilt_deg=g.approach_max_tilt_deg))
 
+    failed = scenario.failure_memory.failed()
+
     def detect(depth, X_WC):
         rng = np.random.default_rng([int(scenario.seed), 59])
-        return detector.detect(depth, X_WC, rng).best()
+        return detector.detect(depth, X_WC, rng).best(failed, scenario.failure_memory.radius_m)
 
     detect.detector = detector
     return detect

@@ -76,6 +76,8 @@ class TrialTask:
     ctr_hand_check: bool = False
     # `Experiment.ctr_controller_text`.
     ctr_controller_text: str = ""
+    # `Experiment.failure_memory_m`.
+    failure_memory_m: float = 0.0
 
     @property
     def trial_id(self) -> str:
@@ -83,8 +85,8 @@ class TrialTask:
 
 
 def task_experiment(task: TrialTask) -> Experiment:
-    """The experiment a task belongs to, with the task's physics profile, CNN weights, CNN
-    mirror averaging and GPD classifier weights."""
+    """The experiment a task belongs to, with the settings the task carries (physics
+    profile, CNN and GPD weights, the closed-loop options, the failure memory)."""
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
@@ -105,6 +107,8 @@ def task_experiment(task: TrialTask) -> Experiment:
     if task.ctr_controller_text:
         experiment = dataclasses.replace(experiment,
                                          ctr_controller_text=task.ctr_controller_text)
+    if task.failure_memory_m > 0:
+        experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
     return experiment
 
 
@@ -133,7 +137,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
                       experiment.cnn_weights, experiment.gpd_weights,
                       experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
                       experiment.judge_distance_samples, experiment.ctr_hand_check,
-                      experiment.ctr_controller_text)
+                      experiment.ctr_controller_text, experiment.failure_memory_m)
             for i in range(n) for c, spec in asked]
 
 
@@ -443,6 +447,9 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
         extra={"stop_reason": r.details.get("stop_reason"),
                "decision_time_s": r.details.get("decision_time_s"),
                "decisions": r.details.get("decisions", 0),
+               # Where the hand closed (None when it never closed).
+               "hand_at_close_xy_yaw": (r.details.get("hand_at_close_xy_yaw")
+                                        if r.details.get("gripper_closed") else None),
                **({"policy_inputs": r.details["policy_inputs"]}
                   if "policy_inputs" in r.details else {}),
                **({"gpd_detection": r.details["gpd_detection"]}
@@ -564,6 +571,18 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
     return None
 
 
+def failed_closings(records) -> list[float]:
+    """The hand's poses (x, y, yaw_deg, flat) where a clutter run's earlier attempts
+    closed the gripper and lifted nothing: what `FailureMemoryConfig` remembers. Attempts
+    that never closed (no detection, a simulation error) leave nothing."""
+    out: list[float] = []
+    for r in sorted(records, key=lambda r: r.attempt_index):
+        pose = r.extra.get("hand_at_close_xy_yaw")
+        if not r.success and r.failure_class != "simulation-error" and pose is not None:
+            out += [float(v) for v in pose]
+    return out
+
+
 def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_trials):
     """One clutter run: attempts on one pile, each grasped object removed, until
     `clutter_run_status` says it has ended (its docstring has the rule). Resumes after the
@@ -611,6 +630,9 @@ def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_tr
     while status is None:
         t0 = time.perf_counter()
         attempt_scenario = dataclasses.replace(scenario, seed=scenario.seed + 1000 * attempt)
+        if scenario.failure_memory.radius_m > 0.0:
+            attempt_scenario.failure_memory = dataclasses.replace(
+                scenario.failure_memory, failed_xy_yaw=failed_closings(records))
         trial_id = f"{prefix}{attempt:02d}"
         stage = "simulation"
         try:
@@ -661,7 +683,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
              mirror_average: bool = False, converge_iterations: int = -1,
              distance_samples: int = 0, hand_check: bool = False,
-             ctr_text: str = "") -> dict:
+             ctr_text: str = "", failure_memory_m: float = 0.0) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -714,6 +736,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         ctr_text: A YAML mapping of controller settings for the closed-loop conditions
             (`Experiment.ctr_controller_text`, e.g. "{stop_distance_m: 0.2}"), applied
             last; part of the run's identity through the conditions' scenarios.
+        failure_memory_m: > 0: every condition runs with `failure_memory.radius_m` so
+            (in a clutter run the policy avoids, within this radius, the grasps of its
+            earlier attempts that lifted nothing; not in the paper); part of the run's
+            identity through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -764,6 +790,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
         exp = dataclasses.replace(exp, ctr_hand_check=True)
     if ctr_text and ctr_text.strip():
         exp = dataclasses.replace(exp, ctr_controller_text=ctr_text)
+    if failure_memory_m:
+        if not 0.0 < failure_memory_m <= 0.1:
+            raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
+                             f"{failure_memory_m}")
+        exp = dataclasses.replace(exp, failure_memory_m=float(failure_memory_m))
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -64,6 +64,23 @@ def offset_fraction(moved_m: float, ramp_m: float) -> float:
     return float(min(1.0, max(0.0, moved_m / ramp_m)))
 
 
+def memory_penalty(hand_xy_yaw, actions: np.ndarray, failed_xy_yaw: np.ndarray,
+                   radius_m: float) -> np.ndarray:
+    """(M,) how far inside `radius_m` of the nearest remembered failed grasp each action
+    takes the hand [m] (0 outside; `scenario.FailureMemoryConfig`): added to the
+    predicted distances, it fills the CNN's valley at a grasp that already failed."""
+    from drake_grasp.actions import apply_actions
+    from drake_grasp.grasps import grasp_distance
+
+    actions = np.asarray(actions, float)
+    failed = np.asarray(failed_xy_yaw, float).reshape(-1, 3)
+    if radius_m <= 0.0 or len(failed) == 0 or len(actions) == 0:
+        return np.zeros(len(actions))
+    poses = apply_actions(hand_xy_yaw, actions)
+    nearest = grasp_distance(poses[:, None, :], failed[None, :, :]).min(axis=1)
+    return np.maximum(0.0, radius_m - nearest)
+
+
 def choose_action(actions: np.ndarray, distances: np.ndarray) -> tuple[np.ndarray, float]:
     """The candidate with the least predicted distance (first one on ties)."""
     d = np.asarray(distances, dtype=float)

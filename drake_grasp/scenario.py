@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 # at run time and cannot resolve string annotations.
 from pathlib import Path
 
+import numpy as np
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
@@ -357,6 +358,28 @@ class CalibrationConfig:
 
 
 @dataclass
+class FailureMemoryConfig:
+    """A clutter run's memory of the policy's own failed grasps (not in the paper; off
+    by default). With `radius_m` > 0, `ctr` adds to each candidate's predicted distance
+    how far inside `radius_m` of the nearest remembered grasp the candidate's pose lies
+    (the grasp metric: x, y and 0.001 m/deg of yaw, modulo 180 degrees), and `gpd` takes
+    its best detection farther than `radius_m` from all of them (its best one when none
+    is). The experiment protocol fills `failed_xy_yaw` (x, y [m], yaw [deg], flat) with
+    the hand's pose at each earlier failed closing of the run: what the robot knows of
+    its own arm and of an empty gripper after a lift.
+    """
+
+    radius_m: float = 0.0
+    failed_xy_yaw: list[float] = field(default_factory=list)
+
+    def failed(self) -> np.ndarray:
+        """The remembered grasps, (N, 3) = (x, y, yaw_deg); none while off."""
+        if self.radius_m <= 0.0:
+            return np.zeros((0, 3))
+        return np.asarray(self.failed_xy_yaw, float).reshape(-1, 3)
+
+
+@dataclass
 class DisturbanceConfig:
     """Moving the sheet under the objects during a grasp.
 
@@ -473,6 +496,7 @@ class Scenario:
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    failure_memory: FailureMemoryConfig = field(default_factory=FailureMemoryConfig)
     # Target-object mode: grasp this object id (restricts candidates to its pixels).
     target: str = ""
     # Object library folder made by `drake-grasp objects import`; "" = built-in.
@@ -538,6 +562,11 @@ class Scenario:
             if (not isinstance(value, list) or len(value) != 2
                     or not all(_is_real(v) and math.isfinite(v) for v in value)):
                 raise ValueError(f"{key}: expected [x, y] (two finite numbers), got {value!r}")
+        failed = self.failure_memory.failed_xy_yaw
+        if (not isinstance(failed, list) or len(failed) % 3
+                or not all(_is_real(v) and math.isfinite(v) for v in failed)):
+            raise ValueError("failure_memory.failed_xy_yaw: expected a flat list of finite "
+                             f"numbers, 3 per grasp (x, y, yaw_deg), got {failed!r}")
         c = self.controller
         if not c.end_camera_height_m <= self.arm.start_camera_height_m:
             raise ValueError(
@@ -729,6 +758,7 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "controller.max_yaw_from_start_deg": (0, 360, False, False, "deg"),
     "controller.support_margin_m": (0, 0.05, False, False, "m"),
     "controller.hand_clearance_m": (-0.05, 0.05, False, False, "m"),
+    "failure_memory.radius_m": (0.0, 0.1, False, False, "m"),
     "controller.hand_margin_m": (0, 0.05, False, False, "m"),
     "controller.num_candidates": (1, 1_000_000, False, False, ""),
     "controller.sample_xy_m": (0, _INF, False, True, "m"),

@@ -56,6 +56,7 @@ from drake_grasp.policies import (
     grasp_height,
     hand_overlap_m,
     heights_in_hand_box,
+    memory_penalty,
     image_points_W,
     widest_section_height,
     min_depth_under_axis,
@@ -206,6 +207,7 @@ class GraspController(LeafSystem):
         """
         super().__init__()
         self._s = scenario
+        self._failed = scenario.failure_memory.failed()
         self._policy = policy
         c = scenario.controller
         self._period = c.period_s
@@ -277,6 +279,12 @@ class GraspController(LeafSystem):
         return self._start
 
     # -- geometry helpers --------------------------------------------------------------
+
+    def _memory_penalty(self, hand, actions: np.ndarray) -> np.ndarray:
+        """`policies.memory_penalty` of the run's remembered failed grasps (zeros when
+        `failure_memory` is off or empty)."""
+        return memory_penalty([hand[0], hand[1], hand[3]], actions, self._failed,
+                              self._s.failure_memory.radius_m)
 
     def _camera_height(self, hand) -> float:
         return float(hand[2]) + self._cam_dz
@@ -434,7 +442,7 @@ class GraspController(LeafSystem):
         mask = self._target_mask(context, actions, hand)
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
-        return choose_action(actions, distances)[0]
+        return choose_action(actions, distances + self._memory_penalty(hand, actions))[0]
 
     def _ctr_step(self, context, s: ControllerState, t: float) -> ControllerState:
         c = self._s.controller
@@ -471,9 +479,10 @@ class GraspController(LeafSystem):
         mask = self._target_mask(context, actions, hand)
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
-        best, _ = choose_action(actions, distances)
+        scores = distances + self._memory_penalty(hand, actions)
+        best, _ = choose_action(actions, scores)
         if s.converging and c.hand_check:
-            clear = self._best_clear(depth, hand, actions, distances)
+            clear = self._best_clear(depth, hand, actions, scores)
             best = best if clear is None else clear
         ratio = c.converge_step_ratio if s.converging and c.converge_step_ratio > 0 else c.step_ratio
         command = ratio * best

@@ -1,0 +1,139 @@
+"""failure_memory (off by default; not in the paper): in a clutter run, each attempt's
+policy is given the hand poses where the run's earlier attempts closed and held nothing;
+CTR adds a penalty to candidates leading near them, GPD takes its best detection away
+from them."""
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+import drake_grasp.montecarlo as m
+from drake_grasp.gpd import Detections
+from drake_grasp.montecarlo import evaluate
+from drake_grasp.policies import memory_penalty
+from drake_grasp.results import load_records
+from drake_grasp.scenario import load_scenario
+from drake_grasp.station import gripper_frame_offsets, topdown_pose
+from drake_grasp.systems.controller import GraspController, Phase, hand_to_pose
+
+
+def test_penalty_is_how_far_inside_the_radius_a_candidate_leads():
+    hand = [0.5, 0.0, 90.0]  # yaw 90: the hand's x axis is world y
+    failed = np.array([[0.5, 0.01, 90.0], [0.3, 0.3, 0.0]])
+    actions = np.array([[0.01, 0.0, 0.0],     # onto the first failed grasp
+                        [0.0, 0.0, 0.0],      # 1 cm from it
+                        [0.01, 0.0, 180.0],   # onto it, turned half a turn: the same grasp
+                        [0.01, 0.0, 20.0],    # onto it, 20 degrees off: 2 cm in the metric
+                        [0.05, 0.0, 0.0]])    # 4 cm from it
+    p = memory_penalty(hand, actions, failed, 0.02)
+    assert p == pytest.approx([0.02, 0.01, 0.02, 0.0, 0.0], abs=1e-12)
+    assert np.all(memory_penalty(hand, actions, failed, 0.0) == 0)
+    assert np.all(memory_penalty(hand, actions, np.zeros((0, 3)), 0.02) == 0)
+
+
+def test_gpd_takes_its_best_detection_away_from_the_remembered_grasps():
+    poses = np.stack([hand_to_pose((0.5, 0.0, 0.05, 30.0)).GetAsMatrix4(),
+                      hand_to_pose((0.5, 0.005, 0.05, 30.0)).GetAsMatrix4(),
+                      hand_to_pose((0.45, 0.0, 0.05, 0.0)).GetAsMatrix4()])
+    det = Detections(poses, np.array([0.9, 0.8, 0.7]), 3, 100)
+    assert np.array_equal(det.best(), poses[0])
+    failed = np.array([[0.5, 0.0, 30.0]])
+    assert np.array_equal(det.best(failed, 0.02), poses[2])
+    assert np.array_equal(det.best(failed, 0.0), poses[0])  # off
+    everywhere = np.array([[0.5, 0.0, 30.0], [0.45, 0.0, 0.0]])
+    assert np.array_equal(det.best(everywhere, 0.02), poses[0])  # none clear: the best
+    assert Detections(np.zeros((0, 4, 4)), np.zeros(0), 0, 0).best(failed, 0.02) is None
+
+
+def _ctr_choice(failed_xy_yaw):
+    """CTR's first choice between staying put (scored best) and 4 cm along y_G."""
+    text = "{seed: 2, failure_memory: {radius_m: 0.02, failed_xy_yaw: %s}}" % failed_xy_yaw
+    scenario = load_scenario(scenario_name="clutter", scenario_text=text)
+    _, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], 0.0)
+    ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC)
+    sim = Simulator(ctrl)
+    ctx = sim.get_mutable_context()
+    img = ImageDepth32F(64, 64)
+    img.mutable_data[:, :, 0] = 0.3
+    ctrl.GetInputPort("depth_image").FixValue(ctx, img)
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.array([[0.0, 0.0, 0.0],
+                                                                   [0.0, 0.04, 0.0]]))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.array([0.01, 0.02]))
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    sim.AdvanceTo(1.5 * scenario.controller.period_s)
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.SERVO and s.iteration == 1
+    # The step records the CNN's distances, not the penalized scores.
+    assert np.array_equal(s.last_step.distances, [0.01, 0.02])
+    return s.last_step.chosen, ctrl.start_hand
+
+
+def test_ctr_leaves_a_candidate_that_leads_onto_a_remembered_grasp():
+    chosen, hand = _ctr_choice("[]")
+    assert np.allclose(chosen, [0.0, 0.0, 0.0])
+    # A failed grasp where the hand stands: staying put scores 0.01 + 0.02, the other 0.02.
+    chosen, _ = _ctr_choice(f"[{hand[0]}, {hand[1]}, {hand[3]}]")
+    assert np.allclose(chosen, [0.0, 0.04, 0.0])
+
+
+def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, monkeypatch):
+    import drake_grasp.scene as scene_module
+    from tests.test_montecarlo import _pile
+
+    # attempt 0 closes and fails, 1 detects nothing (never closes), 2 raises, 3 grasps,
+    # 4-6 close and fail: the run ends after three failed grasps in a row.
+    outcomes = ["fail", "no closing", "raise", "ok", "fail", "fail", "fail"]
+    seen = []
+
+    def simulate(scenario, library, *, scene=None):
+        k = len(seen)
+        seen.append(list(scenario.failure_memory.failed_xy_yaw))
+        what = outcomes[k]
+        if what == "raise":
+            raise RuntimeError("solver diverged (test)")
+        ok = what == "ok"
+        result = SimpleNamespace(
+            success=ok, failure_reason=None if ok else "missed: nothing between the pads",
+            disturbance={}, final_distance_m=0.01, sim_time_s=1.0, control_steps=3,
+            object_ids=scene.object_ids(),
+            details={"grasped_object_id": scene.objects[0].object_id if ok else None,
+                     "hand_at_close_xy_yaw": [0.5, 0.01 * k, 10.0 * k],
+                     "gripper_closed": what != "no closing"})
+        return SimpleNamespace(result=result, final_scene=scene)
+
+    monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
+    monkeypatch.setattr(scene_module, "settle_scene",
+                        lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
+    monkeypatch.setattr(m, "_simulate", simulate)
+    evaluate(experiment="clutter", out=tmp_path / "c", trials=1, workers=1, seed=0,
+             progress=False, conditions=["ctr"], failure_memory_m=0.02, report=False)
+    first = [0.5, 0.0, 0.0]
+    fifth = [0.5, 0.04, 40.0]
+    assert seen == [[], first, first, first, first, first + fifth,
+                    first + fifth + [0.5, 0.05, 50.0]]
+    records = load_records(tmp_path / "c")
+    assert records[1].extra["hand_at_close_xy_yaw"] is None  # it never closed
+    assert "0.5, 0.04, 40.0, 0.5, 0.05, 50.0]" in records[6].scenario_yaml
+    # Off (the default): nothing is passed.
+    seen.clear()
+    evaluate(experiment="clutter", out=tmp_path / "off", trials=1, workers=1, seed=0,
+             progress=False, conditions=["ctr"], report=False)
+    assert seen == [[]] * 7
+
+
+def test_failure_memory_settings_are_checked(tmp_path):
+    with pytest.raises(ValueError, match="failure_memory.radius_m"):
+        load_scenario(scenario_name="clutter", scenario_text="{failure_memory: {radius_m: 0.5}}")
+    with pytest.raises(ValueError, match="failure_memory.failed_xy_yaw: expected a flat list"):
+        load_scenario(scenario_name="clutter",
+                      scenario_text="{failure_memory: {failed_xy_yaw: [0.5, 0.0]}}")
+    with pytest.raises(ValueError, match=r"--failure-memory: expected a radius in \(0, 0.1\] m"):
+        evaluate(experiment="clutter", out=tmp_path / "r", trials=1, failure_memory_m=0.5,
+                 progress=False)
+    assert not (tmp_path / "r").exists()
