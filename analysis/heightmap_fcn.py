@@ -320,7 +320,7 @@ def predict_fcn(path: str, data: dict, *, batch: int = 200) -> tuple[np.ndarray,
     return np.concatenate(dist), (None if logits[0] is None else np.concatenate(logits))
 
 
-GRASP_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+GRASP_THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995)
 
 
 def grasp_map_variants(dist: np.ndarray, logits: np.ndarray, hand_z: np.ndarray,
