@@ -803,7 +803,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the run's identity")
     p.add_argument("--failure-memory", type=float, default=0.0, metavar="M",
                    help="in clutter runs every policy avoids, within M metres of the grasp "
-                        "metric, the grasps of its earlier attempts of the run that lifted "
+                        "metric, the grasps of its earlier attempts of the run that held "
                         "nothing (failure_memory.radius_m; not in the paper; default off)")
     p.set_defaults(func=_cmd_evaluate)
 

@@ -573,7 +573,7 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
 
 def failed_closings(records) -> list[float]:
     """The hand's poses (x, y, yaw_deg, flat) where a clutter run's earlier attempts
-    closed the gripper and lifted nothing: what `FailureMemoryConfig` remembers. Attempts
+    closed the gripper and held nothing: what `FailureMemoryConfig` remembers. Attempts
     that never closed (no detection, a simulation error) leave nothing."""
     out: list[float] = []
     for r in sorted(records, key=lambda r: r.attempt_index):
@@ -738,7 +738,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             last; part of the run's identity through the conditions' scenarios.
         failure_memory_m: > 0: every condition runs with `failure_memory.radius_m` so
             (in a clutter run the policy avoids, within this radius, the grasps of its
-            earlier attempts that lifted nothing; not in the paper); part of the run's
+            earlier attempts that held nothing; not in the paper); part of the run's
             identity through the conditions' scenarios.
 
     Returns:
