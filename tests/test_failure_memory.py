@@ -4,12 +4,9 @@ CTR adds a penalty to candidates leading near them, GPD takes its best detection
 from them."""
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from pydrake.systems.analysis import Simulator
-from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
 import drake_grasp.montecarlo as m
 from drake_grasp.gpd import Detections
@@ -17,8 +14,9 @@ from drake_grasp.montecarlo import evaluate
 from drake_grasp.policies import memory_penalty
 from drake_grasp.results import load_records
 from drake_grasp.scenario import load_scenario
-from drake_grasp.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.systems.controller import GraspController, Phase, hand_to_pose
+from drake_grasp.systems.controller import Phase, hand_to_pose
+from test_hand_check import ctr_first_step
+from test_montecarlo import _pile, _scripted_simulate
 
 
 def test_penalty_is_how_far_inside_the_radius_a_candidate_leads():
@@ -52,22 +50,7 @@ def test_gpd_takes_its_best_detection_away_from_the_remembered_grasps():
 def _ctr_choice(failed_xy_yaw):
     """CTR's first choice between staying put (scored best) and 4 cm along y_G."""
     text = "{seed: 2, failure_memory: {radius_m: 0.02, failed_xy_yaw: %s}}" % failed_xy_yaw
-    scenario = load_scenario(scenario_name="clutter", scenario_text=text)
-    _, _, X_GC = gripper_frame_offsets()
-    start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], 0.0)
-    ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC)
-    sim = Simulator(ctrl)
-    ctx = sim.get_mutable_context()
-    img = ImageDepth32F(64, 64)
-    img.mutable_data[:, :, 0] = 0.3
-    ctrl.GetInputPort("depth_image").FixValue(ctx, img)
-    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
-    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.array([[0.0, 0.0, 0.0],
-                                                                   [0.0, 0.04, 0.0]]))
-    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.array([0.01, 0.02]))
-    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
-    sim.AdvanceTo(1.5 * scenario.controller.period_s)
-    s = ctrl.get_controller_state(ctx)
+    s, ctrl, _, _ = ctr_first_step(load_scenario(scenario_name="clutter", scenario_text=text))
     assert s.phase == Phase.SERVO and s.iteration == 1
     # The step records the CNN's distances, not the penalized scores.
     assert np.array_equal(s.last_step.distances, [0.01, 0.02])
@@ -84,28 +67,15 @@ def test_ctr_leaves_a_candidate_that_leads_onto_a_remembered_grasp():
 
 def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, monkeypatch):
     import drake_grasp.scene as scene_module
-    from tests.test_montecarlo import _pile
 
     # attempt 0 closes and fails, 1 detects nothing (never closes), 2 raises, 3 grasps,
     # 4-6 close and fail: the run ends after three failed grasps in a row.
     outcomes = ["fail", "no closing", "raise", "ok", "fail", "fail", "fail"]
     seen = []
-
-    def simulate(scenario, library, *, scene=None):
-        k = len(seen)
-        seen.append(list(scenario.failure_memory.failed_xy_yaw))
-        what = outcomes[k]
-        if what == "raise":
-            raise RuntimeError("solver diverged (test)")
-        ok = what == "ok"
-        result = SimpleNamespace(
-            success=ok, failure_reason=None if ok else "missed: nothing between the pads",
-            disturbance={}, final_distance_m=0.01, sim_time_s=1.0, control_steps=3,
-            object_ids=scene.object_ids(),
-            details={"grasped_object_id": scene.objects[0].object_id if ok else None,
-                     "hand_at_close_xy_yaw": [0.5, 0.01 * k, 10.0 * k],
-                     "gripper_closed": what != "no closing"})
-        return SimpleNamespace(result=result, final_scene=scene)
+    simulate = _scripted_simulate(
+        outcomes, seen, seen=lambda scenario, scene: list(scenario.failure_memory.failed_xy_yaw),
+        details=lambda k, what: {"hand_at_close_xy_yaw": [0.5, 0.01 * k, 10.0 * k],
+                                 "gripper_closed": what != "no closing"})
 
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",

@@ -68,23 +68,19 @@ def test_image_points_put_the_block_where_it_was_drawn():
     assert np.allclose(P[2, P[2] <= 0.025], 0.0, atol=1e-6)
 
 
-def _run(hand_check: bool, clear_candidate: bool = True):
-    """CTR at its first iteration with the stop rule firing at once (stop_distance_m
-    beyond the table), two candidates: staying put (scored best) with a 5 cm block under
-    the left finger's footprint, and 4 cm along y_G (scored second), clear of it unless
-    `clear_candidate` is False (then the block is long enough to lie under both)."""
-    scenario = load_scenario(scenario_name="isolation", scenario_text=(
-        "{seed: 2, controller: {stop_distance_m: 0.4, step_ratio: 0.5, "
-        f"hand_check: {str(hand_check).lower()}}}}}"))
+def ctr_first_step(scenario, depth_fn=None):
+    """CTR's first step from a top-down start over (0.5, 0), the camera CAM_Z above the
+    table, between two candidates: staying put (predicted 0.01) and 4 cm along y_G
+    (0.02). `depth_fn(X_WC, f)` draws the image (default: the bare table). Returns the
+    controller's state after 1.5 periods, the controller, the image and the start pose."""
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], CAM_Z + X_GC.translation()[2], 0.0)
     ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC,
                            score_fn=None)
     X_WC = (start @ X_GC).GetAsMatrix4()
     f = 0.5 * 64 / np.tan(np.deg2rad(scenario.camera.fov_y_deg) / 2.0)
-    y_lo = -0.05 if not clear_candidate else -0.01
-    # At yaw 0, x_G is world x (the left finger lies on -x_G) and y_G is world -y.
-    depth = _depth_with_block(X_WC, f, (0.5 - 0.056, y_lo), (0.5 - 0.046, 0.01), 0.05)
+    depth = (depth_fn(X_WC, f) if depth_fn is not None
+             else np.full((64, 64), CAM_Z, np.float32))
     img = ImageDepth32F(64, 64)
     img.mutable_data[:, :, 0] = depth
     sim = Simulator(ctrl)
@@ -96,7 +92,21 @@ def _run(hand_check: bool, clear_candidate: bool = True):
     ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.array([0.01, 0.02]))
     ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
     sim.AdvanceTo(1.5 * scenario.controller.period_s)
-    s = ctrl.get_controller_state(ctx)
+    return ctrl.get_controller_state(ctx), ctrl, depth, start
+
+
+def _run(hand_check: bool, clear_candidate: bool = True):
+    """CTR at its first iteration with the stop rule firing at once (stop_distance_m
+    beyond the table), staying put with a 5 cm block under the left finger's footprint,
+    the other candidate clear of it unless `clear_candidate` is False (then the block is
+    long enough to lie under both)."""
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 2, controller: {stop_distance_m: 0.4, step_ratio: 0.5, "
+        f"hand_check: {str(hand_check).lower()}}}}}"))
+    y_lo = -0.05 if not clear_candidate else -0.01
+    # At yaw 0, x_G is world x (the left finger lies on -x_G) and y_G is world -y.
+    s, ctrl, depth, start = ctr_first_step(scenario, lambda X_WC, f: _depth_with_block(
+        X_WC, f, (0.5 - 0.056, y_lo), (0.5 - 0.046, 0.01), 0.05))
     assert s.phase == Phase.SERVO and s.converging == 2
     return s, ctrl, depth, start
 

@@ -38,6 +38,20 @@ def _box_image(H, cam_h, centre_xy, half_m, top_h):
     return depth
 
 
+def _labels(H, tmp_path, k, *, seed):
+    """A dense-labels folder of k box images at 0.25 m with random grids: (folder, data)."""
+    t_bins, n, _ = H.GRID_CONFIG.grid_shape()
+    rng = np.random.default_rng(seed)
+    data = {"depth": np.stack([_box_image(H, 0.25, rng.uniform(-0.05, 0.05, 2), 0.02, 0.05)
+                               for _ in range(k)]).astype(np.float16),
+            "grid": rng.uniform(0.0, 0.2, (k, t_bins, n, n)).astype(np.float16),
+            "hand_z": np.full(k, 0.25 + H.camera_z_G(), np.float32)}
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    np.savez(labels / "shard-00000.npz", **data)
+    return labels, data
+
+
 def test_height_map_places_a_box_at_its_metric_position_and_height():
     H = _module()
     cam_h, centre, half, top_h = 0.25, (-0.06, 0.04), 0.02, 0.05
@@ -68,15 +82,8 @@ def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
     out = net(torch.zeros(3, 2, H.LATTICE, H.LATTICE))
     assert out.shape == (3, t_bins, n, n) and bool((out > 0).all())
 
-    rng = np.random.default_rng(0)
-    labels = tmp_path / "labels"
-    labels.mkdir()
     k = 8
-    depth = np.stack([_box_image(H, 0.25, rng.uniform(-0.05, 0.05, 2), 0.02, 0.05)
-                      for _ in range(k)]).astype(np.float16)
-    grid = rng.uniform(0.0, 0.2, (k, t_bins, n, n)).astype(np.float16)
-    np.savez(labels / "shard-00000.npz", depth=depth, grid=grid,
-             hand_z=np.full(k, 0.25 + H.camera_z_G(), np.float32))
+    labels, data = _labels(H, tmp_path, k, seed=0)
     run = tmp_path / "run"
     H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=8, seed=0,
             threads=1)
@@ -91,7 +98,6 @@ def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
     with pytest.raises(ValueError, match=r"another training run \(differs in \['width'\]\)"):
         H.train([str(labels)], run, minutes=5, epochs=2, batch=4, lr=1e-3, width=16, seed=0,
                 threads=1)
-    data = {"depth": depth, "grid": grid, "hand_z": np.full(k, 0.25 + H.camera_z_G(), np.float32)}
     result = H.metrics(H.predict_fcn(str(run / "model.pt"), data)[0], data, images=k)
     assert result["nodes"] > 0 and result["dense_l1_mm"] > 0
 
@@ -119,21 +125,13 @@ def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_p
     net = H.HeightmapFCN(width=8, dilations=(1,), grasp_head=True)
     dist, logits = net.outputs(torch.zeros(2, 2, H.LATTICE, H.LATTICE))
     assert dist.shape == logits.shape == (2, t_bins, n, n)
-    rng = np.random.default_rng(1)
-    labels = tmp_path / "labels"
-    labels.mkdir()
-    k = 4
-    depth = np.stack([_box_image(H, 0.25, rng.uniform(-0.05, 0.05, 2), 0.02, 0.05)
-                      for _ in range(k)]).astype(np.float16)
-    grid = rng.uniform(0.0, 0.2, (k, t_bins, n, n)).astype(np.float16)
-    hand_z = np.full(k, 0.25 + H.camera_z_G(), np.float32)
-    np.savez(labels / "shard-00000.npz", depth=depth, grid=grid, hand_z=hand_z)
+    labels, data = _labels(H, tmp_path, 4, seed=1)
+    hand_z = data["hand_z"]
     run = tmp_path / "run"
     H.train([str(labels)], run, minutes=5, epochs=1, batch=2, lr=1e-3, width=8, seed=0,
             threads=1, grasp_weight=1.0)
     saved = torch.load(run / "model.pt", weights_only=False)
     assert saved["grasp_head"] and math.isfinite(saved["state"]["log"][0]["train_bce"])
-    data = {"depth": depth, "grid": grid, "hand_z": hand_z}
     dist, logits = H.predict_fcn(str(run / "model.pt"), data)
     assert logits is not None and logits.shape == dist.shape
     logits[0] = -20.0  # image 0 has no grasp node: both variants give the distance head

@@ -291,12 +291,14 @@ def _pile(n=3):
         for i in range(n)])
 
 
-def _scripted_simulate(outcomes, calls, grasped=None):
+def _scripted_simulate(outcomes, calls, grasped=None, *, seen=lambda scenario, scene: scene,
+                       details=lambda k, what: {}):
     """A stand-in for montecarlo._simulate: attempt k does outcomes[k] ("fail", "ok" or
-    "raise"; "fail" after the script)."""
+    "raise"; "fail" after the script; any other word fails too) and appends
+    `seen(scenario, scene)` to `calls`; `details(k, what)` adds to the result's details."""
     def simulate(scenario, library, *, scene=None):
         k = len(calls)
-        calls.append(scene)
+        calls.append(seen(scenario, scene))
         what = outcomes[k] if k < len(outcomes) else "fail"
         if what == "raise":
             raise RuntimeError("solver diverged (test)")
@@ -304,7 +306,9 @@ def _scripted_simulate(outcomes, calls, grasped=None):
         result = SimpleNamespace(
             success=ok, failure_reason=None if ok else "missed: nothing between the pads",
             disturbance={}, final_distance_m=0.01, sim_time_s=1.0, control_steps=3,
-            object_ids=scene.object_ids(), details={"grasped_object_id": (grasped or scene.objects[0].object_id) if ok else None})
+            object_ids=scene.object_ids(),
+            details={"grasped_object_id": (grasped or scene.objects[0].object_id) if ok else None,
+                     **details(k, what)})
         return SimpleNamespace(result=result, final_scene=scene)
     return simulate
 
