@@ -507,6 +507,9 @@ class Selection:
     threshold: float = 0.5
     cluster_distance_m: float = 0.01
     cluster_angle_deg: float = 15.0
+    # True: when no candidate reaches `threshold`, rank them all (the best-ranked one is
+    # taken rather than none).
+    fallback: bool = False
 
 
 def cluster_support(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection(),
@@ -538,7 +541,7 @@ def cluster_scores(poses: np.ndarray, probabilities: np.ndarray, sel: Selection 
 def select(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Selection()) -> np.ndarray:
     """Indices of the detections (probability >= threshold), best first: by the mean
     probability of their cluster of aligned candidates (`cluster_scores`), then by their
-    own. Empty when none is accepted.
+    own. Empty when none is accepted (with `sel.fallback`: then all, ranked so).
 
     Measured on 30 held-out scenes against the ground truth (3 surface samplings): the
     plain highest probability picked a true grasp in 18 of 30, the cluster mean in 19
@@ -547,6 +550,8 @@ def select(poses: np.ndarray, probabilities: np.ndarray, sel: Selection = Select
     """
     prob = np.asarray(probabilities, float)
     accepted = np.flatnonzero(prob >= sel.threshold)
+    if len(accepted) == 0 and sel.fallback:
+        accepted = np.arange(len(prob))
     if len(accepted) == 0:
         return accepted
     score = cluster_scores(poses, prob, sel)[accepted]
@@ -638,7 +643,8 @@ def make_detector(scenario, classifier: GraspClassifier | ClassifierEnsemble | N
     detector = GpdDetector(model, fov_y_deg=g.fov_y_deg, depth_min_m=g.depth_min_m,
                            depth_max_m=g.depth_max_m,
                            center_xy=tuple(float(v) for v in scenario.scene.center_xy_m),
-                           search=HandSearch(approach_max_tilt_deg=g.approach_max_tilt_deg))
+                           search=HandSearch(approach_max_tilt_deg=g.approach_max_tilt_deg),
+                           selection=Selection(fallback=g.fallback_best))
 
     failed = scenario.failure_memory.failed()
 

@@ -98,6 +98,9 @@ class GpdConfig:
     approach_max_tilt_deg: float = 30.0
     # Classifier weights; "" = the shipped models/gpd/weights.safetensors.
     weights: str = ""
+    # True: when no candidate reaches the classifier's threshold, take the best-ranked
+    # one anyway (`gpd.Selection.fallback`) instead of reporting no detection.
+    fallback_best: bool = False
 
 
 # `GripperConfig.force_mode`'s values (`systems.gripper.gripper_pd_target`).
@@ -552,8 +555,9 @@ class Scenario:
         for key in ("target", "objects_dir", "gpd.weights"):
             if not isinstance(_get(self, key), str):
                 raise ValueError(f"{key}: expected a string, got {_get(self, key)!r}")
-        if not isinstance(self.visualize, bool):
-            raise ValueError(f"visualize: expected true or false, got {self.visualize!r}")
+        for key in ("visualize", "gpd.fallback_best"):
+            if not isinstance(_get(self, key), bool):
+                raise ValueError(f"{key}: expected true or false, got {_get(self, key)!r}")
         ids = self.scene.object_ids
         if not isinstance(ids, list) or not all(isinstance(i, str) and i for i in ids):
             raise ValueError(f"scene.object_ids: expected a list of object ids (strings), got {ids!r}")

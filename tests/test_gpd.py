@@ -142,6 +142,11 @@ def test_selection_ranks_by_the_cluster_mean_probability():
     assert 4 not in order and 6 not in order  # below the threshold
     assert order[-1] == 5  # confident but its aligned neighbour is not
     assert len(gpd.select(poses, np.zeros(len(poses)))) == 0
+    # With the fallback, none over the threshold ranks them all; otherwise it changes nothing.
+    low = np.array([0.10, 0.12, 0.11, 0.3, 0.05, 0.2, 0.01])
+    fallback = gpd.Selection(fallback=True)
+    assert gpd.select(poses, low, fallback)[0] == 3 and len(gpd.select(poses, low, fallback)) == 7
+    assert list(gpd.select(poses, prob, fallback)) == list(order)
 
 
 def test_classifier_weights_round_trip_and_bad_files(tmp_path):
