@@ -329,7 +329,8 @@ def _cmd_evaluate(args) -> int:
                       converge_iterations=-1 if args.converge is None else args.converge,
                       distance_samples=0 if args.distance_samples is None
                       else args.distance_samples, hand_check=args.hand_check,
-                      ctr_text=args.ctr_text or "", failure_memory_m=args.failure_memory)
+                      ctr_text=args.ctr_text or "", failure_memory_m=args.failure_memory,
+                      gpd_fallback=args.gpd_fallback)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -805,6 +806,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="in clutter runs every policy avoids, within M metres of the grasp "
                         "metric, the grasps of its earlier attempts of the run that held "
                         "nothing (failure_memory.radius_m; not in the paper; default off)")
+    p.add_argument("--gpd-fallback", action="store_true",
+                   help="the gpd conditions take their best-ranked candidate when none "
+                        "reaches the classifier's threshold, instead of detecting nothing "
+                        "(gpd.fallback_best)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

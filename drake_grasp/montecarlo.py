@@ -78,6 +78,8 @@ class TrialTask:
     ctr_controller_text: str = ""
     # `Experiment.failure_memory_m`.
     failure_memory_m: float = 0.0
+    # `Experiment.gpd_fallback_best`.
+    gpd_fallback_best: bool = False
 
     @property
     def trial_id(self) -> str:
@@ -109,6 +111,8 @@ def task_experiment(task: TrialTask) -> Experiment:
                                          ctr_controller_text=task.ctr_controller_text)
     if task.failure_memory_m > 0:
         experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
+    if task.gpd_fallback_best:
+        experiment = dataclasses.replace(experiment, gpd_fallback_best=True)
     return experiment
 
 
@@ -137,7 +141,8 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
                       experiment.cnn_weights, experiment.gpd_weights,
                       experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
                       experiment.judge_distance_samples, experiment.ctr_hand_check,
-                      experiment.ctr_controller_text, experiment.failure_memory_m)
+                      experiment.ctr_controller_text, experiment.failure_memory_m,
+                      experiment.gpd_fallback_best)
             for i in range(n) for c, spec in asked]
 
 
@@ -683,7 +688,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              physics_profile: str = "", weights: str = "", gpd_weights: str = "",
              mirror_average: bool = False, converge_iterations: int = -1,
              distance_samples: int = 0, hand_check: bool = False,
-             ctr_text: str = "", failure_memory_m: float = 0.0) -> dict:
+             ctr_text: str = "", failure_memory_m: float = 0.0,
+             gpd_fallback: bool = False) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -740,6 +746,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             (in a clutter run the policy avoids, within this radius, the grasps of its
             earlier attempts that held nothing; not in the paper); part of the run's
             identity through the conditions' scenarios.
+        gpd_fallback: The gpd conditions run with `gpd.fallback_best` (when no candidate
+            reaches the classifier's threshold, the best-ranked one is taken); part of
+            the run's identity through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -795,6 +804,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
                              f"{failure_memory_m}")
         exp = dataclasses.replace(exp, failure_memory_m=float(failure_memory_m))
+    if gpd_fallback:
+        exp = dataclasses.replace(exp, gpd_fallback_best=True)
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -107,3 +107,21 @@ def test_failure_memory_settings_are_checked(tmp_path):
         evaluate(experiment="clutter", out=tmp_path / "r", trials=1, failure_memory_m=0.5,
                  progress=False)
     assert not (tmp_path / "r").exists()
+
+
+def test_the_options_reach_their_conditions_and_the_runs_identity():
+    """--failure-memory reaches every condition, --gpd-fallback the gpd conditions; both
+    change the identity of what they reach."""
+    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
+
+    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
+    exp = dataclasses.replace(EXPERIMENTS["clutter"], failure_memory_m=0.02, gpd_fallback_best=True)
+    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
+    assert ident["gpd"]["scenario"]["gpd"]["fallback_best"] is True
+    assert ident["ctr"]["scenario"]["gpd"]["fallback_best"] is False
+    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = m.task_experiment(task)
+        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+        assert s.failure_memory.radius_m == 0.02
+        assert s.gpd.fallback_best == (task.condition == "gpd")
