@@ -25,6 +25,12 @@ each image's view, as the training loss takes them):
 
 `train` checkpoints every epoch and after its time budget (`--minutes`); the same command
 resumes a stopped run (the batches of epoch e are a permutation seeded by e).
+
+`train --grasp-weight W` adds a grasp head: per node, "a true grasp lies within half a
+cell's diagonal" (`GRASP_NODE_M`), whose distance transform on the grid's lattice is a
+second prediction of the labels (`grasp_map_distances`; `compare --val FOLDER` picks its
+threshold on validation scenes). `compare --oracle` measures that transform of the test
+labels' own grasp nodes: what a perfect grasp head would score.
 """
 
 from __future__ import annotations
