@@ -484,12 +484,10 @@ def _add_controller(builder, scenario, scene, library, station, model, out, dete
 
 
 def _hand_xy_yaw(X_WG) -> np.ndarray:
-    """[x, y, yaw_deg] of a grasp-frame pose: the grasp centre's (x, y) and the yaw of the
-    closing direction x_G projected onto the table (so a tilted grasp, e.g. gpd's, is
-    compared with the planar ground truth by where it grasps and how it closes)."""
-    R = X_WG.rotation().matrix()
-    return np.array([X_WG.translation()[0], X_WG.translation()[1],
-                     np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))])
+    """[x, y, yaw_deg] of a grasp-frame pose (`grasps.planar_grasp_xy_yaw`)."""
+    from drake_grasp.grasps import planar_grasp_xy_yaw
+
+    return planar_grasp_xy_yaw(X_WG.GetAsMatrix4())
 
 
 def _scene_now(plant, plant_context, station, scene: SceneSpec) -> SceneSpec:

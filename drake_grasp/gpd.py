@@ -587,11 +587,9 @@ class Detections:
         if not len(self.poses):
             return None
         if avoid_xy_yaw is not None and len(avoid_xy_yaw) and radius_m > 0.0:
-            from drake_grasp.grasps import grasp_distance
+            from drake_grasp.grasps import grasp_distance, planar_grasp_xy_yaw
 
-            R = self.poses[:, :3, :3]
-            planar = np.column_stack([self.poses[:, 0, 3], self.poses[:, 1, 3],
-                                      np.rad2deg(np.arctan2(R[:, 1, 0], R[:, 0, 0]))])
+            planar = planar_grasp_xy_yaw(self.poses)
             near = grasp_distance(planar[:, None, :],
                                   np.asarray(avoid_xy_yaw, float)[None, :, :]).min(axis=1)
             clear = np.flatnonzero(near > radius_m)

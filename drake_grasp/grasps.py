@@ -1326,6 +1326,16 @@ def angle_difference_deg(theta1, theta2) -> np.ndarray:
     return np.minimum(d, 180.0 - d)
 
 
+def planar_grasp_xy_yaw(X_WG) -> np.ndarray:
+    """(..., 3) [x, y, yaw_deg] of grasp-frame poses (..., 4, 4): the grasp centre's (x, y)
+    and the yaw of the closing direction x_G projected onto the table (so a tilted grasp,
+    e.g. gpd's, is compared with the planar ground truth by where it grasps and how it
+    closes)."""
+    X = np.asarray(X_WG, dtype=float)
+    yaw = np.rad2deg(np.arctan2(X[..., 1, 0], X[..., 0, 0]))
+    return np.stack([X[..., 0, 3], X[..., 1, 3], yaw], axis=-1)
+
+
 def grasp_distance(a, b, *, angle_weight_m_per_deg: float = ANGLE_WEIGHT_M_PER_DEG) -> np.ndarray:
     """Distance between planar grasps (x, y, theta_deg), broadcast over leading axes.
 
