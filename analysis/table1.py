@@ -2,6 +2,9 @@
 results directories, with the paper's robot numbers beside the simulated ones::
 
     python analysis/table1.py out/isolation out/clutter out/clutter-shift --out table1.md
+
+A row may take CTR from one run and GPD from another (``DIR@ctr DIR@gpd``, e.g. GPD re-run
+with another option on the same seed); the table then names its sources.
 """
 
 from __future__ import annotations
@@ -19,9 +22,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "paper's numbers beside them) as Markdown, from Monte Carlo results dirs.")
     parser.add_argument("results_dirs", nargs="+",
                         help="results dirs of the experiments 'isolation', 'clutter' and "
-                             "'clutter-shift' (any subset, one dir each; the experiment name is "
-                             "read from run.json or the trial records); conditions 'ctr' and 'gpd' "
-                             "fill the CTR and GPD columns")
+                             "'clutter-shift' (any subset; the experiment name is read from "
+                             "run.json or the trial records); conditions 'ctr' and 'gpd' fill "
+                             "the CTR and GPD columns; DIR@ctr takes only those conditions from "
+                             "DIR, so that one experiment's CTR and GPD may come from two dirs "
+                             "(each condition from one)")
     parser.add_argument("--out", required=True, help="Markdown file to write (atomically)")
     args = parser.parse_args(argv)
     try:

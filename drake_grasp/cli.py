@@ -806,10 +806,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="in clutter runs every policy avoids, within M metres of the grasp "
                         "metric, the grasps of its earlier attempts of the run that held "
                         "nothing (failure_memory.radius_m; not in the paper; default off)")
-    p.add_argument("--gpd-fallback", action="store_true",
+    p.add_argument("--gpd-fallback", action=argparse.BooleanOptionalAction, default=None,
                    help="the gpd conditions take their best-ranked candidate when none "
-                        "reaches the classifier's threshold, instead of detecting nothing "
-                        "(gpd.fallback_best)")
+                        "reaches the classifier's threshold (gpd.fallback_best; the "
+                        "scenario's default: on); --no-gpd-fallback: GPD detects nothing "
+                        "then and closes on nothing, as in the records before 2026-11-28")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="(re)write summary.json and report.md of a results folder")

@@ -105,10 +105,10 @@ class Experiment:
     # policy avoids its own earlier failed grasps; not in the paper); 0 keeps the
     # scenario's (off). `evaluate --failure-memory` sets it.
     failure_memory_m: float = 0.0
-    # True: the gpd conditions run with `gpd.fallback_best` (no detection over the
-    # classifier's threshold: the best-ranked candidate anyway); False keeps the
-    # scenario's (off). `evaluate --gpd-fallback` sets it.
-    gpd_fallback_best: bool = False
+    # True / False: the gpd conditions run with `gpd.fallback_best` so (True: no
+    # detection over the classifier's threshold takes the best-ranked candidate anyway);
+    # None keeps the scenario's (on). `evaluate --gpd-fallback / --no-gpd-fallback`.
+    gpd_fallback_best: bool | None = None
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -298,8 +298,8 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
         s = apply_controller_text(s, experiment.ctr_controller_text)
     if experiment.gpd_weights and condition.policy == "gpd":
         s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
-    if experiment.gpd_fallback_best and condition.policy == "gpd":
-        s.gpd = dataclasses.replace(s.gpd, fallback_best=True)
+    if experiment.gpd_fallback_best is not None and condition.policy == "gpd":
+        s.gpd = dataclasses.replace(s.gpd, fallback_best=bool(experiment.gpd_fallback_best))
     if experiment.judge_distance_samples > 0:
         s.judge = dataclasses.replace(
             s.judge, distance_grasp_samples=experiment.judge_distance_samples)

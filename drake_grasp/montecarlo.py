@@ -78,8 +78,8 @@ class TrialTask:
     ctr_controller_text: str = ""
     # `Experiment.failure_memory_m`.
     failure_memory_m: float = 0.0
-    # `Experiment.gpd_fallback_best`.
-    gpd_fallback_best: bool = False
+    # `Experiment.gpd_fallback_best` (None: the scenario's).
+    gpd_fallback_best: bool | None = None
 
     @property
     def trial_id(self) -> str:
@@ -111,8 +111,8 @@ def task_experiment(task: TrialTask) -> Experiment:
                                          ctr_controller_text=task.ctr_controller_text)
     if task.failure_memory_m > 0:
         experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
-    if task.gpd_fallback_best:
-        experiment = dataclasses.replace(experiment, gpd_fallback_best=True)
+    if task.gpd_fallback_best is not None:
+        experiment = dataclasses.replace(experiment, gpd_fallback_best=task.gpd_fallback_best)
     return experiment
 
 
@@ -689,7 +689,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              mirror_average: bool = False, converge_iterations: int = -1,
              distance_samples: int = 0, hand_check: bool = False,
              ctr_text: str = "", failure_memory_m: float = 0.0,
-             gpd_fallback: bool = False) -> dict:
+             gpd_fallback: bool | None = None) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -746,9 +746,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             (in a clutter run the policy avoids, within this radius, the grasps of its
             earlier attempts that held nothing; not in the paper); part of the run's
             identity through the conditions' scenarios.
-        gpd_fallback: The gpd conditions run with `gpd.fallback_best` (when no candidate
-            reaches the classifier's threshold, the best-ranked one is taken); part of
-            the run's identity through the conditions' scenarios.
+        gpd_fallback: True / False: the gpd conditions run with `gpd.fallback_best` so
+            (True: when no candidate reaches the classifier's threshold, the best-ranked
+            one is taken; False: GPD detects nothing then, as in the records before it
+            was the default); None keeps the scenario's (on). Part of the run's identity
+            through the conditions' scenarios.
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -804,8 +806,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
                              f"{failure_memory_m}")
         exp = dataclasses.replace(exp, failure_memory_m=float(failure_memory_m))
-    if gpd_fallback:
-        exp = dataclasses.replace(exp, gpd_fallback_best=True)
+    if gpd_fallback is not None:
+        exp = dataclasses.replace(exp, gpd_fallback_best=bool(gpd_fallback))
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))

@@ -1134,22 +1134,15 @@ def plot_figure5(loaded: Sequence[Results], path: str | os.PathLike, *, bin_m: f
     return plot_distance_histograms(panels, Path(path), bin_m=bin_m, max_m=max_m)
 
 
-def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike, *,
-                  bin_m: float = BIN_M, max_m: float = HIST_MAX_M) -> Path:
-    """Figure 5 from sim-distance (and perception) results dirs into `out_path` (PNG).
-    Several dirs of one experiment may share the figure (e.g. arms run separately on the
-    same seed), each Figure 5 condition from one of them; ``DIR@init,gpd`` takes only
-    those conditions from DIR.
+def _load_selected(entries: Sequence[str | os.PathLike]) -> list[Results]:
+    """Results dirs, each whole or, written ``DIR@cond,cond``, only those conditions.
 
     Raises:
-        ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named),
-            two dirs hold the same condition, or a condition named after ``@`` has no
-            records in its dir.
+        ValueError: Nothing after ``@``, or a condition named there with no records in
+            its dir (the message names the dir and what it holds).
     """
-    if not (bin_m > 0 and max_m > bin_m):
-        raise ValueError(f"need 0 < bin_m < max_m, got bin_m={bin_m}, max_m={max_m}")
     selections = []
-    for entry in results_dirs:
+    for entry in entries:
         path, at, names = str(entry).rpartition("@") if "@" in Path(str(entry)).name \
             else (str(entry), "", "")
         wanted = [n.strip() for n in names.split(",") if n.strip()] if at else None
@@ -1167,6 +1160,24 @@ def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.
                              f"{sorted(have)})")
         loaded[i] = dataclasses.replace(res, records=[r for r in res.records
                                                       if r.condition in wanted])
+    return loaded
+
+
+def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike, *,
+                  bin_m: float = BIN_M, max_m: float = HIST_MAX_M) -> Path:
+    """Figure 5 from sim-distance (and perception) results dirs into `out_path` (PNG).
+    Several dirs of one experiment may share the figure (e.g. arms run separately on the
+    same seed), each Figure 5 condition from one of them; ``DIR@init,gpd`` takes only
+    those conditions from DIR.
+
+    Raises:
+        ValueError: No dir holds a Figure 5 arm with final distances (the dirs are named),
+            two dirs hold the same condition, or a condition named after ``@`` has no
+            records in its dir.
+    """
+    if not (bin_m > 0 and max_m > bin_m):
+        raise ValueError(f"need 0 < bin_m < max_m, got bin_m={bin_m}, max_m={max_m}")
+    loaded = _load_selected(results_dirs)
     path = plot_figure5(loaded, out_path, bin_m=bin_m, max_m=max_m)
     if path is None:
         names = ", ".join(str(r.results_dir) for r in loaded)
@@ -1176,9 +1187,36 @@ def write_figure5(results_dirs: Sequence[str | os.PathLike], out_path: str | os.
 
 
 def write_table1(results_dirs: Sequence[str | os.PathLike], out_path: str | os.PathLike) -> Path:
-    """Table 1 (Markdown) from isolation / clutter / clutter-shift results dirs."""
-    loaded = _load_many(results_dirs)
-    text = "# Table 1: grasp success, CTR vs GPD\n\n" + table1_markdown(loaded)
+    """Table 1 (Markdown) from isolation / clutter / clutter-shift results dirs.
+
+    One dir per experiment, or several whose conditions do not overlap, e.g. CTR from one
+    run and GPD from another on the same seed: ``DIR@ctr`` takes only those conditions
+    from DIR. The table then names each row's sources.
+
+    Raises:
+        ValueError: Two dirs give one experiment the same condition (both are named), or
+            `_load_selected`'s errors.
+    """
+    merged: dict[str, Results] = {}
+    sources: dict[str, list[str]] = {}
+    for res in _load_selected(results_dirs):
+        exp = canonical_experiment(res.experiment)
+        conds = sorted({r.condition for r in res.records})
+        sources.setdefault(exp, []).append(f"{', '.join(conds)} from `{res.results_dir}`")
+        if exp not in merged:
+            merged[exp] = res
+            continue
+        both = sorted({r.condition for r in merged[exp].records} & set(conds))
+        if both:
+            raise ValueError(f"experiment {exp!r}: condition(s) {both} in both "
+                             f"{merged[exp].results_dir} and {res.results_dir}; take each "
+                             "condition from one dir (DIR@ctr, DIR@gpd)")
+        merged[exp] = dataclasses.replace(merged[exp],
+                                          records=merged[exp].records + res.records)
+    text = "# Table 1: grasp success, CTR vs GPD\n\n" + table1_markdown(list(merged.values()))
+    if any(len(v) > 1 for v in sources.values()):
+        text += "\nSources:\n" + "".join(f"- {exp}: {'; '.join(v)}\n"
+                                          for exp, v in sources.items())
     return atomic_write_text(Path(out_path), text)
 
 

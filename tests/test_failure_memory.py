@@ -110,18 +110,38 @@ def test_failure_memory_settings_are_checked(tmp_path):
 
 
 def test_the_options_reach_their_conditions_and_the_runs_identity():
-    """--failure-memory reaches every condition, --gpd-fallback the gpd conditions; both
-    change the identity of what they reach."""
+    """--failure-memory reaches every condition, --no-gpd-fallback the gpd conditions
+    only (the fallback is the scenario's default); both change the identity of what they
+    reach."""
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
+    from drake_grasp.scenario import GpdConfig
 
+    assert GpdConfig().fallback_best is True
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
-    exp = dataclasses.replace(EXPERIMENTS["clutter"], failure_memory_m=0.02, gpd_fallback_best=True)
+    assert base["gpd"]["scenario"]["gpd"]["fallback_best"] is True
+    # Asking for the default changes nothing.
+    on = dataclasses.replace(EXPERIMENTS["clutter"], gpd_fallback_best=True)
+    assert m.run_identity(on, seed=0)["conditions"] == m.run_identity(
+        EXPERIMENTS["clutter"], seed=0)["conditions"]
+    exp = dataclasses.replace(EXPERIMENTS["clutter"], failure_memory_m=0.02, gpd_fallback_best=False)
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
-    assert ident["gpd"]["scenario"]["gpd"]["fallback_best"] is True
-    assert ident["ctr"]["scenario"]["gpd"]["fallback_best"] is False
+    assert ident["gpd"]["config_hash"] != base["gpd"]["config_hash"]
+    assert ident["gpd"]["scenario"]["gpd"]["fallback_best"] is False
+    assert ident["ctr"]["scenario"]["gpd"]["fallback_best"] is True  # untouched: not a gpd condition
     for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
         run_exp = m.task_experiment(task)
         s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.failure_memory.radius_m == 0.02
-        assert s.gpd.fallback_best == (task.condition == "gpd")
+        assert s.gpd.fallback_best == (task.condition != "gpd")
+
+
+def test_the_cli_fallback_flag_is_three_way():
+    """evaluate's --gpd-fallback / --no-gpd-fallback set the option; neither keeps the
+    scenario's (None, the fallback on)."""
+    from drake_grasp.cli import build_parser
+
+    parse = lambda *a: build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "r", *a])
+    assert parse().gpd_fallback is None
+    assert parse("--gpd-fallback").gpd_fallback is True
+    assert parse("--no-gpd-fallback").gpd_fallback is False

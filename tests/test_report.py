@@ -247,6 +247,27 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
     assert "no Table 1 experiment" in capsys.readouterr().err
 
 
+def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys):
+    """table1.py DIR@ctr DIR@gpd: a row's CTR from one run and GPD from another (e.g. GPD
+    re-run with another option on the same seed), the sources named; a condition given
+    twice is refused, naming both dirs, and nothing is written."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    ok, miss = (True, 0.01, None), (False, 0.1, MISSED)
+    _fill(a, "clutter", {"ctr": [ok] * 3 + [miss], "gpd": [miss] * 4})
+    _fill(b, "clutter", {"gpd": [ok] * 5})
+    table1 = _script("table1")
+    assert table1.main([f"{a}@ctr", str(b), "--out", str(tmp_path / "t.md")]) == 0
+    text = (tmp_path / "t.md").read_text()
+    assert "| Clutter (`clutter`) | 75.0% (3/4) |" in text and "100.0% (5/5)" in text
+    assert "0.0% (0/4)" not in text
+    assert f"- clutter: ctr from `{a}`; gpd from `{b}`" in text
+    with pytest.raises(SystemExit) as e:
+        table1.main([str(a), str(b), "--out", str(tmp_path / "t2.md")])
+    assert e.value.code == 2
+    assert f"condition(s) ['gpd'] in both {a} and {b}" in capsys.readouterr().err
+    assert not (tmp_path / "t2.md").exists()
+
+
 def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys):
     """analysis/paired_outcomes.py pairs two runs by trial id: 12 trials, 6 grasped by
     both, 3 only by A, 1 only by B, exact McNemar p = 2 * P(X <= 1 | n = 4, 1/2) = 0.625;
