@@ -25,7 +25,6 @@ import hashlib
 import json
 import os
 import re
-import sys
 import time
 import traceback
 from dataclasses import dataclass

@@ -38,3 +38,21 @@ def across_can():
         return RigidTransform(RotationMatrix(R_WG), centre + shift)
 
     return pose
+
+
+@pytest.fixture(scope="session")
+def analysis_script():
+    """`load(name)`: the module `analysis/<name>.py` (the analysis scripts are files, not
+    a package), executed once per call."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "analysis"
+
+    def load(name):
+        spec = importlib.util.spec_from_file_location(name, root / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

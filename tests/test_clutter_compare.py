@@ -1,21 +1,10 @@
 """analysis/clutter_compare.py: grasps, repeated failures on an unmoved pile, objects
 left, and agreement up to the first failure, from two folders of clutter records."""
 
-import importlib.util
-from pathlib import Path
 
 from drake_grasp.results import write_record
 from test_results import make_record
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location(
-        "clutter_compare", ROOT / "analysis" / "clutter_compare.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _pile(xs):
@@ -37,8 +26,8 @@ def _write(folder, outcomes):
         xs = after
 
 
-def test_counts_repeats_on_an_unmoved_pile_and_the_agreement(tmp_path):
-    C = _module()
+def test_counts_repeats_on_an_unmoved_pile_and_the_agreement(tmp_path, analysis_script):
+    C = analysis_script("clutter_compare")
     a, b = tmp_path / "a", tmp_path / "b"
     # a: grasp o2, fail (pile still), fail (o0 pushed 3 cm), fail: one repeat on a still pile.
     _write(a, [(True, 0.0, "o2"), (False, 0.0, None), (False, 0.03, None), (False, 0.0, None)])

@@ -348,19 +348,13 @@ def test_target_mode_keeps_candidates_on_the_target(scenario):
     assert u2 < 39.5, u2
 
 
-def test_oracle_analysis_scores_every_step_with_the_true_distance():
+def test_oracle_analysis_scores_every_step_with_the_true_distance(analysis_script):
     """analysis/oracle_ctr.py (CTR with the true distance function, a diagnostic): every
     control decision of the trial went through the oracle, the controller class is put
     back afterwards, and with perfect scores the hand ends on a true grasp."""
-    import importlib.util
-    from pathlib import Path
-
     import drake_grasp.systems.controller as controller_module
 
-    path = Path(__file__).resolve().parents[1] / "analysis" / "oracle_ctr.py"
-    spec = importlib.util.spec_from_file_location("oracle_ctr", path)
-    oracle = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(oracle)
+    oracle = analysis_script("oracle_ctr")
     trial = oracle.run_trial(0, 0)  # isolation trial 0: a lying apple
     assert controller_module.GraspController is GraspController
     assert trial["num_true_grasps"] > 0

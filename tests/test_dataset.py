@@ -468,11 +468,9 @@ def test_ranking_metrics_on_a_generated_set(reference):
         ranking_metrics(model, out, candidates=1)
 
 
-def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path):
+def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path, analysis_script):
     """analysis/cnn_eval.py: the shipped weights' test L1 over every label (as `train`
     computes it) and the ranking metrics, written to JSON."""
-    import importlib.util
-
     import torch
 
     from drake_grasp.cnn_metrics import ranking_metrics
@@ -480,9 +478,7 @@ def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path):
     from drake_grasp.training import ChunkCache, ShardSet, evaluate_l1
 
     out, _ = reference
-    spec = importlib.util.spec_from_file_location("cnn_eval", ROOT / "analysis" / "cnn_eval.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = analysis_script("cnn_eval")
     weights = ROOT / "models" / "cnn" / "weights.safetensors"
     result = script.main(["--weights", str(weights), "--test-data", str(out),
                           "--ranking-images", "4", "--out", str(tmp_path / "eval.json")])

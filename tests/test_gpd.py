@@ -216,17 +216,11 @@ def test_shipped_classifier_loads():
     assert isinstance(model, gpd.ClassifierEnsemble) and len(model.members) == 2
 
 
-def test_selection_variants_script_ranks_as_each_rule_says():
+def test_selection_variants_script_ranks_as_each_rule_says(analysis_script):
     """analysis/gpd_selection.py's variants on hand-made candidates: a lone grasp with the
     highest probability, a tight cluster of 3 (4 mm apart) with the largest sum, and a row
     of 5 grasps 15 mm apart that a second classifier prefers. Each rule picks its own."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "analysis" / "gpd_selection.py"
-    spec = importlib.util.spec_from_file_location("gpd_selection", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = analysis_script("gpd_selection")
 
     def pose(x, y):
         X = np.eye(4)

@@ -2,24 +2,13 @@
 pixel convention puts it, at its height; the net maps it to the grid's shape; training
 writes its model and resumes without repeating an epoch."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location(
-        "heightmap_fcn", ROOT / "analysis" / "heightmap_fcn.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _box_image(H, cam_h, centre_xy, half_m, top_h):
@@ -52,8 +41,8 @@ def _labels(H, tmp_path, k, *, seed):
     return labels, data
 
 
-def test_height_map_places_a_box_at_its_metric_position_and_height():
-    H = _module()
+def test_height_map_places_a_box_at_its_metric_position_and_height(analysis_script):
+    H = analysis_script("heightmap_fcn")
     cam_h, centre, half, top_h = 0.25, (-0.06, 0.04), 0.02, 0.05
     hand_z = cam_h + H.camera_z_G()
     m = H.height_maps(_box_image(H, cam_h, centre, half, top_h)[None], np.array([hand_z]))
@@ -75,8 +64,8 @@ def test_height_map_places_a_box_at_its_metric_position_and_height():
     assert heights[m[0, 1] == 0].max() == 0
 
 
-def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
-    H = _module()
+def test_fcn_output_is_the_grid_and_training_resumes(tmp_path, analysis_script):
+    H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
     net = H.HeightmapFCN(width=8, dilations=(1, 2))
     out = net(torch.zeros(3, 2, H.LATTICE, H.LATTICE))
@@ -102,8 +91,8 @@ def test_fcn_output_is_the_grid_and_training_resumes(tmp_path):
     assert result["nodes"] > 0 and result["dense_l1_mm"] > 0
 
 
-def test_grasp_map_distances_are_the_metric_to_the_nearest_grasp_node():
-    H = _module()
+def test_grasp_map_distances_are_the_metric_to_the_nearest_grasp_node(analysis_script):
+    H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
     hand_z = np.array([0.30 + H.camera_z_G(), 0.30 + H.camera_z_G()])  # a wide view
     logits = np.full((2, t_bins, n, n), -10.0, np.float32)
@@ -119,8 +108,8 @@ def test_grasp_map_distances_are_the_metric_to_the_nearest_grasp_node():
     assert d[0, t_bins - 1, 16, 16] == pytest.approx(2 * step)  # -90 deg is 20 deg from -70
 
 
-def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_path):
-    H = _module()
+def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_path, analysis_script):
+    H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
     net = H.HeightmapFCN(width=8, dilations=(1,), grasp_head=True)
     dist, logits = net.outputs(torch.zeros(2, 2, H.LATTICE, H.LATTICE))
@@ -143,8 +132,8 @@ def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_p
     assert np.all(v["min(grasp map, distance head)"] <= dist)
 
 
-def test_grasp_node_oracle_recovers_labels_that_are_a_distance_transform():
-    H = _module()
+def test_grasp_node_oracle_recovers_labels_that_are_a_distance_transform(analysis_script):
+    H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
     hand_z = np.full(3, 0.30 + H.camera_z_G(), np.float32)
     logits = np.full((3, t_bins, n, n), -10.0, np.float32)

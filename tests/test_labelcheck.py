@@ -139,17 +139,11 @@ def test_grasp_tolerance_runs_and_an_undisplaced_grasp_holds(tmp_path, library):
     assert (tmp_path / "tol" / "tolerance.png").stat().st_size > 1000
 
 
-def test_label_load_case_script_finds_the_static_grasps_the_shake_rejects():
+def test_label_load_case_script_finds_the_static_grasps_the_shake_rejects(analysis_script):
     """analysis/label_load_case.py on isolation trial 25 (a lying hammer): no grasp
     survives the torque test with the shake among its load cases, the static load case
     alone admits some, and one of them is executed in the lab."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "analysis" / "label_load_case.py"
-    spec = importlib.util.spec_from_file_location("label_load_case", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = analysis_script("label_load_case")
     scene = module.run_scene(25, 0, 1)
     assert scene["object"] == "hammer_000"
     assert scene["grasps_with_shake"] == 0 < scene["grasps_static"] == scene["admitted_by_static"]

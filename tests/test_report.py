@@ -1,8 +1,6 @@
 """Reports from results directories (drake_grasp.report) and the analysis scripts. Fast."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
@@ -10,7 +8,6 @@ from drake_grasp.report import make_combined_report, make_report
 from drake_grasp.results import (TrialRecord, classify_failure, replay_path, write_record,
                                  write_run_info)
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def make_record(trial_id, **overrides) -> TrialRecord:
@@ -196,18 +193,11 @@ def test_combined_report(tmp_path, sim_dir):
         make_combined_report([iso, iso], tmp_path / "x")
 
 
-def _script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "analysis" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_analysis_scripts(tmp_path, sim_dir, capsys):
+def test_analysis_scripts(tmp_path, sim_dir, capsys, analysis_script):
     iso = tmp_path / "iso"
     _fill(iso, "isolation", {"ctr": [(True, 0.01, None)] * 39 + [(False, 0.1, MISSED)],
                              "gpd": [(True, 0.01, None)] * 40})
-    figure5, table1 = _script("figure5"), _script("table1")
+    figure5, table1 = analysis_script("figure5"), analysis_script("table1")
     for module in (figure5, table1):
         with pytest.raises(SystemExit) as e:
             module.main(["--help"])
@@ -247,7 +237,7 @@ def test_analysis_scripts(tmp_path, sim_dir, capsys):
     assert "no Table 1 experiment" in capsys.readouterr().err
 
 
-def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys):
+def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys, analysis_script):
     """table1.py DIR@ctr DIR@gpd: a row's CTR from one run and GPD from another (e.g. GPD
     re-run with another option on the same seed), the sources named; a condition given
     twice is refused, naming both dirs, and nothing is written."""
@@ -255,7 +245,7 @@ def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys):
     ok, miss = (True, 0.01, None), (False, 0.1, MISSED)
     _fill(a, "clutter", {"ctr": [ok] * 3 + [miss], "gpd": [miss] * 4})
     _fill(b, "clutter", {"gpd": [ok] * 5})
-    table1 = _script("table1")
+    table1 = analysis_script("table1")
     assert table1.main([f"{a}@ctr", str(b), "--out", str(tmp_path / "t.md")]) == 0
     text = (tmp_path / "t.md").read_text()
     assert "| Clutter (`clutter`) | 75.0% (3/4) |" in text and "100.0% (5/5)" in text
@@ -268,7 +258,7 @@ def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys):
     assert not (tmp_path / "t2.md").exists()
 
 
-def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys):
+def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys, analysis_script):
     """analysis/paired_outcomes.py pairs two runs by trial id: 12 trials, 6 grasped by
     both, 3 only by A, 1 only by B, exact McNemar p = 2 * P(X <= 1 | n = 4, 1/2) = 0.625;
     runs without a shared trial are an error naming them."""
@@ -276,7 +266,7 @@ def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys
     ok, miss = (True, 0.01, None), (False, 0.1, MISSED)
     _fill(a, "isolation", {"ctr": [ok] * 6 + [ok] * 3 + [miss] + [miss] * 2})
     _fill(b, "isolation", {"ctr": [ok] * 6 + [miss] * 3 + [ok] + [miss] * 2})
-    module = _script("paired_outcomes")
+    module = analysis_script("paired_outcomes")
     assert module.main([str(a), str(b), "--names", "old,new", "--out",
                         str(tmp_path / "p.json")]) == 0
     result = json.loads((tmp_path / "p.json").read_text())
