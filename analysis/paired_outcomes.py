@@ -1,5 +1,6 @@
 """Two `evaluate` runs of the same trials (same experiment, seed and trial count), compared
-trial by trial: how many only one of them grasped, and the exact McNemar test on those.
+trial by trial: how many only one of them grasped, and the exact McNemar test on those;
+how many ended at the same final distance (to 1 um) and with the same failure class.
 
 Two policies (or two weights files for one policy) run on the same scenes differ by less
 than their two success rates' intervals suggest: most trials succeed or fail under both.
@@ -43,10 +44,16 @@ def paired(run_a: Path, run_b: Path) -> dict:
     both = sum(a[i].success and b[i].success for i in ids)
     only_a = sum(a[i].success and not b[i].success for i in ids)
     only_b = sum(b[i].success and not a[i].success for i in ids)
+    # The final distance (Figure 5's measure): agreement to 1 um, where both have one.
+    dist = [(a[i].final_distance_m, b[i].final_distance_m) for i in ids]
+    measured = [(x, y) for x, y in dist if x is not None and y is not None]
     return {"paired_trials": len(ids), "successes_a": both + only_a,
             "successes_b": both + only_b, "both": both, "only_a": only_a, "only_b": only_b,
             "neither": len(ids) - both - only_a - only_b,
             "mcnemar_exact_p": round(mcnemar_exact_p(only_a, only_b), 4),
+            "final_distance_in_both": len(measured),
+            "same_final_distance": sum(abs(x - y) <= 1e-6 for x, y in measured),
+            "same_failure_class": sum(a[i].failure_class == b[i].failure_class for i in ids),
             "only_a_trials": [i for i in ids if a[i].success and not b[i].success],
             "only_b_trials": [i for i in ids if b[i].success and not a[i].success]}
 

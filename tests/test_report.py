@@ -261,6 +261,7 @@ def test_table1_takes_each_policy_from_its_own_run(tmp_path, capsys, analysis_sc
 def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys, analysis_script):
     """analysis/paired_outcomes.py pairs two runs by trial id: 12 trials, 6 grasped by
     both, 3 only by A, 1 only by B, exact McNemar p = 2 * P(X <= 1 | n = 4, 1/2) = 0.625;
+    the final distances and failure classes agree where the outcomes do;
     runs without a shared trial are an error naming them."""
     a, b = tmp_path / "a", tmp_path / "b"
     ok, miss = (True, 0.01, None), (False, 0.1, MISSED)
@@ -275,6 +276,9 @@ def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys
     assert (result["successes_a"], result["successes_b"]) == (9, 7)
     assert result["mcnemar_exact_p"] == 0.625
     assert result["only_b_trials"] == ["isolation/ctr/0009"]
+    # The 8 trials with one outcome in both ended at the same distance, the same way.
+    assert (result["final_distance_in_both"], result["same_final_distance"],
+            result["same_failure_class"]) == (12, 8, 8)
     assert module.mcnemar_exact_p(13, 6) == pytest.approx(0.1671, abs=1e-4)
     assert module.mcnemar_exact_p(0, 0) == 1.0
     capsys.readouterr()
