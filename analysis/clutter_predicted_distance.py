@@ -26,17 +26,13 @@ import numpy as np
 def replay(path: str) -> dict:
     """One recorded CTR clutter attempt replayed with the CNN, its decisions logged."""
     import drake_grasp.systems.controller as controller_module
-    from drake_grasp.montecarlo import _simulate
+    from drake_grasp.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import SceneSpec
 
-    rec = json.loads(Path(path).read_text())
-    if rec.get("policy") != "ctr" or not (rec.get("extra") or {}).get("scene"):
-        raise ValueError(f"{path}: expected a CTR clutter attempt record with extra.scene")
+    rec, scenario, scene = recorded_pile(path)
+    if rec.get("policy") != "ctr":
+        raise ValueError(f"{path}: expected a CTR clutter attempt record")
     library = load_library(None)
-    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
-    scene = SceneSpec.from_dict(rec["extra"]["scene"])
     least: list[float] = []
 
     class Logged(controller_module.GraspController):

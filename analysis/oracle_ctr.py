@@ -102,17 +102,13 @@ def run_attempt(path: str) -> dict:
     """One recorded clutter attempt's pile, simulated by CTR with the CNN and by the oracle."""
     import drake_grasp.systems.controller as controller_module
     from drake_grasp.grasps import find_grasps
-    from drake_grasp.montecarlo import _simulate
+    from drake_grasp.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import SceneSpec
 
-    rec = json.loads(Path(path).read_text())
-    if rec.get("policy") != "ctr" or not (rec.get("extra") or {}).get("scene"):
-        raise ValueError(f"{path}: expected a CTR clutter attempt record with extra.scene")
+    rec, scenario, scene = recorded_pile(path)
+    if rec.get("policy") != "ctr":
+        raise ValueError(f"{path}: expected a CTR clutter attempt record")
     library = load_library(None)
-    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
-    scene = SceneSpec.from_dict(rec["extra"]["scene"])
     truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
     row = {"trial_id": rec["trial_id"], "objects": len(scene.objects),
            "recorded": {"success": bool(rec["success"]), "failure_class": rec["failure_class"]},

@@ -29,16 +29,11 @@ def check(record_path: str | Path, object_id: str, grasps: int) -> dict:
     pile or an object not in it."""
     from drake_grasp.grasps import find_grasps
     from drake_grasp.lab import check_grasp
+    from drake_grasp.montecarlo import recorded_pile
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import SceneSpec
 
-    rec = json.loads(Path(record_path).read_text())
-    if not (rec.get("extra") or {}).get("scene"):
-        raise ValueError(f"{record_path}: no extra.scene (expected a clutter attempt's record)")
+    _, scenario, scene = recorded_pile(record_path)
     library = load_library(None)
-    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
-    scene = SceneSpec.from_dict(rec["extra"]["scene"])
     ids = [o.object_id for o in scene.objects]
     if object_id not in ids:
         raise ValueError(f"{record_path}: object {object_id!r} not in the pile; it holds {ids}")

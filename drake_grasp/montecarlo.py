@@ -1024,6 +1024,24 @@ def recorded_weights(scenario, run_info: dict, condition: str, *, source: str = 
                      "is; replay it with the package that recorded it")
 
 
+def recorded_pile(path: str | Path) -> tuple:
+    """(record, scenario, scene) of a clutter attempt: its trial record (the JSON file, as
+    a dict), its scenario and the pile it began on (`extra.scene`); what the analysis
+    scripts replay an attempt from.
+
+    Raises:
+        ValueError: The record holds no pile (the message names the file).
+    """
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import SceneSpec
+
+    rec = json.loads(Path(path).read_text())
+    if not (rec.get("extra") or {}).get("scene"):
+        raise ValueError(f"{path}: no extra.scene (expected a clutter attempt's record)")
+    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
+    return rec, scenario, SceneSpec.from_dict(rec["extra"]["scene"])
+
+
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):
     """Re-runs one recorded trial exactly (its resolved scenario, and for clutter attempts
     the pile it started from) and writes its episode files with the replay page."""

@@ -29,3 +29,17 @@ def test_an_object_not_in_the_pile_is_named_with_the_piles_objects(analysis_scri
     assert "object 'nothing_000' not in the pile; it holds ['bottle_004'" in err
     with pytest.raises(SystemExit):
         module.main([str(RECORD), "toy_car_004", "--grasps", "0"])
+
+
+def test_recorded_pile_reads_a_clutter_attempt_and_names_a_record_without_one(tmp_path):
+    import json
+
+    from drake_grasp.montecarlo import recorded_pile
+
+    rec, scenario, scene = recorded_pile(RECORD)
+    assert rec["trial_id"] == "clutter/ctr/0007/attempt02"
+    assert scenario.seed == rec["seed"] and len(scene.objects) == 9
+    bare = tmp_path / "r.json"
+    bare.write_text(json.dumps({**rec, "extra": {}}))
+    with pytest.raises(ValueError, match=r"r\.json: no extra\.scene"):
+        recorded_pile(bare)
