@@ -973,7 +973,8 @@ def recorded_scenario(scenario_yaml: str):
     before `physics.table_collision` existed ran with the table's box (the `fast`
     profile's half-space table came later), so it gets "box". One written before
     `gripper.force_mode` existed pressed with at most the grip force, so it gets
-    "limit"."""
+    "limit"; one written before `gpd.fallback_best` existed ran GPD's strict threshold,
+    so it gets false."""
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.scenario import Scenario, apply_physics_profile
@@ -994,6 +995,10 @@ def recorded_scenario(scenario_yaml: str):
     if not re.search(r"^gripper:\n(?:  .*\n)*  force_mode:", scenario_yaml, re.MULTILINE):
         # Recorded before `gripper.force_mode` existed: the grip force was a limit.
         scenario.gripper.force_mode = "limit"
+    if not re.search(r"^gpd:\n(?:  .*\n)*  fallback_best:", scenario_yaml, re.MULTILINE):
+        # Recorded before `gpd.fallback_best` existed: no detection over the threshold
+        # was no detection (the fallback became the default later).
+        scenario.gpd.fallback_best = False
     return scenario
 
 
@@ -1032,14 +1037,12 @@ def recorded_pile(path: str | Path) -> tuple:
     Raises:
         ValueError: The record holds no pile (the message names the file).
     """
-    from drake_grasp.scenario import load_scenario
     from drake_grasp.scene import SceneSpec
 
     rec = json.loads(Path(path).read_text())
     if not (rec.get("extra") or {}).get("scene"):
         raise ValueError(f"{path}: no extra.scene (expected a clutter attempt's record)")
-    scenario = load_scenario(scenario_name=rec["scenario_name"], scenario_text=rec["scenario_yaml"])
-    return rec, scenario, SceneSpec.from_dict(rec["extra"]["scene"])
+    return rec, recorded_scenario(rec["scenario_yaml"]), SceneSpec.from_dict(rec["extra"]["scene"])
 
 
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):

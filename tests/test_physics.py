@@ -174,6 +174,24 @@ def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
     assert dump_scenario(old) == text
 
 
+def test_a_gpd_record_made_before_the_fallback_was_a_key_replays_without_it():
+    """`gpd.fallback_best` is on by default now; a record whose scenario has no such key
+    ran GPD's strict threshold and replays so; one that names it keeps its value."""
+    from drake_grasp.montecarlo import recorded_scenario
+    from drake_grasp.scenario import dump_scenario
+
+    now = load_scenario(scenario_name="clutter")
+    text = dump_scenario(now)
+    line = "  fallback_best: true\n"
+    assert now.gpd.fallback_best is True and line in text
+    assert recorded_scenario(text).gpd.fallback_best is True
+    assert recorded_scenario(text.replace(line, "  fallback_best: false\n")).gpd.fallback_best is False
+    old = recorded_scenario(text.replace(line, ""))
+    assert old.gpd.fallback_best is False
+    old.gpd.fallback_best = True
+    assert dump_scenario(old) == text  # nothing else differs from the record
+
+
 def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
     from drake_grasp.montecarlo import replay_trial
     from drake_grasp.results import TrialRecord, write_record
