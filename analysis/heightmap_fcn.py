@@ -45,7 +45,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,10 +53,13 @@ sys.path.insert(0, str(ROOT))
 from drake_grasp.dense_training import (  # noqa: E402
     GRID_CONFIG, grid_node_actions, load_labels, view_masks)
 
-CELL_M = 0.005
-LATTICE_HALF_M = 0.18
-LATTICE = int(round(2 * LATTICE_HALF_M / CELL_M)) + 1  # 73 cells, centres -18..18 cm
-HEIGHT_SCALE = 10.0  # input height in decimetres
+from drake_grasp import fcn  # noqa: E402
+
+_LATTICE = fcn.FcnConfig()  # the lattice every net here uses: 5 mm cells, +-18 cm
+CELL_M = _LATTICE.cell_m
+LATTICE = _LATTICE.lattice  # 73 cells, centres -18..18 cm
+HEIGHT_SCALE = _LATTICE.height_scale  # input height in decimetres
+
 # A grid node is a "grasp node" when a true grasp lies within half the diagonal of its
 # 1 cm x 1 cm x 10 degree cell (the metric weighs 10 degrees as 1 cm): every grasp over
 # the grid has one, and the distance transform of the grasp nodes is the label to within
@@ -73,80 +75,19 @@ def camera_z_G() -> float:
     return float(gripper_frame_offsets()[2].translation()[2])
 
 
-def height_maps(depth: np.ndarray, hand_z: np.ndarray, *, batch: int = 2000) -> np.ndarray:
-    """(B, 2, L, L) float16: height above the table [dm] on the metric lattice, and the
-    mask of the cells the view covers, from (B, 64, 64) depth [m] and hand heights [m]."""
-    cfg = GRID_CONFIG
-    f = cfg.focal_px
-    size = depth.shape[-1]
-    c = np.arange(size) - (size / 2.0 - 0.5)
-    cam_h = np.asarray(hand_z, np.float64) - camera_z_G()
-    out = np.empty((len(depth), 2, LATTICE, LATTICE), np.float16)
-    cols = torch.from_numpy(np.tile(c, size)).float()           # pixel u (x_G)
-    rows = torch.from_numpy(np.repeat(c, size)).float()         # pixel v (y_G)
-    centres = (torch.arange(LATTICE).float() - (LATTICE - 1) / 2) * CELL_M
-    for lo in range(0, len(depth), batch):
-        d = torch.from_numpy(depth[lo:lo + batch].astype(np.float32)).flatten(1)
-        h = torch.from_numpy(cam_h[lo:lo + batch]).float()
-        b = len(d)
-        x = cols[None] * d / f
-        y = rows[None] * d / f
-        height = (h[:, None] - d).clamp(min=0.0)
-        ix = torch.round((x + LATTICE_HALF_M) / CELL_M).long()
-        iy = torch.round((y + LATTICE_HALF_M) / CELL_M).long()
-        ok = (ix >= 0) & (ix < LATTICE) & (iy >= 0) & (iy < LATTICE)
-        flat = torch.where(ok, iy * LATTICE + ix, torch.full_like(ix, LATTICE * LATTICE))
-        hm = torch.full((b, LATTICE * LATTICE + 1), -1.0)
-        hm.scatter_reduce_(1, flat, height, reduce="amax", include_self=True)
-        hm = hm[:, :-1].reshape(b, 1, LATTICE, LATTICE)
-        # Empty cells (finer than a pixel near the table at low heights): the highest of
-        # their 3x3 neighbours, twice.
-        for _ in range(2):
-            filled = F.max_pool2d(hm, 3, stride=1, padding=1)
-            hm = torch.where(hm < 0, filled, hm)
-        # The view: the camera's footprint on the table.
-        half = (h * math.tan(math.radians(cfg.camera_fov_deg) / 2.0))[:, None]
-        inside = (centres.abs()[None] <= half)
-        view = (inside[:, :, None] & inside[:, None, :]).float()[:, None]
-        hm = torch.where((hm < 0) | (view == 0), torch.zeros_like(hm), hm)
-        out[lo:lo + b, 0] = (hm[:, 0] * HEIGHT_SCALE).numpy()
-        out[lo:lo + b, 1] = view[:, 0].numpy()
-    return out
+def camera_heights(hand_z: np.ndarray) -> np.ndarray:
+    """The camera's heights above the table [m] for the labels' hand heights."""
+    return np.asarray(hand_z, np.float64) - camera_z_G()
 
 
-class HeightmapFCN(nn.Module):
-    """(B, 2, 73, 73) height map -> (B, 18, 33, 33) distances [m] at the grid's nodes;
-    with `grasp_head`, also (B, 18, 33, 33) logits of "a true grasp lies within
-    `GRASP_NODE_M` of this node" (`outputs`)."""
+def height_maps(depth: np.ndarray, hand_z: np.ndarray) -> np.ndarray:
+    """`fcn.height_maps` of the labels' images (the defaults' lattice)."""
+    return fcn.height_maps(depth, camera_heights(hand_z), GRID_CONFIG, fcn.FcnConfig())
 
-    def __init__(self, width: int = 32, dilations=(1, 2, 4, 8, 4, 2, 1), *,
-                 grasp_head: bool = False):
-        super().__init__()
-        self.grasp_head = grasp_head
-        self.stem = nn.Sequential(
-            nn.Conv2d(2, width, 3, padding=1), nn.BatchNorm2d(width), nn.LeakyReLU(0.01),
-            nn.Conv2d(width, width, 3, stride=2, padding=1), nn.BatchNorm2d(width),
-            nn.LeakyReLU(0.01))  # 37 x 37 at 1 cm, centres -18..18 cm
-        self.blocks = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(width, width, 3, padding=d, dilation=d),
-                          nn.BatchNorm2d(width), nn.LeakyReLU(0.01)) for d in dilations)
-        t_bins = GRID_CONFIG.grid_shape()[0]
-        self.head = nn.Conv2d(width, t_bins * (2 if grasp_head else 1), 1)
 
-    def outputs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The distances [m] and the grasp logits (None without a grasp head)."""
-        h = self.stem(x)
-        for block in self.blocks:
-            h = h + block(h)
-        n = GRID_CONFIG.grid_shape()[1]
-        crop = (h.shape[-1] - n) // 2
-        z = self.head(h)[:, :, crop:crop + n, crop:crop + n]
-        t_bins = GRID_CONFIG.grid_shape()[0]
-        distances = GRID_CONFIG.output_scale_m * F.softplus(z[:, :t_bins])
-        return distances, (z[:, t_bins:] if self.grasp_head else None)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.outputs(x)[0]
+def make_fcn(width: int, grasp_head: bool, **kw) -> fcn.HeightmapFCN:
+    """A fresh `fcn.HeightmapFCN` (`kw`: other `fcn.FcnConfig` fields, e.g. dilations)."""
+    return fcn.HeightmapFCN(fcn.FcnConfig(width=width, grasp_head=grasp_head, **kw), GRID_CONFIG)
 
 
 def _masks(hand_z: np.ndarray) -> torch.Tensor:
@@ -155,19 +96,8 @@ def _masks(hand_z: np.ndarray) -> torch.Tensor:
 
 
 def grasp_map_distances(logits: np.ndarray, hand_z: np.ndarray, threshold: float) -> np.ndarray:
-    """(B, 18, 33, 33) distances [m] from each node to the nearest in-view node whose
-    grasp probability is at least `threshold` (the Euclidean distance transform on the
-    grid's 1 cm lattice, periodic over theta's 180 degrees); NaN for an image with none."""
-    from scipy.ndimage import distance_transform_edt
-
-    t_bins = GRID_CONFIG.grid_shape()[0]
-    pos = (logits >= math.log(threshold / (1.0 - threshold))) & _masks(hand_z).numpy()
-    out = np.full(logits.shape, np.nan, np.float32)
-    for i in np.flatnonzero(pos.reshape(len(pos), -1).any(axis=1)):
-        wrapped = np.concatenate([~pos[i]] * 3, axis=0)  # theta periodic: the middle copy
-        edt = distance_transform_edt(wrapped)[t_bins:2 * t_bins]
-        out[i] = edt * GRID_CONFIG.grid_step_m
-    return out
+    """`fcn.grasp_map_distances` at the labels' hand heights."""
+    return fcn.grasp_map_distances(logits, camera_heights(hand_z), GRID_CONFIG, threshold)
 
 
 def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: int,
@@ -206,7 +136,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
     del data
     print(f"{len(maps)} images; height maps in {time.perf_counter() - t0:.0f} s", flush=True)
     torch.manual_seed(seed)
-    model = HeightmapFCN(width, grasp_head=grasp_weight > 0)
+    model = make_fcn(width, grasp_weight > 0)
     pos_weight = torch.tensor(GRASP_POS_WEIGHT)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     state = {"epoch": 0, "batch_index": 0, "train_s": 0.0, "log": []}
@@ -313,7 +243,7 @@ def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) 
 def predict_fcn(path: str, data: dict, *, batch: int = 200) -> tuple[np.ndarray, np.ndarray | None]:
     """A trained FCN's distances and (with a grasp head; else None) grasp logits."""
     saved = torch.load(path, weights_only=False)
-    model = HeightmapFCN(saved["width"], grasp_head=saved.get("grasp_head", False))
+    model = make_fcn(saved["width"], saved.get("grasp_head", False))
     model.load_state_dict(saved["model"])
     model.eval()
     maps = height_maps(data["depth"], data["hand_z"])
@@ -382,6 +312,23 @@ def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarra
     return np.concatenate(out)
 
 
+def export(model_pt: str, out: str, *, grasp_threshold: float, note: str = "") -> None:
+    """Writes a `train` result as `fcn.save_fcn` weights (the net's eval-mode tensors)."""
+    import hashlib
+
+    saved = torch.load(model_pt, weights_only=False)
+    cfg = fcn.FcnConfig(width=saved["width"], grasp_head=bool(saved.get("grasp_head")),
+                        grasp_threshold=grasp_threshold)
+    net = fcn.HeightmapFCN(cfg, GRID_CONFIG)
+    net.load_state_dict(saved["model"])
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    fcn.save_fcn(net.eval(), out, metadata={
+        "source": Path(model_pt).name,
+        "source_sha256": hashlib.sha256(Path(model_pt).read_bytes()).hexdigest(),
+        "training": saved.get("identity", {}), "note": note})
+    print(f"{out}: {cfg}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -399,6 +346,14 @@ def main(argv=None) -> int:
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--grasp-weight", type=float, default=0.0,
                    help="> 0: add the grasp head, its cross-entropy weighted so")
+    e = sub.add_parser("export", help="a trained model.pt as a safetensors weights file "
+                       "that `controller.weights` and `evaluate --weights` load")
+    e.add_argument("--fcn", required=True, help="a model.pt from `train`")
+    e.add_argument("--grasp-threshold", type=float, default=0.0,
+                   help="> 0 (a net with a grasp head): score min(distance head, distance "
+                   "to the nearest node of at least this grasp probability)")
+    e.add_argument("--note", default="", help="a line stored in the file's metadata")
+    e.add_argument("--out", required=True)
     c = sub.add_parser("compare")
     c.add_argument("--test", required=True)
     c.add_argument("--fcn", default="")
@@ -413,6 +368,9 @@ def main(argv=None) -> int:
         train(a.labels.split(","), Path(a.out), minutes=a.minutes, epochs=a.epochs,
               batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads,
               max_images=a.max_images, grasp_weight=a.grasp_weight)
+        return 0
+    if a.cmd == "export":
+        export(a.fcn, a.out, grasp_threshold=a.grasp_threshold, note=a.note)
         return 0
     data = load_labels([a.test])
     result = {"test": a.test, "images": len(data["grid"])}

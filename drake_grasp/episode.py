@@ -428,17 +428,18 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     from pydrake.systems.primitives import ConstantValueSource
 
     from drake_grasp.systems.controller import GraspController
-    from drake_grasp.systems.evaluator import ActionSampler, DistanceEvaluator, score_candidates
+    from drake_grasp.systems.evaluator import (ActionSampler, DistanceEvaluator,
+                                               needs_camera_height, score_candidates)
 
     c = scenario.controller
     needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
+    needs_height = needs_cnn and needs_camera_height(model)
     timer = DecisionTimer()
-    score_fn = (timer.wrap(lambda d, actions: score_candidates(model, d, actions,
-                                                              mirror=c.mirror_average))
-                if needs_cnn else None)
+    score_fn = (timer.wrap(lambda d, actions, **kw: score_candidates(
+        model, d, actions, mirror=c.mirror_average, **kw)) if needs_cnn else None)
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=X_WG_start, X_GC=X_GC,
-        X_GC_gpd=X_GC_gpd, score_fn=score_fn,
+        X_GC_gpd=X_GC_gpd, score_fn=score_fn, score_needs_height=needs_height,
         detect_fn=timer.wrap(_detector(scenario, detect_fn)), target_label=target_label))
     builder.Connect(depth, controller.GetInputPort("depth_image"))
     builder.Connect(label, controller.GetInputPort("label_image"))
@@ -454,6 +455,9 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
         builder.Connect(depth, evaluator.GetInputPort("depth_image"))
         builder.Connect(sampler.GetOutputPort("candidate_actions"),
                         evaluator.GetInputPort("candidate_actions"))
+        if needs_height:
+            builder.Connect(controller.GetOutputPort("camera_height"),
+                            evaluator.GetInputPort("camera_height"))
         distances = evaluator.GetOutputPort("predicted_distances")
     else:
         none = builder.AddNamedSystem("no_evaluator", ConstantValueSource(

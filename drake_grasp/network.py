@@ -466,6 +466,53 @@ def action_features(
 # ----------------------------------------------------------------------------------
 
 
+def grid_corners(cfg: "NetworkConfig", feats: torch.Tensor) -> list:
+    """The 8 grid nodes around each of M actions on B images and their trilinear
+    weights: [(flat node index (B, M), weight (B, M))] (see `grid_scores`); the grid is
+    `cfg`'s (`NetworkConfig.grid_shape`, its step, theta step and camera offset)."""
+    t_bins, n, _ = cfg.grid_shape()
+    b, m = feats.shape[:2]
+    half = (n - 1) / 2.0
+    # Node coordinates: x = camera_x + (i - half) step, theta = -90 + k step.
+    u = (feats[..., 0] * cfg.action_xy_scale_m - cfg.camera_x_G_m) / cfg.grid_step_m + half
+    v = (feats[..., 1] * cfg.action_xy_scale_m - cfg.camera_y_G_m) / cfg.grid_step_m + half
+    theta_deg = torch.rad2deg(0.5 * torch.atan2(feats[..., 3], feats[..., 2]))
+    w = torch.remainder((theta_deg + 90.0) / cfg.grid_theta_step_deg, float(t_bins))
+    u = u.clamp(0.0, n - 1.0)
+    v = v.clamp(0.0, n - 1.0)
+    iu = u.detach().floor().clamp(max=n - 2).long()
+    iv = v.detach().floor().clamp(max=n - 2).long()
+    iw = w.detach().floor().long().clamp(0, t_bins - 1)
+    fu, fv, fw = u - iu, v - iv, w - iw
+    iw1 = torch.remainder(iw + 1, t_bins)
+    corners = []
+    for kw, gw in ((iw, 1.0 - fw), (iw1, fw)):
+        for kv, gv in ((iv, 1.0 - fv), (iv + 1, fv)):
+            for ku, gu in ((iu, 1.0 - fu), (iu + 1, fu)):
+                corners.append(((kw * n + kv) * n + ku, gw * gv * gu))
+    return corners
+
+
+def grid_scores(cfg: "NetworkConfig", grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+    """Distances for M actions on each of B images from their distance grids: the
+    trilinear interpolation between the 8 grid nodes around each action, periodic in
+    theta (a parallel jaw turned by 180 degrees is the same grasp); x and y beyond
+    the grid are clamped to its edge.
+
+    Args:
+        grids: (B, T, N, N) from `image_features` (theta, y, x).
+        feats: (B, M, 4) action features.
+
+    Returns:
+        (B, M).
+    """
+    flat = grids.reshape(grids.shape[0], -1)
+    out = 0.0
+    for idx, weight in grid_corners(cfg, feats):
+        out = out + torch.gather(flat, 1, idx) * weight
+    return out
+
+
 class _WeightsMemo:
     """A memo of something computed from parameters, for inference.
 
@@ -895,49 +942,10 @@ class DistanceCNN(nn.Module):
     # -- grid head ---------------------------------------------------------------------
 
     def _grid_corners(self, feats: torch.Tensor) -> list:
-        """The 8 grid nodes around each of M actions on B images and their trilinear
-        weights: [(flat node index (B, M), weight (B, M))] (see `_grid_scores`)."""
-        cfg = self.config
-        t_bins, n, _ = cfg.grid_shape()
-        b, m = feats.shape[:2]
-        half = (n - 1) / 2.0
-        # Node coordinates: x = camera_x + (i - half) step, theta = -90 + k step.
-        u = (feats[..., 0] * cfg.action_xy_scale_m - cfg.camera_x_G_m) / cfg.grid_step_m + half
-        v = (feats[..., 1] * cfg.action_xy_scale_m - cfg.camera_y_G_m) / cfg.grid_step_m + half
-        theta_deg = torch.rad2deg(0.5 * torch.atan2(feats[..., 3], feats[..., 2]))
-        w = torch.remainder((theta_deg + 90.0) / cfg.grid_theta_step_deg, float(t_bins))
-        u = u.clamp(0.0, n - 1.0)
-        v = v.clamp(0.0, n - 1.0)
-        iu = u.detach().floor().clamp(max=n - 2).long()
-        iv = v.detach().floor().clamp(max=n - 2).long()
-        iw = w.detach().floor().long().clamp(0, t_bins - 1)
-        fu, fv, fw = u - iu, v - iv, w - iw
-        iw1 = torch.remainder(iw + 1, t_bins)
-        corners = []
-        for kw, gw in ((iw, 1.0 - fw), (iw1, fw)):
-            for kv, gv in ((iv, 1.0 - fv), (iv + 1, fv)):
-                for ku, gu in ((iu, 1.0 - fu), (iu + 1, fu)):
-                    corners.append(((kw * n + kv) * n + ku, gw * gv * gu))
-        return corners
+        return grid_corners(self.config, feats)
 
     def _grid_scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """Distances for M actions on each of B images from their distance grids: the
-        trilinear interpolation between the 8 grid nodes around each action, periodic in
-        theta (a parallel jaw turned by 180 degrees is the same grasp); x and y beyond
-        the grid are clamped to its edge.
-
-        Args:
-            grids: (B, T, N, N) from `image_features` (theta, y, x).
-            feats: (B, M, 4) action features.
-
-        Returns:
-            (B, M).
-        """
-        flat = grids.reshape(grids.shape[0], -1)
-        out = 0.0
-        for idx, weight in self._grid_corners(feats):
-            out = out + torch.gather(flat, 1, idx) * weight
-        return out
+        return grid_scores(self.config, grids, feats)
 
     def _after_ip1_grid(self, hidden: torch.Tensor) -> torch.Tensor:
         """The whole distance grid, (..., T, N, N), from `grid_hidden` (..., ip1)."""

@@ -67,7 +67,7 @@ def test_height_map_places_a_box_at_its_metric_position_and_height(analysis_scri
 def test_fcn_output_is_the_grid_and_training_resumes(tmp_path, analysis_script):
     H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
-    net = H.HeightmapFCN(width=8, dilations=(1, 2))
+    net = H.make_fcn(8, False, dilations=(1, 2))
     out = net(torch.zeros(3, 2, H.LATTICE, H.LATTICE))
     assert out.shape == (3, t_bins, n, n) and bool((out > 0).all())
 
@@ -111,7 +111,7 @@ def test_grasp_map_distances_are_the_metric_to_the_nearest_grasp_node(analysis_s
 def test_grasp_head_trains_and_its_variants_fall_back_to_the_distance_head(tmp_path, analysis_script):
     H = analysis_script("heightmap_fcn")
     t_bins, n, _ = H.GRID_CONFIG.grid_shape()
-    net = H.HeightmapFCN(width=8, dilations=(1,), grasp_head=True)
+    net = H.make_fcn(8, True, dilations=(1,))
     dist, logits = net.outputs(torch.zeros(2, 2, H.LATTICE, H.LATTICE))
     assert dist.shape == logits.shape == (2, t_bins, n, n)
     labels, data = _labels(H, tmp_path, 4, seed=1)

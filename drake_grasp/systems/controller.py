@@ -189,21 +189,29 @@ class GraspController(LeafSystem):
             decided on: the start, or gpd's viewpoint; 0 before it), 1 until
             the gripper starts closing (then 0), and the phase of the shared grasp motion
             (`supervisor.MOTION_PHASES` index), which the GraspJudge reads.
+        camera_height: (1,) the wrist camera's height above the table [m] at the pose
+            the controller believes the hand holds (the start pose until it starts):
+            proprioception, for a distance function that needs it (the height-map FCN's
+            `DistanceEvaluator`).
     """
 
     def __init__(self, *, scenario: Scenario, policy: str, X_WG_start: RigidTransform,
                  X_GC: RigidTransform, score_fn=None, detect_fn=None,
-                 target_label: int | None = None, X_GC_gpd: RigidTransform | None = None):
+                 target_label: int | None = None, X_GC_gpd: RigidTransform | None = None,
+                 score_needs_height: bool = False):
         """Args:
             scenario, policy: the trial's scenario and the policy to run (see the module
                 docstring).
             X_WG_start: the grasp frame's start pose (top-down).
             X_GC: the wrist camera in the grasp frame.
-            score_fn: ctr, cnn-ctr, cnn-only: score(depth, actions) -> distances.
+            score_fn: ctr, cnn-ctr, cnn-only: score(depth, actions) -> distances
+                (score(depth, actions, camera_height_m=h) with `score_needs_height`).
             detect_fn: gpd: detect(depth (H, W) [m], X_WC 4x4) -> X_WG 4x4 or None;
                 gpd-geometric: detect(depth, X_WC) -> (x, y, theta_deg, z) or None.
             target_label: the target object's label (target mode), or None.
             X_GC_gpd: the GPD sensor in the grasp frame (gpd: required).
+            score_needs_height: cnn-only, cnn-ctr: pass the camera's height to score_fn
+                (the height-map FCN; `evaluator.needs_camera_height`).
         """
         super().__init__()
         self._s = scenario
@@ -218,6 +226,7 @@ class GraspController(LeafSystem):
         self._X_GC = X_GC
         self._cam_dz = -float(X_GC.translation()[2])  # camera above the grasp centre
         self._score = score_fn
+        self._score_needs_height = bool(score_needs_height)
         self._detect = detect_fn
         self._target_label = target_label
         start_cam = self._start[2] + self._cam_dz
@@ -255,6 +264,8 @@ class GraspController(LeafSystem):
                                      {self.abstract_state_ticket(self._state)})
         self.DeclareVectorOutputPort("control_status", 3, self._CalcStatus,
                                      {self.abstract_state_ticket(self._state), self.time_ticket()})
+        self.DeclareVectorOutputPort("camera_height", 1, self._CalcCameraHeight,
+                                     {self.abstract_state_ticket(self._state)})
 
     # -- queries ----------------------------------------------------------------------
 
@@ -438,7 +449,9 @@ class GraspController(LeafSystem):
             camera_height_m=self._camera_height(hand), fov_deg=cam.fov_y_deg,
             camera_offset_xy_G=self._X_GC.translation()[:2], margin_m=0.01)
         depth = self._depth.Eval(context).data[:, :, 0]
-        distances = self._score(depth, actions)
+        height = ({"camera_height_m": self._camera_height(hand)} if self._score_needs_height
+                  else {})
+        distances = self._score(depth, actions, **height)
         mask = self._target_mask(context, actions, hand)
         if mask is not None:
             distances = np.where(mask, distances, np.inf)
@@ -676,6 +689,11 @@ class GraspController(LeafSystem):
             s.phase == Phase.DONE and s.grasp is not None)
         g = self._s.gripper
         output.SetFromVector([0.0 if closed else g.open_width_m, g.grip_force_n])
+
+    def _CalcCameraHeight(self, context, output: BasicVector):
+        s = self.get_controller_state(context)
+        hand = self._start if s.phase == Phase.START else s.hand
+        output.SetAtIndex(0, self._camera_height(hand))
 
     def _CalcStatus(self, context, output: BasicVector):
         s = self.get_controller_state(context)

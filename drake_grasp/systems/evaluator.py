@@ -20,6 +20,7 @@ from drake_grasp.onnx_runtime import OnnxDistanceModel
 from drake_grasp.policies import sample_candidates
 
 if TYPE_CHECKING:
+    from drake_grasp.fcn import FcnDistanceModel
     from drake_grasp.network import DistanceCNN
 
 # The default distance CNN: the paper's trunk with the grid head, trained with BatchNorm
@@ -33,6 +34,9 @@ DEFAULT_WEIGHTS = "cnn-grid-bn12/weights.safetensors"
 BN_WEIGHTS = "cnn-grid-bn/weights.safetensors"
 GRID_WEIGHTS = "cnn-grid/weights.safetensors"
 PAPER_WEIGHTS = "cnn/weights.safetensors"
+# The height-map FCN with its grasp head (drake_grasp/fcn.py; models/fcn-heightmap/README.md):
+# not the default; it needs the camera's height, the controller's `camera_height` port.
+FCN_WEIGHTS = "fcn-heightmap/weights.safetensors"
 
 
 class CnnEnsemble:
@@ -78,7 +82,8 @@ def load_cnn(weights: str = "", *, threads: int = 1
     ``.head.onnx`` sibling beside it) loads the onnxruntime backend
     (`OnnxDistanceModel` with `threads` intra-op threads: `controller.torch_threads` in an
     episode); anything else is a safetensors file for torch (whose threads the episode
-    sets process-wide).
+    sets process-wide): a `DistanceCNN`'s, or the height-map FCN's (`fcn.FCN_FORMAT` in
+    its metadata, `FCN_WEIGHTS`; scored with the camera's height, `needs_camera_height`).
     """
     files = weights_files(weights)
     if len(files) > 1:
@@ -86,28 +91,50 @@ def load_cnn(weights: str = "", *, threads: int = 1
     path = files[0]
     if str(path).endswith(".onnx"):
         return OnnxDistanceModel(path, threads=max(1, int(threads)))
+    from drake_grasp.fcn import FCN_FORMAT, load_fcn, weights_format
+
+    if weights_format(path) == FCN_FORMAT:
+        return load_fcn(path)[0]
     from drake_grasp.network import load_weights
 
     model, _ = load_weights(path)
     return model.eval()
 
 
-def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble], depth: np.ndarray,
-                     actions: np.ndarray, *, mirror: bool = False) -> np.ndarray:
+def needs_camera_height(model) -> bool:
+    """Whether `score_candidates(model, ...)` needs `camera_height_m` (an FCN, or an
+    ensemble with one)."""
+    if isinstance(model, CnnEnsemble):
+        return any(needs_camera_height(m) for m in model.members)
+    return bool(getattr(model, "needs_camera_height", False))
+
+
+def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, FcnDistanceModel],
+                     depth: np.ndarray, actions: np.ndarray, *, mirror: bool = False,
+                     camera_height_m: float | None = None) -> np.ndarray:
     """Predicted distance [m] for each candidate action on one depth image (fast path).
 
     `mirror`: the mean of the scores on the image and on its mirror image with the
     mirrored actions (`network.mirror_actions`; `controller.mirror_average`).
-    A `CnnEnsemble`: the mean of its members' scores."""
+    A `CnnEnsemble`: the mean of its members' scores. `camera_height_m`: the camera's
+    height above the table when the image was taken, which the height-map FCN needs
+    (`needs_camera_height`; the CNNs ignore it)."""
     if isinstance(model, CnnEnsemble):
-        return np.mean([score_candidates(m, depth, actions, mirror=mirror)
+        return np.mean([score_candidates(m, depth, actions, mirror=mirror,
+                                         camera_height_m=camera_height_m)
                         for m in model.members], axis=0)
     if mirror:
         from drake_grasp.network import mirror_actions, mirror_images
 
-        return 0.5 * (score_candidates(model, depth, actions)
+        return 0.5 * (score_candidates(model, depth, actions, camera_height_m=camera_height_m)
                       + score_candidates(model, mirror_images(np.asarray(depth)),
-                                         mirror_actions(np.asarray(actions))))
+                                         mirror_actions(np.asarray(actions)),
+                                         camera_height_m=camera_height_m))
+    if needs_camera_height(model):
+        if camera_height_m is None:
+            raise ValueError(f"{getattr(model, 'path', '') or 'the height-map FCN'}: scoring "
+                             "needs camera_height_m (the camera's height above the table)")
+        return model.score(depth, actions, camera_height_m)
     if isinstance(model, OnnxDistanceModel):
         return model.score(depth, np.asarray(actions, np.float32))
     import torch
@@ -128,21 +155,27 @@ class DistanceEvaluator(LeafSystem):
     Input ports:
         depth_image: post-processed wrist depth (ImageDepth32F).
         candidate_actions: (K, 3) actions [dx, dy, dtheta_deg] in the hand frame.
+        camera_height (only for a model that needs it, `needs_camera_height`: the
+            height-map FCN): (1,) the camera's height above the table [m] where the
+            image was taken, the controller's belief (`GraspController`'s port).
     Output ports:
         predicted_distances: (K,) metres.
     """
 
-    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble], *, score_fn=None,
-                 mirror: bool = False):
+    def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, FcnDistanceModel],
+                 *, score_fn=None, mirror: bool = False):
         """`model`: from `load_cnn` (torch or onnxruntime backend). `score_fn(depth,
-        actions)` replaces `score_candidates(model, ..., mirror=mirror)` (e.g. a timed
-        wrapper of it)."""
+        actions)` (with `camera_height_m=` for a model that needs it) replaces
+        `score_candidates(model, ..., mirror=mirror)` (e.g. a timed wrapper of it)."""
         super().__init__()
         self._model = model
-        self._score_fn = score_fn or (lambda depth, actions: score_candidates(
-            model, depth, actions, mirror=mirror))
+        self._needs_height = needs_camera_height(model)
+        self._score_fn = score_fn or (lambda depth, actions, **kw: score_candidates(
+            model, depth, actions, mirror=mirror, **kw))
         self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
         self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
+        if self._needs_height:
+            self.DeclareVectorInputPort("camera_height", 1)
         self.DeclareAbstractOutputPort(
             "predicted_distances", lambda: AbstractValue.Make(np.zeros(0)),
             self._CalcDistances)
@@ -150,7 +183,13 @@ class DistanceEvaluator(LeafSystem):
     def _CalcDistances(self, context, output):
         depth = self.get_input_port(0).Eval(context).data[:, :, 0]
         actions = self.get_input_port(1).Eval(context)
-        output.set_value(self._score_fn(depth, actions) if len(actions) else np.zeros(0))
+        if not len(actions):
+            output.set_value(np.zeros(0))
+        elif self._needs_height:
+            h = float(self.GetInputPort("camera_height").Eval(context)[0])
+            output.set_value(self._score_fn(depth, actions, camera_height_m=h))
+        else:
+            output.set_value(self._score_fn(depth, actions))
 
 
 class ActionSampler(LeafSystem):
