@@ -1,0 +1,164 @@
+"""drake_grasp/fcn.py: the height-map FCN as a distance function - its weights file, its
+scores at the grid's nodes, its grasp map, the shipped file's provenance, and the FCN in
+an episode's Diagram, where the controller gives it the camera's height."""
+
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from drake_grasp import fcn
+from drake_grasp.assets import models_dir
+from drake_grasp.dense_training import GRID_CONFIG, grid_node_actions
+from drake_grasp.scenario import load_scenario
+from drake_grasp.systems.evaluator import (FCN_WEIGHTS, load_cnn, needs_camera_height,
+                                           score_candidates)
+
+SHIPPED = models_dir() / FCN_WEIGHTS
+
+
+def _net(seed=0, **kw):
+    torch.manual_seed(seed)
+    net = fcn.HeightmapFCN(fcn.FcnConfig(width=4, dilations=(1, 2), **kw), GRID_CONFIG)
+    with torch.no_grad():  # BatchNorm's running statistics away from the identity too
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.1, 0.1)
+                m.running_var.uniform_(0.5, 1.5)
+    return net.eval()
+
+
+def _depth(cam_h=0.25, seed=0):
+    rng = np.random.default_rng(seed)
+    depth = np.full((64, 64), cam_h, np.float32)
+    depth[20:40, 10:30] = cam_h - rng.uniform(0.02, 0.06)  # a box
+    return depth
+
+
+def test_weights_round_trip_and_bad_files_are_named(tmp_path):
+    net = _net(grasp_head=True, grasp_threshold=0.8)
+    path = tmp_path / "fcn.safetensors"
+    fcn.save_fcn(net, path, metadata={"note": "test"})
+    model, meta = fcn.load_fcn(path)
+    assert meta == {"note": "test"} and model.cfg == net.cfg
+    depth = _depth()
+    a = fcn.FcnDistanceModel(net).grids(depth[None], [0.25])
+    assert np.array_equal(model.grids(depth[None], [0.25]), a)
+    # load_cnn tells it from a DistanceCNN's file by the format in its metadata.
+    assert isinstance(load_cnn(str(path)), fcn.FcnDistanceModel)
+    assert not needs_camera_height(load_cnn(""))
+    with pytest.raises(ValueError, match=r"cnn-grid-bn12/weights.safetensors: metadata "
+                       r"'format' is 'drake_grasp.DistanceCNN/1', expected "
+                       r"'drake_grasp.HeightmapFCN/1'"):
+        fcn.load_fcn(models_dir() / "cnn-grid-bn12" / "weights.safetensors")
+    # A flipped byte in the tensors is caught by the checksum.
+    raw = bytearray(path.read_bytes())
+    raw[-5] ^= 0xFF
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"bad.safetensors: tensor data does not match"):
+        fcn.load_fcn(bad)
+    with pytest.raises(FileNotFoundError, match="no such weights file"):
+        fcn.load_fcn(tmp_path / "missing.safetensors")
+    with pytest.raises(ValueError, match="grasp_threshold > 0 needs grasp_head"):
+        fcn.FcnConfig(grasp_threshold=0.5)
+    with pytest.raises(ValueError, match=r"grasp_threshold: expected in \[0, 1\)"):
+        fcn.FcnConfig(grasp_head=True, grasp_threshold=1.0)
+
+
+def test_a_candidate_on_a_grid_node_scores_that_node_and_the_height_is_required():
+    model = fcn.FcnDistanceModel(_net(seed=1))
+    depth = _depth(0.22, seed=1)
+    grid = model.grids(depth[None], [0.22])[0]
+    nodes = grid_node_actions(GRID_CONFIG)  # (x, y, theta) in the grid's (theta, y, x) order
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(nodes), 50, replace=False)
+    scores = score_candidates(model, depth, nodes[pick], camera_height_m=0.22)
+    assert np.allclose(scores, grid.reshape(-1)[pick], rtol=1e-5, atol=1e-7)
+    # Between two nodes along x: the mean of the two.
+    mid = (nodes[pick[0]] + np.array([GRID_CONFIG.grid_step_m / 2, 0, 0]))[None]
+    t, y, x = np.unravel_index(pick[0], grid.shape)
+    if x + 1 < grid.shape[2]:
+        assert score_candidates(model, depth, mid, camera_height_m=0.22)[0] == pytest.approx(
+            0.5 * (grid[t, y, x] + grid[t, y, x + 1]), rel=1e-5)
+    with pytest.raises(ValueError, match="needs camera_height_m"):
+        score_candidates(model, depth, nodes[pick])
+    with pytest.raises(ValueError, match="camera_height_m: expected finite heights > 0"):
+        score_candidates(model, depth, nodes[pick], camera_height_m=float("nan"))
+    assert needs_camera_height(model)
+
+
+def test_the_grasp_threshold_takes_the_nearer_of_the_head_and_the_grasp_map():
+    net = _net(seed=2, grasp_head=True, grasp_threshold=0.5)
+    t_bins, n, _ = GRID_CONFIG.grid_shape()
+    with torch.no_grad():  # distances 5 cm everywhere; grasp logits +20 in theta bin 3 only
+        net.head.weight.zero_()
+        net.head.bias[:t_bins] = math.log(math.expm1(0.05 / GRID_CONFIG.output_scale_m))
+        net.head.bias[t_bins:] = -20.0
+        net.head.bias[t_bins + 3] = 20.0
+    cam_h = 0.30
+    grids = fcn.FcnDistanceModel(net).grids(_depth(cam_h)[None], [cam_h])[0]
+    view = fcn.in_view_nodes([cam_h], GRID_CONFIG)[0]
+    step = GRID_CONFIG.grid_step_m
+    for t in range(t_bins):
+        dt = min(abs(t - 3), t_bins - abs(t - 3))  # theta wraps over 180 degrees
+        assert np.allclose(grids[t][view], min(0.05, dt * step), atol=1e-6)
+    plain = fcn.FcnDistanceModel(_net(seed=2, grasp_head=True))  # threshold 0: the head
+    assert plain.cfg.grasp_threshold == 0.0
+
+
+def test_the_shipped_fcn_is_the_committed_pilot_net_with_its_validation_threshold():
+    model, meta = fcn.load_fcn(SHIPPED)
+    results = SHIPPED.parents[2] / "analysis" / "results" / "heightmap-fcn"
+    source = results / meta["source"]
+    assert meta["source_sha256"] == hashlib.sha256(source.read_bytes()).hexdigest()
+    saved = torch.load(source, weights_only=False)
+    assert meta["training"] == saved["identity"]
+    for k, v in saved["model"].items():
+        assert torch.equal(model.net.state_dict()[k], v), k
+    compare = json.loads((results / "compare_grasp_n100000.json").read_text())
+    chosen = next(v for k, v in compare.items() if isinstance(v, dict)
+                  and "min(grasp map, distance head)" in v)
+    assert model.cfg.grasp_threshold == chosen["min(grasp map, distance head)"]["threshold"]
+
+
+def test_the_evaluator_gets_the_controllers_camera_height_in_the_episode(library):
+    from drake_grasp.episode import build_episode_diagram
+    from drake_grasp.scene import make_scene
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 3, policy: ctr, controller: {profile: robot, weights: '%s'},"
+        " scene: {object_ids: [can_000], pose: lying}}" % SHIPPED))
+    ed = build_episode_diagram(scenario, make_scene(scenario.scene, 3, library), library)
+    evaluator = ed.diagram.GetSubsystemByName("distance_evaluator")
+    controller = ed.diagram.GetSubsystemByName("controller")
+    context = ed.diagram.CreateDefaultContext()
+    height = controller.GetOutputPort("camera_height").Eval(
+        controller.GetMyContextFromRoot(context))[0]
+    cam_dz = -ed.station.X_GC.translation()[2]
+    assert height == pytest.approx(controller.start_hand[2] + cam_dz)
+    ev_context = evaluator.GetMyContextFromRoot(context)
+    assert evaluator.GetInputPort("camera_height").Eval(ev_context)[0] == height
+    depth = evaluator.GetInputPort("depth_image").Eval(ev_context).data[:, :, 0]
+    actions = evaluator.GetInputPort("candidate_actions").Eval(ev_context)
+    got = evaluator.GetOutputPort("predicted_distances").Eval(ev_context)
+    model = load_cnn(str(SHIPPED))
+    assert np.array_equal(got, score_candidates(model, depth, actions, camera_height_m=height))
+    assert not np.array_equal(
+        got, score_candidates(model, depth, actions, camera_height_m=height + 0.05))
+
+
+def test_ctr_with_the_fcn_grasps_an_isolated_can(library):
+    from drake_grasp.episode import simulate_episode
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 1, policy: ctr, controller: {profile: robot, weights: '%s'},"
+        " scene: {object_ids: [can_000], pose: lying}}" % SHIPPED))
+    r = simulate_episode(scenario, library=library, record_depth=False).result
+    assert r.success, r.failure_reason
+    assert r.details["grasped_object_id"] == "can_000"
+    assert r.control_steps > 5
+    assert r.final_distance_m is not None and r.final_distance_m < 0.03
