@@ -102,13 +102,17 @@ def bench_controller_step_ms(repeats: int = 50) -> dict:
     """Latest image -> chosen action: sample 128 candidates, score them with the CNN
     (fast path, 1 thread as in an episode), pick the least (median). For the grid head,
     side by side in the same loop: `controller_step_whole_grid_ms`, the same step with IP2
-    evaluated at every grid node (the path before `score_grid_nodes`)."""
+    evaluated at every grid node (the path before `score_grid_nodes`), and
+    `controller_step_fcn_ms`, the step with the height-map FCN (`models/fcn-heightmap/`,
+    the image seen from 0.25 m)."""
     import torch
 
+    from drake_grasp.assets import models_dir
     from drake_grasp.policies import choose_action, sample_candidates
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.systems.evaluator import FCN_WEIGHTS, load_cnn, score_candidates
 
     model = load_cnn("")
+    fcn = load_cnn(str(models_dir() / FCN_WEIGHTS))
 
     def whole_grid(depth, actions):
         with torch.inference_mode():
@@ -118,6 +122,8 @@ def bench_controller_step_ms(repeats: int = 50) -> dict:
     paths = {"controller_step_ms": lambda d, a: score_candidates(model, d, a)}
     if getattr(model, "grid", False):
         paths["controller_step_whole_grid_ms"] = whole_grid
+    paths["controller_step_fcn_ms"] = lambda d, a: score_candidates(fcn, d, a,
+                                                                    camera_height_m=0.25)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -469,7 +475,7 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
             "cnn_ip1_gflops_infer", "cnn_ip1_gflops_train"),
     "cnn_onnx": ("cnn_onnx_torch_ms_128", "cnn_onnx_ms_128", "cnn_onnx_speedup"),
     "controller_step_ms": ("controller_step_ms", "controller_step_whole_grid_ms",
-                           "controller_step_speedup"),
+                           "controller_step_speedup", "controller_step_fcn_ms"),
     "rtf_ctr_clutter5": ("rtf_ctr_clutter5", "rtf_ctr_clutter5_detail"),
     "trials_per_hour": ("trials_per_hour", "trials_per_hour_detail", "trials_per_hour_reference",
                         "trials_per_hour_reference_detail", "trials_per_hour_speedup",
