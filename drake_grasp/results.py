@@ -534,6 +534,19 @@ def read_run_info(results_dir: str | os.PathLike) -> dict:
 
 # --------------------------------------------------------------------------- statistics
 
+def mcnemar_exact_p(only_a: int, only_b: int) -> float:
+    """Two-sided exact McNemar p-value of paired outcomes: the binomial test at 1/2 of the
+    discordant pairs (`only_a` succeeded only under A, `only_b` only under B)."""
+    if only_a < 0 or only_b < 0:
+        raise ValueError(f"mcnemar_exact_p: need counts >= 0, got {only_a}, {only_b}")
+    n = only_a + only_b
+    if n == 0:
+        return 1.0
+    k = min(only_a, only_b)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
+    return min(1.0, 2 * tail)
+
+
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (95% for the default z).
 

@@ -1,0 +1,46 @@
+"""analysis/pile_replay.py: a recorded CTR clutter attempt replayed from its pile with
+other weights and with its own, and the paired summary."""
+
+from pathlib import Path
+
+import pytest
+
+from drake_grasp.assets import models_dir
+
+RECORD = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-bn12" / "clutter"
+          / "trials" / "clutter__ctr__0000__attempt01.json")
+
+
+@pytest.mark.slow
+def test_a_pile_replays_as_recorded_with_its_weights_and_runs_with_others(analysis_script):
+    """Run 0's second attempt (a hammer that slipped in the lift with the shipped CNN):
+    its own weights reproduce it; the FCN runs the same pile to a judged outcome."""
+    R = analysis_script("pile_replay")
+    row = R.run_attempt(str(RECORD), str(models_dir() / "fcn-heightmap" / "weights.safetensors"),
+                        True)
+    assert row["recorded"] == {"success": False, "failure_class": "slipped-during-lift",
+                               "final_distance_m": pytest.approx(row["recorded"]["final_distance_m"])}
+    own = row["recorded_weights_replay"]
+    assert (own["success"], own["failure_class"]) == (False, "slipped-during-lift")
+    assert own["final_distance_m"] == pytest.approx(row["recorded"]["final_distance_m"], abs=1e-6)
+    assert row["replay"]["failure_class"] in {"none", "missed", "pushed-away", "collision",
+                                              "slipped-during-lift", "slipped-during-hold"}
+    assert row["replay"]["control_steps"] > 0
+
+
+def test_summary_pairs_the_outcomes(analysis_script):
+    R = analysis_script("pile_replay")
+
+    def row(rec, new):
+        return {"recorded": {"success": rec, "failure_class": "none" if rec else "missed"},
+                "replay": {"success": new, "failure_class": "none" if new else "collision"}}
+
+    rows = ([row(True, True)] * 5 + [row(True, False)] * 1 + [row(False, True)] * 6
+            + [row(False, False)] * 2)
+    out = R.summarize(rows)
+    assert out["paired"] == {"both": 5, "recorded_only": 1, "replay_only": 6, "neither": 2,
+                             "mcnemar_p": pytest.approx(0.125, abs=1e-4)}
+    assert out["recorded"]["successes"] == 6 and out["replay"]["successes"] == 11
+    assert out["replay"]["failure_classes"] == {"none": 11, "collision": 3}
+    with pytest.raises(SystemExit, match="no records of condition 'ctr'"):
+        R.main([str(RECORD.parent / "none"), "--weights", str(RECORD), "--out", "x.json"])
