@@ -162,3 +162,23 @@ def test_ctr_with_the_fcn_grasps_an_isolated_can(library):
     assert r.details["grasped_object_id"] == "can_000"
     assert r.control_steps > 5
     assert r.final_distance_m is not None and r.final_distance_m < 0.03
+
+
+def test_an_ensemble_with_the_fcn_passes_the_height_to_it_and_means_the_scores():
+    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS
+
+    cnn_file = str(models_dir() / DEFAULT_WEIGHTS)
+    ensemble = load_cnn(f"{SHIPPED},{cnn_file}")
+    assert needs_camera_height(ensemble)
+    depth = _depth(0.2)
+    actions = np.random.default_rng(3).uniform([-0.04, -0.04, -45], [0.04, 0.04, 45], (16, 3))
+    members = [score_candidates(m, depth, actions, camera_height_m=0.2)
+               for m in ensemble.members]
+    assert np.allclose(score_candidates(ensemble, depth, actions, camera_height_m=0.2),
+                       np.mean(members, axis=0))
+    with pytest.raises(ValueError, match="needs camera_height_m"):
+        score_candidates(ensemble, depth, actions)
+    # The mirror average scores the FCN on the mirrored image at the same height.
+    mirrored = score_candidates(ensemble.members[0], depth, actions, mirror=True,
+                                camera_height_m=0.2)
+    assert mirrored.shape == (16,) and np.all(np.isfinite(mirrored))
