@@ -92,7 +92,8 @@ def summarize(rows: list[dict]) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("records", nargs="+", help="clutter results folders (their trials/)")
-    p.add_argument("--weights", required=True, help="the weights to replay the piles with")
+    p.add_argument("--weights", required=True, help="the weights to replay the piles with "
+                   "(A,B: an ensemble, as controller.weights takes it)")
     p.add_argument("--condition", default="ctr")
     p.add_argument("--trials", type=int, default=0, help="the first N attempts per folder (0: all)")
     p.add_argument("--also-recorded", action="store_true",
@@ -103,8 +104,9 @@ def main(argv=None) -> int:
     from drake_grasp.montecarlo import parallel_map
     from drake_grasp.provenance import code_version
 
-    if not Path(args.weights).is_file():
-        raise SystemExit(f"--weights: {args.weights}: no such file")
+    for f in args.weights.split(","):
+        if not Path(f).is_file():
+            raise SystemExit(f"--weights: {f}: no such file")
     paths = []
     for folder in args.records:
         found = sorted(str(q) for q in Path(folder, "trials").glob(f"*__{args.condition}__*.json"))
