@@ -1,6 +1,7 @@
 """Two `evaluate` runs of the same trials (same experiment, seed and trial count), compared
 trial by trial: how many only one of them grasped, and the exact McNemar test on those;
-how many ended at the same final distance (to 1 um) and with the same failure class.
+how many ended at the same final distance (to 1 um) and with the same failure class;
+and the same paired count for Figure 5's measure, the final distance within 3 cm.
 
 Two policies (or two weights files for one policy) run on the same scenes differ by less
 than their two success rates' intervals suggest: most trials succeed or fail under both.
@@ -36,6 +37,10 @@ def paired(run_a: Path, run_b: Path) -> dict:
     # The final distance (Figure 5's measure): agreement to 1 um, where both have one.
     dist = [(a[i].final_distance_m, b[i].final_distance_m) for i in ids]
     measured = [(x, y) for x, y in dist if x is not None and y is not None]
+    # Figure 5's count: within 3 cm of a true grasp (no distance: not within).
+    near = [(x is not None and x < 0.03, y is not None and y < 0.03) for x, y in dist]
+    near_a = sum(x and not y for x, y in near)
+    near_b = sum(y and not x for x, y in near)
     return {"paired_trials": len(ids), "successes_a": both + only_a,
             "successes_b": both + only_b, "both": both, "only_a": only_a, "only_b": only_b,
             "neither": len(ids) - both - only_a - only_b,
@@ -43,6 +48,9 @@ def paired(run_a: Path, run_b: Path) -> dict:
             "final_distance_in_both": len(measured),
             "same_final_distance": sum(abs(x - y) <= 1e-6 for x, y in measured),
             "same_failure_class": sum(a[i].failure_class == b[i].failure_class for i in ids),
+            "within_3cm_a": sum(x for x, _ in near), "within_3cm_b": sum(y for _, y in near),
+            "within_3cm_only_a": near_a, "within_3cm_only_b": near_b,
+            "within_3cm_mcnemar_exact_p": round(mcnemar_exact_p(near_a, near_b), 4),
             "only_a_trials": [i for i in ids if a[i].success and not b[i].success],
             "only_b_trials": [i for i in ids if b[i].success and not a[i].success]}
 

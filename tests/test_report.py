@@ -279,6 +279,9 @@ def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys
     # The 8 trials with one outcome in both ended at the same distance, the same way.
     assert (result["final_distance_in_both"], result["same_final_distance"],
             result["same_failure_class"]) == (12, 8, 8)
+    # Within 3 cm (Figure 5): the grasped trials ended at 1 cm, the missed at 10 cm.
+    assert (result["within_3cm_a"], result["within_3cm_b"], result["within_3cm_only_a"],
+            result["within_3cm_only_b"], result["within_3cm_mcnemar_exact_p"]) == (9, 7, 3, 1, 0.625)
     assert module.mcnemar_exact_p(13, 6) == pytest.approx(0.1671, abs=1e-4)
     assert module.mcnemar_exact_p(0, 0) == 1.0
     capsys.readouterr()
