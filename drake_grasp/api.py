@@ -29,7 +29,10 @@ The usual path, lowest level first:
    against the port contract of `drake_grasp.plugins`; pass the same string as
    `Scenario.policy` or as an `evaluate` condition.
 7. The distance CNN: `load_cnn` (the shipped weights by default) -> `DistanceCNN`;
-   `score_candidates(model, depth, actions)` scores candidate moves on one image.
+   `score_candidates(model, depth, actions)` scores candidate moves on one image. The
+   height-map FCN (`load_cnn(".../models/fcn-heightmap/weights.safetensors")` ->
+   `FcnDistanceModel`) also needs the camera's height: `score_candidates(model, depth,
+   actions, camera_height_m=h)`.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from drake_grasp.episode import (
     simulate_episode,
 )
 from drake_grasp.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.fcn import FcnDistanceModel
 from drake_grasp.montecarlo import evaluate
 from drake_grasp.network import DistanceCNN
 from drake_grasp.objects import ObjectLibrary, load_library
@@ -60,5 +64,5 @@ __all__ = [
     "EpisodeRun", "EpisodeResult",
     "evaluate", "EXPERIMENTS", "Experiment", "Condition",
     "make_policy_system",
-    "load_cnn", "score_candidates", "DistanceCNN",
+    "load_cnn", "score_candidates", "DistanceCNN", "FcnDistanceModel",
 ]
