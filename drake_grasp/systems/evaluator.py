@@ -1,7 +1,8 @@
 """The learned distance function and the candidate sampler as LeafSystems.
 
 The CNN runs on one of two backends, chosen by the weights file (`load_cnn`): torch for
-a ``*.safetensors`` file (`drake_grasp.network`), onnxruntime for an ``X.onnx`` file from
+a ``*.safetensors`` file (`drake_grasp.network`; the height-map FCN's, `drake_grasp.fcn`,
+told apart by its metadata), onnxruntime for an ``X.onnx`` file from
 ``drake-grasp export-onnx`` (`drake_grasp.onnx_runtime`). torch is imported only by the
 torch backend, so this module and the ONNX backend run where torch is not installed.
 """
