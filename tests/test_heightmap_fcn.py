@@ -145,3 +145,16 @@ def test_grasp_node_oracle_recovers_labels_that_are_a_distance_transform(analysi
     result = H.grasp_node_oracle(data)
     assert result["images_with_a_grasp_node"] == 2 and result["images"] == 3
     assert result["dense_l1_mm"] < 0.1  # float16 rounding of the labels only
+
+
+def test_height_maps_of_a_batch_are_those_of_all_images(analysis_script):
+    """Training makes the maps per batch: each image's map does not depend on the others
+    made with it."""
+    H = analysis_script("heightmap_fcn")
+    rng = np.random.default_rng(4)
+    hand_z = 0.2 + rng.uniform(0.0, 0.15, 40) + H.camera_z_G()
+    depth = np.stack([_box_image(H, z - H.camera_z_G(), rng.uniform(-0.05, 0.05, 2), 0.02,
+                                 rng.uniform(0.01, 0.08)) for z in hand_z])
+    whole = H.height_maps(depth, hand_z)
+    idx = np.sort(rng.choice(40, 7, replace=False))
+    assert np.array_equal(H.height_maps(depth[idx], hand_z[idx]), whole[idx])
