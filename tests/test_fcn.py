@@ -182,3 +182,38 @@ def test_an_ensemble_with_the_fcn_passes_the_height_to_it_and_means_the_scores()
     mirrored = score_candidates(ensemble.members[0], depth, actions, mirror=True,
                                 camera_height_m=0.2)
     assert mirrored.shape == (16,) and np.all(np.isfinite(mirrored))
+
+
+def test_cnn_only_scores_its_global_candidates_with_the_start_camera_height():
+    """cnn-only decides in its first update, before the evaluator runs: it passes the
+    score function the camera height of its start pose when told the model needs one."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+    from drake_grasp.station import gripper_frame_offsets, topdown_pose
+    from drake_grasp.systems.controller import GraspController, Phase
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
+    _, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], 0.0)
+    seen = []
+
+    def score(depth, actions, **kw):
+        seen.append(kw)
+        return np.linalg.norm(actions[:, :2], axis=1)
+
+    ctrl = GraspController(scenario=scenario, policy="cnn-only", X_WG_start=start, X_GC=X_GC,
+                           score_fn=score, score_needs_height=True)
+    sim = Simulator(ctrl)
+    ctx = sim.get_mutable_context()
+    img = ImageDepth32F(64, 64)
+    img.mutable_data[:, :, 0] = 0.3
+    ctrl.GetInputPort("depth_image").FixValue(ctx, img)
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((1, 3)))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(1))
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    assert ctrl.GetOutputPort("camera_height").Eval(ctx)[0] == pytest.approx(0.3)
+    sim.AdvanceTo(0.5 * scenario.controller.period_s)
+    assert ctrl.get_controller_state(ctx).phase == Phase.APPROACH
+    assert seen == [{"camera_height_m": pytest.approx(0.3)}]
