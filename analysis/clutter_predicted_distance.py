@@ -25,8 +25,9 @@ import numpy as np
 
 def replay(path: str) -> dict:
     """One recorded CTR clutter attempt replayed with the CNN, its decisions logged."""
-    import drake_grasp.systems.controller as controller_module
+    from drake_grasp.episode import controller_class
     from drake_grasp.montecarlo import _simulate, recorded_pile
+    from drake_grasp.systems.controller import GraspController
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)
@@ -35,7 +36,7 @@ def replay(path: str) -> dict:
     library = load_library(None)
     least: list[float] = []
 
-    class Logged(controller_module.GraspController):
+    class Logged(GraspController):
         def _ctr_step(self, context, s, t):
             port = self._distances
 
@@ -52,12 +53,8 @@ def replay(path: str) -> dict:
             finally:
                 self._distances = port
 
-    original = controller_module.GraspController
-    controller_module.GraspController = Logged  # add_policy_systems looks it up at call time
-    try:
+    with controller_class(Logged):
         r = _simulate(scenario, library, scene=scene).result
-    finally:
-        controller_module.GraspController = original
     return {"trial_id": rec["trial_id"], "success": bool(r.success),
             "recorded_success": bool(rec["success"]),
             "failure_class": r.details.get("failure_class"),

@@ -67,8 +67,7 @@ def _oracle_controller(truth_xy_theta: np.ndarray):
 
 
 def run_trial(index: int, seed: int) -> dict:
-    import drake_grasp.systems.controller as controller_module
-    from drake_grasp.episode import simulate_episode
+    from drake_grasp.episode import controller_class, simulate_episode
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.grasps import find_grasps
     from drake_grasp.objects import load_library
@@ -80,15 +79,10 @@ def run_trial(index: int, seed: int) -> dict:
     scenario = trial_scenario(exp, cond, index, base_seed=seed, library=library)
     scene = scenario_scene(scenario, library)
     truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
-    original = controller_module.GraspController
     t0 = time.perf_counter()
     oracle = _oracle_controller(np.asarray(truth, float))
-    # add_policy_systems imports GraspController from its module at call time.
-    controller_module.GraspController = oracle
-    try:
+    with controller_class(oracle):
         ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False)
-    finally:
-        controller_module.GraspController = original
     r = ep.result
     return {"index": index, "object": scenario.scene.object_ids[0], "pose": scenario.scene.pose,
             "success": bool(r.success), "failure_class": r.details.get("failure_class"),
@@ -100,7 +94,9 @@ def run_trial(index: int, seed: int) -> dict:
 
 def run_attempt(path: str) -> dict:
     """One recorded clutter attempt's pile, simulated by CTR with the CNN and by the oracle."""
-    import drake_grasp.systems.controller as controller_module
+    import contextlib
+
+    from drake_grasp.episode import controller_class
     from drake_grasp.grasps import find_grasps
     from drake_grasp.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library
@@ -115,14 +111,9 @@ def run_attempt(path: str) -> dict:
            "num_true_grasps": int(len(truth))}
     for name in ("cnn", "oracle"):
         t0 = time.perf_counter()
-        original = controller_module.GraspController
         oracle = _oracle_controller(np.asarray(truth, float)) if name == "oracle" else None
-        if oracle is not None:
-            controller_module.GraspController = oracle
-        try:
+        with controller_class(oracle) if oracle is not None else contextlib.nullcontext():
             run = _simulate(scenario, library, scene=scene)
-        finally:
-            controller_module.GraspController = original
         r = run.result
         row[name] = {"success": bool(r.success), "failure_class": r.details.get("failure_class"),
                      "failure_reason": r.failure_reason,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -398,6 +399,23 @@ def target_object(scenario, scene, station) -> tuple[int | None, int | None]:
     target = ids.index(scenario.target)
     # MultibodyPlant labels each body's geometry with its body index.
     return target, int(station.object_body(target).index())
+
+
+@contextlib.contextmanager
+def controller_class(cls):
+    """Episodes built inside the block run `cls`, a `GraspController` subclass, as the
+    built-in policy's controller (`add_policy_systems` looks the class up each time it
+    builds). For diagnostics that replace or log one decision of the controller
+    (`analysis/oracle_ctr.py`: the true distances; `analysis/clutter_predicted_distance.py`:
+    the predictions logged); not for policies (`Scenario.policy: MODULE:FACTORY` is)."""
+    import drake_grasp.systems.controller as module
+
+    original = module.GraspController
+    module.GraspController = cls
+    try:
+        yield cls
+    finally:
+        module.GraspController = original
 
 
 def policy_image_ports(builder, scenario, station_diagram) -> dict:

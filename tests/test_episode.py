@@ -274,3 +274,23 @@ def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
     with pytest.raises(ValueError, match=r"target: 'nope' is not in the scene; objects: \["):
         simulate_episode(dataclasses.replace(scenario, target="nope"), library=library,
                          scene=scene, record_depth=False)
+
+
+def test_controller_class_swaps_the_policys_controller_for_the_block_only(library):
+    from drake_grasp.episode import build_episode_diagram, controller_class
+    from drake_grasp.scene import make_scene
+    from drake_grasp.systems.controller import GraspController
+
+    class Marked(GraspController):
+        pass
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=(
+        "{seed: 3, policy: ctr, scene: {object_ids: [can_000], pose: lying}}"))
+    scene = make_scene(scenario.scene, 3, library)
+    with controller_class(Marked):
+        inside = build_episode_diagram(scenario, scene, library)
+    with pytest.raises(RuntimeError, match="boom"), controller_class(Marked):
+        raise RuntimeError("boom")
+    after = build_episode_diagram(scenario, scene, library)
+    assert type(inside.diagram.GetSubsystemByName("controller")) is Marked
+    assert type(after.diagram.GetSubsystemByName("controller")) is GraspController
