@@ -16,11 +16,10 @@ by trial id (experiment/condition/index), and only ids present in both count.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from drake_grasp.results import load_records, mcnemar_exact_p
+from drake_grasp.results import load_records, mcnemar_exact_p, print_json
 
 
 def paired(run_a: Path, run_b: Path) -> dict:
@@ -71,11 +70,7 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as e:
         print(f"paired_outcomes: error: {e}", file=sys.stderr)
         return 2
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    print_json(result, args.out)
     return 0
 
 

@@ -15,7 +15,6 @@ label the lab holds with its neighbours but the station does not points at execu
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -72,11 +71,9 @@ def main(argv=None) -> int:
         print(f"pile_label_check: error: {e}", file=sys.stderr)
         return 2
     result["wall_s"] = round(time.perf_counter() - t0, 1)
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    from drake_grasp.results import print_json
+
+    print_json(result, args.out)
     return 0
 
 

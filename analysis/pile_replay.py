@@ -103,6 +103,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from drake_grasp.montecarlo import parallel_map
     from drake_grasp.provenance import code_version
+    from drake_grasp.results import atomic_write_text
 
     for f in args.weights.split(","):
         if not Path(f).is_file():
@@ -121,11 +122,7 @@ def main(argv=None) -> int:
               "by_records": {f: summarize([r for r in rows if r["records"] == str(Path(f))])
                              for f in args.records},
               "rows": rows}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(out)
+    atomic_write_text(args.out, json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in ("weights", "wall_s", "all", "by_records")}, indent=1))
     return 0
 

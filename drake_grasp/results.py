@@ -98,6 +98,16 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def print_json(data: dict, out: str | os.PathLike | None = None) -> str:
+    """Prints `data` as indented JSON and, with `out`, writes the same text (and a final
+    newline) there atomically: how a measurement script reports its result."""
+    text = json.dumps(data, indent=1)
+    print(text)
+    if out:
+        atomic_write_text(out, text + "\n")
+    return text
+
+
 def _json_safe(value: Any, where: str) -> Any:
     """Plain JSON types from numpy scalars/arrays, tuples, paths; non-finite floats -> None.
 
