@@ -34,7 +34,8 @@ import torch
 import torch.nn.functional as F
 
 from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG
-from drake_grasp.network import DistanceCNN, NetworkConfig, load_weights, save_weights
+from drake_grasp.network import (DistanceCNN, NetworkConfig, grid_view_mask, load_weights,
+                                  save_weights)
 
 GRID_CONFIG = NetworkConfig(theta_unit="deg", action_fusion="grid")
 _THETA_PERIOD_M = 180.0 * ANGLE_WEIGHT_M_PER_DEG
@@ -179,11 +180,7 @@ def view_masks(hand_z, cfg: NetworkConfig, camera_z_G_m: float, *,
     """(B, N) mask of the grid's x (and, by symmetry of the square view, y) nodes inside
     the camera's footprint on the table at each image's camera height (hand heights
     `hand_z`, (B,)), widened by `slack_m`."""
-    n = cfg.grid_shape()[1]
-    half_view = ((np.asarray(hand_z, float) - camera_z_G_m)
-                 * math.tan(math.radians(cfg.camera_fov_deg) / 2.0))
-    offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
-    return np.abs(offsets)[None, :] <= half_view[:, None] + slack_m
+    return grid_view_mask(np.asarray(hand_z, float) - camera_z_G_m, cfg, slack_m=slack_m)
 
 
 def init_from_tiled(grid_net: DistanceCNN, tiled: DistanceCNN) -> None:

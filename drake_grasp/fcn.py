@@ -41,7 +41,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 import drake_grasp
-from drake_grasp.network import NetworkConfig, action_features, grid_scores, tensors_sha256
+from drake_grasp.network import (NetworkConfig, action_features, grid_scores, grid_view_mask,
+                                  tensors_sha256)
 
 FCN_FORMAT = "drake_grasp.HeightmapFCN/1"
 _KEYS = ("format", "config", "code_version", "tensors_sha256", "user_metadata")
@@ -152,11 +153,7 @@ def height_maps(depth: np.ndarray, camera_height_m, grid: NetworkConfig, cfg: Fc
 def in_view_nodes(camera_height_m, grid: NetworkConfig) -> np.ndarray:
     """(B, N, N) mask of the grid's (y, x) nodes inside the camera's footprint on the
     table at each camera height (B,) [m] (the footprint is square)."""
-    n = grid.grid_shape()[1]
-    half_view = (np.atleast_1d(np.asarray(camera_height_m, float))
-                 * math.tan(math.radians(grid.camera_fov_deg) / 2.0))
-    offsets = (np.arange(n) - (n - 1) / 2.0) * grid.grid_step_m
-    m = np.abs(offsets)[None, :] <= half_view[:, None] + 1e-9
+    m = grid_view_mask(camera_height_m, grid)
     return m[:, :, None] & m[:, None, :]
 
 

@@ -493,6 +493,17 @@ def grid_corners(cfg: "NetworkConfig", feats: torch.Tensor) -> list:
     return corners
 
 
+def grid_view_mask(camera_height_m, cfg: "NetworkConfig", *, slack_m: float = 1e-9) -> np.ndarray:
+    """(B, N) mask of the grid's x (and, the view being square, y) nodes inside the
+    camera's footprint on the table at each of B camera heights above it [m], widened by
+    `slack_m`."""
+    n = cfg.grid_shape()[1]
+    half_view = (np.atleast_1d(np.asarray(camera_height_m, float))
+                 * math.tan(math.radians(cfg.camera_fov_deg) / 2.0))
+    offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
+    return np.abs(offsets)[None, :] <= half_view[:, None] + slack_m
+
+
 def grid_scores(cfg: "NetworkConfig", grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
     """Distances for M actions on each of B images from their distance grids: the
     trilinear interpolation between the 8 grid nodes around each action, periodic in
