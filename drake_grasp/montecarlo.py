@@ -1007,42 +1007,77 @@ def recorded_weights(scenario, run_info: dict, condition: str, *, source: str = 
     `controller.weights: ""` ran the default of its day; run.json holds that file's sha256
     (`condition_identity`). When it is not today's default, the shipped weights file with
     that sha256 (any `models/*/weights.safetensors`) is named instead, so that the record
-    replays as it ran. Records without a sha256 (older run.json, no CNN) are returned as
+    replays as it ran. A record that named its weights (`--weights`, one file or an
+    ensemble's) keeps them where the files exist; a named file that does not exist here
+    (a path of another machine or working directory) is replaced by the shipped file with
+    its recorded sha256. Records without a sha256 (older run.json, no CNN) are returned as
     they are. Raises ValueError (naming `source`, the condition and the sha256) when no
     shipped file has it."""
-    from drake_grasp.assets import models_dir
     from drake_grasp.systems.evaluator import weights_files
 
-    if scenario.policy not in CNN_POLICIES or scenario.controller.weights:
+    if scenario.policy not in CNN_POLICIES:
         return scenario
-    sha = next((c.get("weights_sha256") for c in run_info.get("conditions", [])
-                if c.get("name") == condition), None)
-    default = weights_files("")[0]
-    if not sha or sha == file_sha256(default):
+    shas = next((c.get("weights_sha256") for c in run_info.get("conditions", [])
+                 if c.get("name") == condition), None)
+    if not shas:
         return scenario
+    named = scenario.controller.weights
+    files = weights_files(named)
+    shas = shas.split(",")
+    if named:
+        if all(Path(f).is_file() for f in files) or len(shas) != len(files):
+            return scenario
+        resolved = [f if Path(f).is_file() else str(_shipped_weights(sha, source, condition, f))
+                    for f, sha in zip(files, shas)]
+        weights = ",".join(resolved)
+    else:
+        if shas[0] == file_sha256(files[0]):
+            return scenario
+        weights = str(_shipped_weights(shas[0], source, condition, None))
+    return dataclasses.replace(
+        scenario, controller=dataclasses.replace(scenario.controller, weights=weights))
+
+
+def _shipped_weights(sha: str, source: str, condition: str, missing: str | None) -> Path:
+    """The shipped `models/*/weights.safetensors` whose sha256 is `sha` (for
+    `recorded_weights`); ValueError naming what was looked for when none is."""
+    from drake_grasp.assets import models_dir
+
     for f in sorted(models_dir().glob("*/weights.safetensors")):
-        if f != Path(default) and file_sha256(f) == sha:
-            return dataclasses.replace(
-                scenario, controller=dataclasses.replace(scenario.controller, weights=str(f)))
-    raise ValueError(f"{source}: condition {condition!r} ran the default CNN of its day "
-                     f"(weights sha256 {sha}), which no shipped models/*/weights.safetensors "
-                     "is; replay it with the package that recorded it")
+        if file_sha256(f) == sha:
+            return f
+    if missing is None:
+        raise ValueError(f"{source}: condition {condition!r} ran the default CNN of its day "
+                         f"(weights sha256 {sha}), which no shipped "
+                         "models/*/weights.safetensors is; replay it with the package that "
+                         "recorded it")
+    raise ValueError(f"{source}: condition {condition!r} ran {missing} (weights sha256 "
+                     f"{sha}), which does not exist here and is no shipped "
+                     "models/*/weights.safetensors; put the file at that path to replay it")
 
 
 def recorded_pile(path: str | Path) -> tuple:
     """(record, scenario, scene) of a clutter attempt: its trial record (the JSON file, as
     a dict), its scenario and the pile it began on (`extra.scene`); what the analysis
-    scripts replay an attempt from.
+    scripts replay an attempt from. The scenario names the weights the attempt ran
+    (`recorded_weights`, from the run.json of the record's results folder,
+    `RESULTS/trials/RECORD.json`, when there is one).
 
     Raises:
         ValueError: The record holds no pile (the message names the file).
     """
+    from drake_grasp.results import RUN_INFO_FILE, read_run_info
     from drake_grasp.scene import SceneSpec
 
     rec = json.loads(Path(path).read_text())
     if not (rec.get("extra") or {}).get("scene"):
         raise ValueError(f"{path}: no extra.scene (expected a clutter attempt's record)")
-    return rec, recorded_scenario(rec["scenario_yaml"]), SceneSpec.from_dict(rec["extra"]["scene"])
+    scenario = recorded_scenario(rec["scenario_yaml"])
+    run_json = Path(path).parent.parent / RUN_INFO_FILE
+    if run_json.is_file():
+        scenario = recorded_weights(scenario, read_run_info(run_json.parent), rec["condition"],
+                                    source=str(run_json))
+    return rec, scenario, SceneSpec.from_dict(rec["extra"]["scene"])
 
 
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):

@@ -31,6 +31,7 @@ from torch import nn
 
 import drake_grasp
 from drake_grasp.assets import models_dir
+from drake_grasp.fcn import FCN_FORMAT, weights_format
 from drake_grasp.network import DistanceCNN, load_weights, tensors_sha256
 from drake_grasp.onnx_runtime import ONNX_FORMAT, OnnxDistanceModel, head_path, probe_inputs
 from drake_grasp.provenance import file_sha256
@@ -166,6 +167,9 @@ def export_onnx(
         raise ImportError(f"exporting to ONNX needs {missing}: pip install "
                           "'drake_grasp[onnx-export]'")
     source = Path(weights) if weights else models_dir() / SHIPPED_WEIGHTS
+    if weights_format(source) == FCN_FORMAT:
+        raise ValueError(f"{source}: a height-map FCN ({FCN_FORMAT}); the ONNX export "
+                         "covers the distance CNN with the tiled (paper) fusion only")
     model, _ = load_weights(source)
     if model.config.action_fusion != "tiled":
         raise ValueError(f"{source}: action_fusion {model.config.action_fusion!r}; the ONNX "

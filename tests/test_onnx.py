@@ -248,4 +248,8 @@ def test_export_cli_errors(tmp_path, capsys):
     assert main(["export-onnx", "--out", str(tmp_path / "a.onnx"), "--weights", str(window)]) == 2
     assert "action_fusion 'window'; the ONNX export covers the tiled" in capsys.readouterr().err
     window.unlink()
+    fcn = str(models_dir() / "fcn-heightmap" / "weights.safetensors")
+    assert main(["export-onnx", "--out", str(tmp_path / "a.onnx"), "--weights", fcn]) == 2
+    assert "a height-map FCN (drake_grasp.HeightmapFCN/1); the ONNX export covers the " \
+        "distance CNN" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing half-written

@@ -3,6 +3,7 @@ model card's `metrics.json` and `train_config.json` (so a weights file shipped w
 metrics, or metrics copied from another run, is caught)."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -104,3 +105,62 @@ def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path
     other.write_bytes(b"not shipped")
     with pytest.raises(ValueError, match=f"run.json: condition 'ctr' .*{file_sha256(other)}"):
         recorded_weights(ctr, run_info(other), "ctr")
+
+
+def test_a_record_whose_named_weights_are_not_here_replays_with_the_shipped_file(tmp_path):
+    """A record that named its weights with a path of another machine (`--weights
+    /elsewhere/models/...`) replays with the shipped file of the recorded sha256; members
+    of an ensemble that exist are kept; a missing file no shipped file matches is refused
+    with its path and sha256 named."""
+    import dataclasses
+
+    from drake_grasp.montecarlo import recorded_weights
+    from drake_grasp.provenance import file_sha256
+    from drake_grasp.scenario import load_scenario
+
+    ctr = load_scenario(scenario_text="{policy: ctr}")
+    fcn = models_dir() / "fcn-heightmap" / "weights.safetensors"
+    grid = GRID / "weights.safetensors"
+
+    def named(weights, *files):
+        scenario = dataclasses.replace(ctr, controller=dataclasses.replace(
+            ctr.controller, weights=weights))
+        info = {"conditions": [{"name": "ctr",
+                                "weights_sha256": ",".join(file_sha256(f) for f in files)}]}
+        return recorded_weights(scenario, info, "ctr")
+
+    gone = str(tmp_path / "elsewhere" / "weights.safetensors")
+    assert named(gone, fcn).controller.weights == str(fcn)
+    assert named(f"{grid},{gone}", grid, fcn).controller.weights == f"{grid},{fcn}"
+    here = named(str(grid), grid)
+    assert here.controller.weights == str(grid)
+    other = tmp_path / "other.safetensors"
+    other.write_bytes(b"not shipped")
+    with pytest.raises(ValueError, match=f"ran {gone} .*{file_sha256(other)}.*does not exist"):
+        named(gone, other)
+
+
+def test_a_recorded_pile_names_the_weights_its_attempt_ran(tmp_path):
+    """`recorded_pile` reads the run.json beside the record's `trials/` folder: an attempt
+    recorded with the default of its day (`weights: ""`) replays with that day's file,
+    whatever today's default is."""
+    import shutil
+
+    from drake_grasp.montecarlo import recorded_pile
+    from drake_grasp.provenance import file_sha256
+
+    src = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-bn12"
+           / "clutter" / "trials" / "clutter__ctr__0000__attempt01.json")
+    (tmp_path / "trials").mkdir()
+    record = tmp_path / "trials" / src.name
+    shutil.copy(src, record)
+    _, scenario, _ = recorded_pile(record)  # no run.json: the scenario as recorded
+    assert scenario.controller.weights == ""
+    info = json.loads((src.parents[1] / "run.json").read_text())
+    for c in info["conditions"]:
+        if c["name"] == "ctr":
+            c["weights_sha256"] = file_sha256(GRID / "weights.safetensors")
+    (tmp_path / "run.json").write_text(json.dumps(info))
+    _, scenario, scene = recorded_pile(record)
+    assert scenario.controller.weights == str(GRID / "weights.safetensors")
+    assert scene.objects
