@@ -1,0 +1,49 @@
+"""analysis/fcn_default_decision.py: the pre-registered rule on fabricated summaries."""
+
+import json
+
+import pytest
+
+
+def write_runs(root, counts):
+    """counts: run folder name -> (successes, attempts)."""
+    for name, (k, n) in counts.items():
+        (root / name).mkdir(parents=True, exist_ok=True)
+        (root / name / "summary.json").write_text(json.dumps({"policies": {"ctr": {
+            "successes": k, "n": n,
+            "failure_classes": {"none": k, "collision": n - k, "missed": 0}}}}))
+
+
+def runs(fcn, cnn, iso_fcn=118, iso_cnn=119):
+    """Four clutter runs per net with `fcn` / `cnn` grasped of 50 attempts each."""
+    out = {}
+    for run in ("clutter-shift-seed11", "clutter-shift-seed12", "clutter-seed17", "clutter-seed18"):
+        out[f"fcn-{run}"], out[f"cnn-{run}"] = (fcn, 50), (cnn, 50)
+    out["fcn-isolation-seed13"], out["cnn-isolation-seed13"] = (iso_fcn, 120), (iso_cnn, 120)
+    return out
+
+
+@pytest.mark.parametrize("fcn,cnn,iso_fcn,decision", [
+    (45, 44, 117, "fcn becomes the default"),   # higher; isolation 2 fewer: within the margin
+    (45, 45, 119, "cnn stays the default"),     # a tie stays with the incumbent
+    (46, 44, 116, "cnn stays the default"),     # isolation 3 fewer: outside the margin
+    (40, 44, 120, "cnn stays the default"),
+])
+def test_the_rule(analysis_script, tmp_path, fcn, cnn, iso_fcn, decision):
+    D = analysis_script("fcn_default_decision")
+    write_runs(tmp_path, runs(fcn, cnn, iso_fcn=iso_fcn))
+    out = D.decide(tmp_path)
+    assert out["decision"] == decision
+    assert out["pooled"]["fcn"]["successes"] == 4 * fcn
+    assert out["pooled"]["fcn"]["attempts"] == 200
+    assert out["runs"]["cnn-clutter-seed17"]["failure_classes"] == {"collision": 50 - cnn}
+
+
+def test_part_of_the_runs_decides_nothing(analysis_script, tmp_path):
+    D = analysis_script("fcn_default_decision")
+    counts = runs(45, 40)
+    del counts["cnn-clutter-seed18"]
+    write_runs(tmp_path, counts)
+    with pytest.raises(SystemExit, match="cnn-clutter-seed18/summary.json: no such file"):
+        D.main([str(tmp_path)])
+    assert not (tmp_path / "decision.json").exists()
