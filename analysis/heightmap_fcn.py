@@ -23,8 +23,9 @@ each image's view, as the training loss takes them):
         --fcn data/fcn_pilot/model.pt --weights models/cnn-grid-bn12/weights.safetensors \
         --out analysis/results/heightmap-fcn/compare.json
 
-`train` checkpoints every epoch and after its time budget (`--minutes`); the same command
-resumes a stopped run (the batches of epoch e are a permutation seeded by e).
+`train` checkpoints every 5 minutes of training (`--checkpoint-minutes`), at every epoch's
+end and after its time budget (`--minutes`); the same command resumes a stopped or killed
+run at the batch it had reached (the batches of epoch e are a permutation seeded by e).
 
 `train --grasp-weight W` adds a grasp head: per node, "a true grasp lies within half a
 cell's diagonal" (`GRASP_NODE_M`), whose distance transform on the grid's lattice is a
@@ -102,11 +103,15 @@ def grasp_map_distances(logits: np.ndarray, hand_z: np.ndarray, threshold: float
 
 def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: int,
           lr: float, width: int, seed: int, threads: int, max_images: int = 0,
-          grasp_weight: float = 0.0) -> None:
+          grasp_weight: float = 0.0, checkpoint_minutes: float = 5.0) -> None:
     """Adam on the masked L1 over the in-view nodes, cosine decay over `epochs`;
     `max_images` > 0 trains on a random subset of that many images (seeded), for a
     learning curve over data. `grasp_weight` > 0 adds the grasp head, trained with that
-    weight on the binary cross-entropy of "label <= GRASP_NODE_M" over the same nodes."""
+    weight on the binary cross-entropy of "label <= GRASP_NODE_M" over the same nodes.
+    Checkpoints every `checkpoint_minutes` of training, at every epoch's end and when the
+    budget (`minutes`) runs out; a killed run resumes from its last checkpoint at the
+    batch it had reached (the batches of epoch e are a permutation seeded by e; a resumed
+    epoch's logged train L1 covers the batches after the resume)."""
     from tqdm import tqdm
 
     if max_images < 0:
@@ -155,7 +160,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
         tmp.replace(ckpt)
 
     budget_s = minutes * 60.0
-    start = time.perf_counter()
+    start = last_save = time.perf_counter()
     base_s = state["train_s"]
     n = len(depth)
     stopped = False
@@ -192,6 +197,9 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
             if state["train_s"] - base_s > budget_s:
                 stopped = True
                 break
+            if time.perf_counter() - last_save >= checkpoint_minutes * 60.0:
+                save()
+                last_save = time.perf_counter()
         state["log"].append({"epoch": state["epoch"] + 1, "batches_to": state["batch_index"],
                              "train_l1_m": total / max(count, 1), "train_s": state["train_s"]})
         if model.grasp_head:
@@ -201,6 +209,7 @@ def train(labels: list[str], out: Path, *, minutes: float, epochs: int, batch: i
             state["epoch"] += 1
             state["batch_index"] = 0
         save()
+        last_save = time.perf_counter()
     torch.save({"model": model.state_dict(), "width": width, "grasp_head": model.grasp_head,
                 "state": state, "identity": identity}, out / "model.pt")
 
@@ -346,6 +355,8 @@ def main(argv=None) -> int:
     t.add_argument("--width", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--checkpoint-minutes", type=float, default=5.0,
+                   help="minutes of training between checkpoints (besides each epoch's end)")
     t.add_argument("--grasp-weight", type=float, default=0.0,
                    help="> 0: add the grasp head, its cross-entropy weighted so")
     e = sub.add_parser("export", help="a trained model.pt as a safetensors weights file "
@@ -369,7 +380,8 @@ def main(argv=None) -> int:
     if a.cmd == "train":
         train(a.labels.split(","), Path(a.out), minutes=a.minutes, epochs=a.epochs,
               batch=a.batch, lr=a.lr, width=a.width, seed=a.seed, threads=a.threads,
-              max_images=a.max_images, grasp_weight=a.grasp_weight)
+              max_images=a.max_images, grasp_weight=a.grasp_weight,
+              checkpoint_minutes=a.checkpoint_minutes)
         return 0
     if a.cmd == "export":
         export(a.fcn, a.out, grasp_threshold=a.grasp_threshold, note=a.note)

@@ -158,3 +158,37 @@ def test_height_maps_of_a_batch_are_those_of_all_images(analysis_script):
     whole = H.height_maps(depth, hand_z)
     idx = np.sort(rng.choice(40, 7, replace=False))
     assert np.array_equal(H.height_maps(depth[idx], hand_z[idx]), whole[idx])
+
+
+def test_a_run_killed_mid_epoch_resumes_to_the_same_weights(tmp_path, analysis_script, monkeypatch):
+    """With checkpoints after every batch (`checkpoint_minutes=0`), a run killed in its
+    first epoch's fourth batch resumes at its third checkpoint and ends with the weights
+    of a run never stopped."""
+    H = analysis_script("heightmap_fcn")
+    labels, _ = _labels(H, tmp_path, 12, seed=2)
+    kw = dict(minutes=5, epochs=2, batch=2, lr=1e-3, width=8, seed=0, threads=1,
+              checkpoint_minutes=0.0)
+    H.train([str(labels)], tmp_path / "whole", **kw)
+
+    made = H.height_maps
+    calls = {"n": 0}
+
+    def killed_in_batch_4(*args):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt("killed")
+        return made(*args)
+
+    monkeypatch.setattr(H, "height_maps", killed_in_batch_4)
+    with pytest.raises(KeyboardInterrupt):
+        H.train([str(labels)], tmp_path / "killed", **kw)
+    assert not (tmp_path / "killed" / "model.pt").exists()
+    state = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=False)["state"]
+    assert (state["epoch"], state["batch_index"]) == (0, 3)
+    monkeypatch.setattr(H, "height_maps", made)
+    H.train([str(labels)], tmp_path / "killed", **kw)
+    whole = torch.load(tmp_path / "whole" / "model.pt", weights_only=False)
+    resumed = torch.load(tmp_path / "killed" / "model.pt", weights_only=False)
+    assert resumed["state"]["epoch"] == 2
+    for k, v in whole["model"].items():
+        assert torch.equal(v, resumed["model"][k]), k
