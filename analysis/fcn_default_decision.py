@@ -1,15 +1,19 @@
-"""The rule of `results/fcn-default-decision/PLAN.md`, applied to its runs: should the
-height-map FCN become CTR's default net?
+"""The rule of `results/fcn-default-decision/PLAN.md` (and, on other seeds, of
+`results/fcn-all-decision/PLAN.md`), applied to its runs: should a height-map FCN become
+CTR's default net?
 
     python analysis/fcn_default_decision.py analysis/results/fcn-default-decision \
         --out analysis/results/fcn-default-decision/decision.json
+    python analysis/fcn_default_decision.py analysis/results/fcn-all-decision \
+        --clutter-shift-seeds 13,14 --clutter-seeds 19,20 --isolation-seed 14 \
+        --out analysis/results/fcn-all-decision/decision.json
 
-Reads each `{fcn,cnn}-{clutter-shift-seed11,clutter-shift-seed12,clutter-seed17,
-clutter-seed18,isolation-seed13}` folder's CTR summary, pools the four clutter and
-clutter-shift runs of each net (grasped / attempts, Wilson 95%), and applies the rule:
-the FCN becomes the default if and only if its pooled rate is strictly higher than the
-CNN's and it grasps at most 2 fewer of the 120 isolation trials. Refuses (naming the
-folder) to decide on part of the runs.
+Reads each `{fcn,cnn}-{clutter-shift-seedS, clutter-seedS, isolation-seedS}` folder's CTR
+summary (by default the first decision's seeds: clutter-shift 11 and 12, clutter 17 and
+18, isolation 13), pools the four clutter and clutter-shift runs of each net (grasped /
+attempts, Wilson 95%), and applies the rule: the FCN becomes the default if and only if
+its pooled rate is strictly higher than the CNN's and it grasps at most 2 fewer of the
+120 isolation trials. Refuses (naming the folder) to decide on part of the runs.
 """
 from __future__ import annotations
 
@@ -18,8 +22,7 @@ import json
 import sys
 from pathlib import Path
 
-CLUTTER_RUNS = ("clutter-shift-seed11", "clutter-shift-seed12", "clutter-seed17", "clutter-seed18")
-ISOLATION_RUN = "isolation-seed13"
+CLUTTER_SHIFT_SEEDS, CLUTTER_SEEDS, ISOLATION_SEED = (11, 12), (17, 18), 13
 NETS = ("fcn", "cnn")
 ISOLATION_MARGIN = 2  # the FCN may grasp at most this many fewer isolation trials
 
@@ -38,20 +41,25 @@ def ctr_counts(folder: Path) -> dict:
                                 if k != "none" and v}}
 
 
-def decide(root: Path) -> dict:
+def decide(root: Path, *, clutter_shift_seeds=CLUTTER_SHIFT_SEEDS,
+           clutter_seeds=CLUTTER_SEEDS, isolation_seed=ISOLATION_SEED) -> dict:
     from drake_grasp.results import wilson_interval
 
+    clutter_runs = ([f"clutter-shift-seed{s}" for s in clutter_shift_seeds]
+                    + [f"clutter-seed{s}" for s in clutter_seeds])
+    if len(clutter_runs) != 4:
+        raise ValueError(f"the rule pools 4 clutter runs per net; got {clutter_runs}")
     out = {"runs": {}, "pooled": {}, "isolation": {}}
     for net in NETS:
         grasped = attempts = 0
-        for run in CLUTTER_RUNS:
+        for run in clutter_runs:
             c = ctr_counts(root / f"{net}-{run}")
             out["runs"][f"{net}-{run}"] = c
             grasped, attempts = grasped + c["successes"], attempts + c["attempts"]
         lo, hi = wilson_interval(grasped, attempts)
         out["pooled"][net] = {"successes": grasped, "attempts": attempts,
                               "rate": grasped / attempts, "ci95": [lo, hi]}
-        out["isolation"][net] = ctr_counts(root / f"{net}-{ISOLATION_RUN}")
+        out["isolation"][net] = ctr_counts(root / f"{net}-isolation-seed{isolation_seed}")
     higher = out["pooled"]["fcn"]["rate"] > out["pooled"]["cnn"]["rate"]
     iso_ok = (out["isolation"]["fcn"]["successes"]
               >= out["isolation"]["cnn"]["successes"] - ISOLATION_MARGIN)
@@ -66,10 +74,19 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the folder holding the ten runs")
+    p.add_argument("--clutter-shift-seeds", default="11,12")
+    p.add_argument("--clutter-seeds", default="17,18")
+    p.add_argument("--isolation-seed", type=int, default=ISOLATION_SEED)
     p.add_argument("--out", default=None, help="also write the decision as JSON here")
     args = p.parse_args(argv)
     try:
-        result = decide(Path(args.root))
+        seeds = {k: tuple(int(s) for s in getattr(args, k).split(","))
+                 for k in ("clutter_shift_seeds", "clutter_seeds")}
+    except ValueError:
+        sys.exit("fcn_default_decision: --clutter-shift-seeds and --clutter-seeds take "
+                 "comma-separated integers, e.g. 11,12")
+    try:
+        result = decide(Path(args.root), **seeds, isolation_seed=args.isolation_seed)
     except (FileNotFoundError, ValueError, KeyError) as e:
         sys.exit(f"fcn_default_decision: {e}")
     print_json(result, args.out)

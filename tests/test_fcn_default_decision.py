@@ -47,3 +47,22 @@ def test_part_of_the_runs_decides_nothing(analysis_script, tmp_path):
     with pytest.raises(SystemExit, match="cnn-clutter-seed18/summary.json: no such file"):
         D.main([str(tmp_path)])
     assert not (tmp_path / "decision.json").exists()
+
+
+def test_other_seeds(analysis_script, tmp_path):
+    """The second decision (fcn-all-decision) reads its own seeds' folders."""
+    D = analysis_script("fcn_default_decision")
+    counts = {}
+    for run in ("clutter-shift-seed13", "clutter-shift-seed14", "clutter-seed19", "clutter-seed20"):
+        counts[f"fcn-{run}"], counts[f"cnn-{run}"] = (46, 50), (44, 50)
+    counts["fcn-isolation-seed14"], counts["cnn-isolation-seed14"] = (117, 120), (120, 120)
+    write_runs(tmp_path, counts)
+    D.main([str(tmp_path), "--clutter-shift-seeds", "13,14", "--clutter-seeds", "19,20",
+            "--isolation-seed", "14", "--out", str(tmp_path / "decision.json")])
+    out = json.loads((tmp_path / "decision.json").read_text())
+    assert out["pooled"]["fcn"] == {"successes": 184, "attempts": 200, "rate": 0.92,
+                                    "ci95": out["pooled"]["fcn"]["ci95"]}
+    assert out["rule"]["fcn_pooled_rate_higher"] and not out["rule"]["fcn_isolation_within_margin"]
+    assert out["decision"] == "cnn stays the default"   # 3 fewer in isolation
+    with pytest.raises(SystemExit, match="comma-separated integers"):
+        D.main([str(tmp_path), "--clutter-seeds", "19;20"])
