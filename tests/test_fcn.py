@@ -110,16 +110,22 @@ def test_the_grasp_threshold_takes_the_nearer_of_the_head_and_the_grasp_map():
     assert plain.cfg.grasp_threshold == 0.0
 
 
-def test_the_shipped_fcn_is_the_committed_pilot_net_with_its_validation_threshold():
-    model, meta = fcn.load_fcn(SHIPPED)
-    results = SHIPPED.parents[2] / "analysis" / "results" / "heightmap-fcn"
+@pytest.mark.parametrize("shipped,compare_file", [
+    (SHIPPED, "compare_grasp_n100000.json"),                     # the pilot, 100,000 images
+    (models_dir() / "fcn-heightmap-all" / "weights.safetensors",  # all 7,500 scenes
+     "compare_grasp_all.json"),
+])
+def test_the_shipped_fcns_are_the_committed_nets_with_their_validation_thresholds(
+        shipped, compare_file):
+    model, meta = fcn.load_fcn(shipped)
+    results = shipped.parents[2] / "analysis" / "results" / "heightmap-fcn"
     source = results / meta["source"]
     assert meta["source_sha256"] == hashlib.sha256(source.read_bytes()).hexdigest()
     saved = torch.load(source, weights_only=False)
     assert meta["training"] == saved["identity"]
     for k, v in saved["model"].items():
         assert torch.equal(model.net.state_dict()[k], v), k
-    compare = json.loads((results / "compare_grasp_n100000.json").read_text())
+    compare = json.loads((results / compare_file).read_text())
     chosen = next(v for k, v in compare.items() if isinstance(v, dict)
                   and "min(grasp map, distance head)" in v)
     assert model.cfg.grasp_threshold == chosen["min(grasp map, distance head)"]["threshold"]
