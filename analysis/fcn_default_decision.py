@@ -74,8 +74,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the folder holding the ten runs")
-    p.add_argument("--clutter-shift-seeds", default="11,12")
-    p.add_argument("--clutter-seeds", default="17,18")
+    p.add_argument("--clutter-shift-seeds", default=",".join(map(str, CLUTTER_SHIFT_SEEDS)))
+    p.add_argument("--clutter-seeds", default=",".join(map(str, CLUTTER_SEEDS)))
     p.add_argument("--isolation-seed", type=int, default=ISOLATION_SEED)
     p.add_argument("--out", default=None, help="also write the decision as JSON here")
     args = p.parse_args(argv)
