@@ -66,3 +66,24 @@ def test_other_seeds(analysis_script, tmp_path):
     assert out["decision"] == "cnn stays the default"   # 3 fewer in isolation
     with pytest.raises(SystemExit, match="comma-separated integers"):
         D.main([str(tmp_path), "--clutter-seeds", "19;20"])
+
+
+def test_another_candidate(analysis_script, tmp_path):
+    """cnn-more-epochs: the candidate's folders are `new-...`, the default's `cnn-...`."""
+    D = analysis_script("fcn_default_decision")
+    counts = {}
+    for run in ("clutter-shift-seed15", "clutter-shift-seed16", "clutter-seed21", "clutter-seed22"):
+        counts[f"new-{run}"], counts[f"cnn-{run}"] = (45, 50), (44, 50)
+    counts["new-isolation-seed15"], counts["cnn-isolation-seed15"] = (118, 120), (120, 120)
+    write_runs(tmp_path, counts)
+    out = D.decide(tmp_path, clutter_shift_seeds=(15, 16), clutter_seeds=(21, 22),
+                   isolation_seed=15, candidate="new")
+    assert out["pooled"]["new"]["successes"] == 180 and out["pooled"]["cnn"]["successes"] == 176
+    assert out["rule"] == {"new_pooled_rate_higher": True, "new_isolation_within_margin": True,
+                           "isolation_margin": 2}
+    assert out["decision"] == "new becomes the default"
+    with pytest.raises(FileNotFoundError, match="fcn-clutter-shift-seed15"):
+        D.decide(tmp_path, clutter_shift_seeds=(15, 16), clutter_seeds=(21, 22),
+                 isolation_seed=15)   # the default candidate prefix finds no runs here
+    with pytest.raises(SystemExit, match="candidate 'cnn'"):
+        D.main([str(tmp_path), "--candidate", "cnn"])
