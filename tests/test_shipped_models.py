@@ -45,10 +45,11 @@ def test_weights_are_the_last_epoch_in_the_metrics(shipped):
 GRID = models_dir() / "cnn-grid"
 GRID_BN = models_dir() / "cnn-grid-bn"
 GRID_BN12 = models_dir() / "cnn-grid-bn12"
+GRID_BN12_EP5 = models_dir() / "cnn-grid-bn12-ep5"
 
 
-@pytest.mark.parametrize("folder", [GRID, GRID_BN, GRID_BN12],
-                         ids=["cnn-grid", "cnn-grid-bn", "cnn-grid-bn12"])
+@pytest.mark.parametrize("folder", [GRID, GRID_BN, GRID_BN12, GRID_BN12_EP5],
+                         ids=["cnn-grid", "cnn-grid-bn", "cnn-grid-bn12", "cnn-grid-bn12-ep5"])
 def test_the_grid_weights_are_the_last_epoch_of_their_run(folder):
     model, meta = load_weights(folder / "weights.safetensors")
     metrics = json.loads((folder / "metrics.json").read_text())
