@@ -14,12 +14,15 @@ def write_runs(root, counts):
             "failure_classes": {"none": k, "collision": n - k, "missed": 0}}}}))
 
 
-def runs(fcn, cnn, iso_fcn=118, iso_cnn=119):
-    """Four clutter runs per net with `fcn` / `cnn` grasped of 50 attempts each."""
+def runs(fcn, cnn, iso_fcn=118, iso_cnn=119, *, shift=(11, 12), clutter=(17, 18), iso=13,
+         candidate="fcn"):
+    """Four clutter runs per net with `fcn` (the candidate's) / `cnn` grasped of 50
+    attempts each, and the isolation run of each (of 120)."""
     out = {}
-    for run in ("clutter-shift-seed11", "clutter-shift-seed12", "clutter-seed17", "clutter-seed18"):
-        out[f"fcn-{run}"], out[f"cnn-{run}"] = (fcn, 50), (cnn, 50)
-    out["fcn-isolation-seed13"], out["cnn-isolation-seed13"] = (iso_fcn, 120), (iso_cnn, 120)
+    for run in ([f"clutter-shift-seed{s}" for s in shift] + [f"clutter-seed{s}" for s in clutter]):
+        out[f"{candidate}-{run}"], out[f"cnn-{run}"] = (fcn, 50), (cnn, 50)
+    out[f"{candidate}-isolation-seed{iso}"] = (iso_fcn, 120)
+    out[f"cnn-isolation-seed{iso}"] = (iso_cnn, 120)
     return out
 
 
@@ -52,11 +55,7 @@ def test_part_of_the_runs_decides_nothing(analysis_script, tmp_path):
 def test_other_seeds(analysis_script, tmp_path):
     """The second decision (fcn-all-decision) reads its own seeds' folders."""
     D = analysis_script("fcn_default_decision")
-    counts = {}
-    for run in ("clutter-shift-seed13", "clutter-shift-seed14", "clutter-seed19", "clutter-seed20"):
-        counts[f"fcn-{run}"], counts[f"cnn-{run}"] = (46, 50), (44, 50)
-    counts["fcn-isolation-seed14"], counts["cnn-isolation-seed14"] = (117, 120), (120, 120)
-    write_runs(tmp_path, counts)
+    write_runs(tmp_path, runs(46, 44, 117, 120, shift=(13, 14), clutter=(19, 20), iso=14))
     D.main([str(tmp_path), "--clutter-shift-seeds", "13,14", "--clutter-seeds", "19,20",
             "--isolation-seed", "14", "--out", str(tmp_path / "decision.json")])
     out = json.loads((tmp_path / "decision.json").read_text())
@@ -71,11 +70,8 @@ def test_other_seeds(analysis_script, tmp_path):
 def test_another_candidate(analysis_script, tmp_path):
     """cnn-more-epochs: the candidate's folders are `new-...`, the default's `cnn-...`."""
     D = analysis_script("fcn_default_decision")
-    counts = {}
-    for run in ("clutter-shift-seed15", "clutter-shift-seed16", "clutter-seed21", "clutter-seed22"):
-        counts[f"new-{run}"], counts[f"cnn-{run}"] = (45, 50), (44, 50)
-    counts["new-isolation-seed15"], counts["cnn-isolation-seed15"] = (118, 120), (120, 120)
-    write_runs(tmp_path, counts)
+    write_runs(tmp_path, runs(45, 44, 118, 120, shift=(15, 16), clutter=(21, 22), iso=15,
+                              candidate="new"))
     out = D.decide(tmp_path, clutter_shift_seeds=(15, 16), clutter_seeds=(21, 22),
                    isolation_seed=15, candidate="new")
     assert out["pooled"]["new"]["successes"] == 180 and out["pooled"]["cnn"]["successes"] == 176
