@@ -293,7 +293,8 @@ class ControllerConfig:
     sample_theta_deg: float = 45.0
     # CNN weights; "" = the shipped models/cnn-grid-bn12-ep5/weights.safetensors (the grid
     # head trained with BatchNorm on 7,500 scenes for 5 epochs; models/cnn-grid-bn12/,
-    # models/cnn-grid-bn/ and models/cnn-grid/ are the grid heads before it, models/cnn/ the paper's tiled net, each weights.safetensors);
+    # models/cnn-grid-bn/ and models/cnn-grid/ are the grid heads before it, models/cnn/
+    # the paper's tiled net, each weights.safetensors);
     # an X.onnx file from `drake-grasp export-onnx` runs the CNN with onnxruntime instead
     # of torch;
     # "A,B,..." scores each candidate with the mean of those nets (`CnnEnsemble`).
