@@ -238,7 +238,8 @@ def _cmd_train_grid(args) -> int:
                          test_data=args.test_data, init=args.init_weights, epochs=args.epochs,
                          batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
                          threads=args.threads, checkpoint_minutes=args.checkpoint_minutes,
-                         trunk=args.trunk, batch_norm=args.batch_norm, device=args.device)
+                         trunk=args.trunk, batch_norm=args.batch_norm, device=args.device,
+                         stream_shards=args.stream_shards)
     last = metrics["epochs"][-1] if metrics["epochs"] else {}
     print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
                       **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
@@ -665,6 +666,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="where the batches run: auto (a GPU when torch sees one), cpu or "
                         "cuda; may differ when resuming")
+    p.add_argument("--stream-shards", type=_positive_int, default=None, metavar="G",
+                   help="keep the labels on disk and hold only groups of G label parts at "
+                        "a time (an epoch permutes the parts, then the images within each "
+                        "group): for label sets larger than memory (300,000 images take "
+                        "14 GB in memory); default: every label in memory")
     p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

@@ -144,8 +144,8 @@ def build_labels(data_dir: str | Path, out: str | Path, *, cfg: NetworkConfig = 
     return images
 
 
-def load_labels(folders) -> dict:
-    """All parts of one or more `build_labels` folders, concatenated."""
+def _label_parts(folders) -> list[Path]:
+    """The shard files of one or more `build_labels` folders, in order."""
     folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
     parts = []
     for folder in folders:
@@ -153,6 +153,12 @@ def load_labels(folders) -> dict:
         if not found:
             raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
         parts += found
+    return parts
+
+
+def load_labels(folders) -> dict:
+    """All parts of one or more `build_labels` folders, concatenated."""
+    parts = _label_parts(folders)
     # Filled in place: concatenating lists of parts would hold every label twice at the
     # peak (300,000 images, float16 depth and grids, take 14 GB).
     counts = []
@@ -173,6 +179,98 @@ def load_labels(folders) -> dict:
                                      f"({hi - lo}, {', '.join(map(str, data[k].shape[1:]))})")
                 data[k][lo:hi] = part
     return data
+
+
+class LabelStore:
+    """The training images of one or more `build_labels` folders, and the order an epoch
+    takes them in.
+
+    `stream_shards=None`: every label in memory (`load_labels`), each epoch a permutation
+    of all images seeded by (seed, epoch). 300,000 images take 14 GB that way, so the
+    paper's 500,000 would not fit a 24 GB machine. `stream_shards=G`: the parts stay on
+    disk; each epoch permutes the parts (seeded by (seed, epoch)), cuts them into groups
+    of G parts and permutes the images within each group, and only the parts of the one
+    or two groups a batch draws from are held (about 2 x G x 1.9 MB). A batch then mixes
+    the images of G parts (4 scenes each for `generate`'s default) instead of the whole
+    set.
+    """
+
+    KEYS = ("depth", "grid", "hand_z")
+
+    def __init__(self, folders, stream_shards: int | None = None):
+        if stream_shards is not None and stream_shards < 1:
+            raise ValueError(f"stream_shards: expected a positive number of parts per "
+                             f"group, got {stream_shards}")
+        self.stream_shards = stream_shards
+        self.parts = _label_parts(folders)
+        if stream_shards is None:
+            self._data = load_labels(folders)
+            self.n_images = len(self._data["hand_z"])
+            return
+        counts = []
+        for p in self.parts:
+            with np.load(p) as z:
+                counts.append(len(z["hand_z"]))
+        self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.n_images = int(self.offsets[-1])
+        with np.load(self.parts[0]) as z:
+            self._shapes = {k: (z[k].shape[1:], z[k].dtype) for k in self.KEYS}
+        self._held: dict[int, dict] = {}
+        self._group_of = np.zeros(len(self.parts), np.int64)
+
+    def epoch_order(self, seed: int, epoch: int) -> np.ndarray:
+        """The image indices of epoch `epoch` in the order its batches take them."""
+        rng = np.random.default_rng([seed, epoch])
+        if self.stream_shards is None:
+            return rng.permutation(self.n_images)
+        shards = rng.permutation(len(self.parts))
+        order = []
+        for g, lo in enumerate(range(0, len(shards), self.stream_shards)):
+            group = shards[lo:lo + self.stream_shards]
+            self._group_of[group] = g
+            images = np.concatenate([np.arange(self.offsets[s], self.offsets[s + 1])
+                                     for s in group])
+            order.append(rng.permutation(images))
+        self._held.clear()
+        return np.concatenate(order)
+
+    def take(self, idx: np.ndarray, keys=KEYS) -> dict:
+        """`keys` of the images `idx` (sorted global indices)."""
+        if self.stream_shards is None:
+            return {k: self._data[k][idx] for k in keys}
+        shard = np.searchsorted(self.offsets, idx, side="right") - 1
+        out = {k: np.empty((len(idx), *self._shapes[k][0]), self._shapes[k][1]) for k in keys}
+        for s in np.unique(shard):
+            part = self._part(int(s), keys)
+            rows = shard == s
+            for k in keys:
+                out[k][rows] = part[k][idx[rows] - self.offsets[s]]
+        return out
+
+    def release_before(self, idx: np.ndarray) -> None:
+        """Drop the held parts of the groups before the first one `idx` draws from (the
+        epoch's order visits groups in turn)."""
+        if self.stream_shards is None or not self._held:
+            return
+        shard = np.searchsorted(self.offsets, idx, side="right") - 1
+        first = self._group_of[shard].min()
+        for s in [s for s in self._held if self._group_of[s] < first]:
+            del self._held[s]
+
+    def _part(self, s: int, keys) -> dict:
+        held = self._held.get(s)
+        if held is not None and all(k in held for k in keys):
+            return held
+        path, n = self.parts[s], int(self.offsets[s + 1] - self.offsets[s])
+        with np.load(path) as z:
+            part = {k: z[k] for k in keys}
+        for k in keys:
+            if part[k].shape != (n, *self._shapes[k][0]):
+                raise ValueError(f"{path}: '{k}' has shape {part[k].shape}, expected "
+                                 f"({n}, {', '.join(map(str, self._shapes[k][0]))})")
+        if tuple(keys) == self.KEYS:
+            self._held[s] = part
+        return part
 
 
 def view_masks(hand_z, cfg: NetworkConfig, camera_z_G_m: float, *,
@@ -295,7 +393,7 @@ def _fingerprint(folder) -> str:
 
 
 def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
-              seed, batch_norm=False) -> dict:
+              seed, batch_norm=False, stream_shards=None) -> dict:
     from drake_grasp.network import tensors_sha256
 
     init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
@@ -303,7 +401,9 @@ def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr
             "config": cfg.to_dict(), "init_sha256": init_sha, "batch": int(batch),
             "lr": float(lr), "lr_decay": float(lr_decay), "seed": int(seed),
             # only when on, so that runs made before the option keep their identity
-            **({"batch_norm": True} if batch_norm else {})}
+            **({"batch_norm": True} if batch_norm else {}),
+            # streaming takes the images in another order: another run
+            **({"stream_shards": int(stream_shards)} if stream_shards is not None else {})}
 
 
 def _trunk(cfg: NetworkConfig) -> tuple[int, int, int]:
@@ -364,7 +464,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
           checkpoint_minutes: float = 5.0, progress: bool = True,
           trunk: tuple[int, int, int] | None = None, batch_norm: bool = False,
-          device: str = "cpu", _stop_after_batches: int | None = None) -> dict:
+          device: str = "cpu", stream_shards: int | None = None,
+          _stop_after_batches: int | None = None) -> dict:
     """Adam on the masked L1 over every in-view grid node, the learning rate times
     `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
     `out`/checkpoint.pt every `checkpoint_minutes` and after every epoch: re-running the
@@ -380,7 +481,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     of the training images); the epoch files hold the folded plain grid net. `device`:
     where the batches run, "cpu", "cuda" or "auto" (a GPU when torch sees one); the
     labels stay in memory on the CPU, the test metrics run on the CPU, and a run may
-    resume on another device.
+    resume on another device. `stream_shards`: hold only the label parts of groups of
+    this many at a time (`LabelStore`) instead of every label in memory.
     """
     from tqdm import tqdm
 
@@ -413,10 +515,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         if have != _trunk(cfg):
             raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
                              f"{_trunk(cfg)}; start a run with another trunk from scratch")
-    data = load_labels(folders)
-    n_images = len(data["depth"])
+    store = LabelStore(folders, stream_shards)
+    n_images = store.n_images
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
-                         seed=seed, batch_norm=batch_norm)
+                         seed=seed, batch_norm=batch_norm, stream_shards=stream_shards)
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt_path = out / "checkpoint.pt"
@@ -441,7 +543,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         if batch_norm:
             sample = np.sort(np.random.default_rng([seed, 1]).choice(
                 n_images, min(n_images, 1000), replace=False))
-            model.start_as_identity(model.preprocess(data["depth"][sample].astype(np.float32)))
+            depth = store.take(sample, keys=("depth",))["depth"]
+            model.start_as_identity(model.preprocess(depth.astype(np.float32)))
     # The optimizer is made (and its state loaded) after the move, so that its state
     # lives where the parameters do.
     model.to(device)
@@ -463,15 +566,17 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     done_batches = 0
     last_ckpt = time.perf_counter()
     while epoch < epochs:
-        order = np.random.default_rng([seed, epoch]).permutation(n_images)
+        order = store.epoch_order(seed, epoch)
         model.train()
         bar = tqdm(starts, initial=batch_index, total=len(starts), desc=f"epoch {epoch + 1}",
                    unit="batch", disable=not progress)
         for start in starts[batch_index:]:
             idx = np.sort(order[start:start + batch])
-            images = model.preprocess(data["depth"][idx].astype(np.float32)).to(device)
-            target = torch.from_numpy(data["grid"][idx].astype(np.float32)).to(device)
-            mx = torch.from_numpy(view_masks(data["hand_z"][idx], cfg, camera_z)).to(device)
+            store.release_before(idx)
+            data = store.take(idx)
+            images = model.preprocess(data["depth"].astype(np.float32)).to(device)
+            target = torch.from_numpy(data["grid"].astype(np.float32)).to(device)
+            mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
             mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
             mask = mask & torch.isfinite(target)
             pred = model.image_features(images)

@@ -338,3 +338,85 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
         export_checkpoint_weights(tmp_path / "other", tmp_path / "x.safetensors")
     with pytest.raises(FileNotFoundError, match="nothing/checkpoint.pt: not found"):
         export_checkpoint_weights(tmp_path / "nothing", tmp_path / "x.safetensors")
+
+
+def _label_folders(tmp_path, n=3, images=6):
+    """`n` dense-label folders of one part each (2 scenes of `images` images)."""
+    folders = []
+    for i in range(n):
+        _shard(tmp_path / f"data{i}", seed=i, scenes=2, images=images)
+        build_labels(tmp_path / f"data{i}", tmp_path / f"grid{i}", workers=1, progress=False)
+        folders.append(tmp_path / f"grid{i}")
+    return folders
+
+
+def test_streamed_epochs_take_every_image_once_and_hold_at_most_two_groups(tmp_path):
+    """`LabelStore(stream_shards=G)`: an epoch's order is a permutation of all images,
+    each group of G parts contiguous in it; what a batch takes equals the in-memory
+    labels at those indices; while the batches go through the epoch no more than the
+    parts of two groups are held."""
+    from drake_grasp.dense_training import LabelStore
+
+    folders = _label_folders(tmp_path, n=5, images=3)  # 5 parts of 6 images
+    whole = load_labels(folders)
+    store = LabelStore(folders, stream_shards=2)
+    assert store.n_images == len(whole["hand_z"]) == 30
+    for epoch in (0, 1):
+        order = store.epoch_order(7, epoch)
+        assert sorted(order) == list(range(30))
+        part_of = np.searchsorted(store.offsets, order, side="right") - 1
+        group = store._group_of[part_of]
+        assert (np.diff(group) >= 0).all()  # the groups in turn
+        assert np.bincount(group).tolist() == [12, 12, 6]  # 2 + 2 + 1 parts
+        most = 0
+        for start in range(0, 30, 4):
+            idx = np.sort(order[start:start + 4])
+            store.release_before(idx)
+            got = store.take(idx)
+            for k in ("depth", "grid", "hand_z"):
+                np.testing.assert_array_equal(got[k], whole[k][idx])
+            most = max(most, len(store._held))
+        assert most <= 4
+    some = np.array([0, 7, 29])  # what a BatchNorm start reads: the depth alone
+    np.testing.assert_array_equal(store.take(some, keys=("depth",))["depth"], whole["depth"][some])
+    assert not np.array_equal(store.epoch_order(7, 0), store.epoch_order(7, 1))
+    np.testing.assert_array_equal(store.epoch_order(7, 0), LabelStore(folders, 2).epoch_order(7, 0))
+    with pytest.raises(ValueError, match="stream_shards: expected a positive"):
+        LabelStore(folders, stream_shards=0)
+
+
+def test_a_killed_streamed_run_resumes_to_the_uninterrupted_weights(tmp_path, capsys):
+    """`train-grid --stream-shards G`: a streamed run killed mid-epoch resumes to the
+    unbroken run's weights; its identity names the grouping, so an in-memory run's folder
+    refuses it; a misshapen part is named when its group is reached."""
+    from drake_grasp.cli import main
+    from drake_grasp.network import load_weights
+
+    folders = _label_folders(tmp_path, n=3, images=4)  # 3 parts of 8 images
+    kw = dict(test_data=None, init=None, epochs=2, batch=5, lr=1e-3, threads=1,
+              progress=False, stream_shards=2)
+    m = train(folders, tmp_path / "whole", **kw)
+    assert m["identity"]["stream_shards"] == 2 and m["identity"]["images"] == 24
+    train(folders, tmp_path / "broken", _stop_after_batches=3, **kw)
+    train(folders, tmp_path / "broken", _stop_after_batches=3, **kw)
+    metrics = train(folders, tmp_path / "broken", **kw)
+    assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
+    assert [r["images"] for r in metrics["epochs"]] == [24, 24]
+    a, _ = load_weights(tmp_path / "whole" / "epoch2.safetensors")
+    b, _ = load_weights(tmp_path / "broken" / "epoch2.safetensors")
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.equal(x, y), name
+    with pytest.raises(ValueError, match="another training run.*stream_shards"):
+        train(folders, tmp_path / "whole", **{**kw, "stream_shards": None})
+    assert main(["train-grid", "--labels", ",".join(map(str, folders)), "--out",
+                 str(tmp_path / "cli"), "--epochs", "1", "--batch", "5", "--threads", "1",
+                 "--stream-shards", "1", "--device", "cpu"]) == 0
+    saved = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    assert saved["identity"]["stream_shards"] == 1
+    part = tmp_path / "grid2" / "shard-00000.npz"
+    with np.load(part) as z:
+        bad = {k: z[k] for k in z.files}
+    bad["grid"] = bad["grid"][:, :9]
+    np.savez(part, **bad)
+    with pytest.raises(ValueError, match=r"grid2/shard-00000.npz: 'grid' has shape \(8, 9,"):
+        train(folders, tmp_path / "bad", **kw)
