@@ -190,9 +190,9 @@ class LabelStore:
     paper's 500,000 would not fit a 24 GB machine. `stream_shards=G`: the parts stay on
     disk; each epoch permutes the parts (seeded by (seed, epoch)), cuts them into groups
     of G parts and permutes the images within each group, and only the parts of the one
-    or two groups a batch draws from are held (about 2 x G x 1.9 MB). A batch then mixes
-    the images of G parts (4 scenes each for `generate`'s default) instead of the whole
-    set.
+    or two groups a batch draws from are held (a part of `generate`'s default 4 scenes,
+    160 images, takes 7.5 MB). A batch then mixes the images of G parts instead of the
+    whole set.
     """
 
     KEYS = ("depth", "grid", "hand_z")
