@@ -7,10 +7,12 @@ Two policies (or two weights files for one policy) run on the same scenes differ
 than their two success rates' intervals suggest: most trials succeed or fail under both.
 The paired count says what the unpaired intervals cannot.
 
-    python analysis/paired_outcomes.py RUN_A RUN_B [--names A,B] [--out FILE.json]
+    python analysis/paired_outcomes.py RUN_A RUN_B [--names A,B] [--condition C] [--out FILE.json]
 
 Each RUN is a results folder of `drake-grasp evaluate` (its `trials/`); trials are paired
-by trial id (experiment/condition/index), and only ids present in both count.
+by trial id (experiment/condition/index), and only ids present in both count;
+`--condition C` counts only condition C's trials (a run of several conditions, e.g.
+`perception`'s cnn-only and cnn-ctr, would otherwise be pooled).
 """
 
 from __future__ import annotations
@@ -22,14 +24,16 @@ from pathlib import Path
 from drake_grasp.results import load_records, mcnemar_exact_p, print_json
 
 
-def paired(run_a: Path, run_b: Path) -> dict:
+def paired(run_a: Path, run_b: Path, condition: str | None = None) -> dict:
     """The paired outcome counts of two runs (see the module docstring)."""
-    a = {r.trial_id: r for r in load_records(run_a)}
-    b = {r.trial_id: r for r in load_records(run_b)}
+    keep = (lambda r: True) if condition is None else (lambda r: r.condition == condition)
+    a = {r.trial_id: r for r in load_records(run_a) if keep(r)}
+    b = {r.trial_id: r for r in load_records(run_b) if keep(r)}
     ids = sorted(set(a) & set(b))
     if not ids:
-        raise ValueError(f"{run_a} and {run_b}: no trial id in both (expected two runs of "
-                         "the same experiment, seed and trials)")
+        which = "" if condition is None else f" of condition '{condition}'"
+        raise ValueError(f"{run_a} and {run_b}: no trial id{which} in both (expected two "
+                         "runs of the same experiment, seed and trials)")
     both = sum(a[i].success and b[i].success for i in ids)
     only_a = sum(a[i].success and not b[i].success for i in ids)
     only_b = sum(b[i].success and not a[i].success for i in ids)
@@ -59,6 +63,8 @@ def main(argv=None) -> int:
     parser.add_argument("run_a", type=Path, help="an `evaluate` results folder")
     parser.add_argument("run_b", type=Path, help="another one, of the same trials")
     parser.add_argument("--names", default="a,b", help="names of the two runs (default a,b)")
+    parser.add_argument("--condition", default=None,
+                        help="count only this condition's trials (default: every one)")
     parser.add_argument("--out", type=Path, default=None, help="JSON file to write")
     args = parser.parse_args(argv)
     names = args.names.split(",")
@@ -66,7 +72,8 @@ def main(argv=None) -> int:
         parser.error(f"--names {args.names}: expected two names separated by a comma")
     try:
         result = {"runs": {names[0]: str(args.run_a), names[1]: str(args.run_b)},
-                  **paired(args.run_a, args.run_b)}
+                  **({"condition": args.condition} if args.condition else {}),
+                  **paired(args.run_a, args.run_b, args.condition)}
     except (ValueError, OSError) as e:
         print(f"paired_outcomes: error: {e}", file=sys.stderr)
         return 2

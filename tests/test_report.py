@@ -289,6 +289,16 @@ def test_paired_outcomes_counts_the_trials_only_one_run_grasped(tmp_path, capsys
     _fill(other, "clutter", {"gpd": [ok]})
     assert module.main([str(a), str(other)]) == 2
     assert "no trial id in both" in capsys.readouterr().err
+    # --condition: one condition of runs of two; the other's trials are not counted.
+    two_a, two_b = tmp_path / "two_a", tmp_path / "two_b"
+    _fill(two_a, "perception", {"cnn-only": [ok, miss, miss], "cnn-ctr": [ok, ok]})
+    _fill(two_b, "perception", {"cnn-only": [ok, ok, miss], "cnn-ctr": [miss, miss]})
+    assert module.main([str(two_a), str(two_b), "--condition", "cnn-only", "--out",
+                        str(tmp_path / "q.json")]) == 0
+    q = json.loads((tmp_path / "q.json").read_text())
+    assert (q["condition"], q["paired_trials"], q["only_a"], q["only_b"]) == ("cnn-only", 3, 0, 1)
+    assert module.main([str(two_a), str(two_b), "--condition", "gpd"]) == 2
+    assert "no trial id of condition 'gpd' in both" in capsys.readouterr().err
 
 
 def test_simulation_errors_have_their_own_column_and_are_not_attempts(tmp_path):
