@@ -135,8 +135,6 @@ def test_a_grid_net_with_another_trunk_trains_saves_and_scores(tmp_path, capsys)
 
 
 def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
-    from drake_grasp.network import load_weights
-
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
     kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False)
@@ -146,10 +144,8 @@ def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
     train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
     metrics = train(tmp_path / "grid", tmp_path / "broken", **kw)
     assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
-    a, _ = load_weights(tmp_path / "whole" / "epoch2.safetensors")
-    b, _ = load_weights(tmp_path / "broken" / "epoch2.safetensors")
-    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
-        assert torch.equal(x, y), name
+    _assert_same_weights(tmp_path / "whole" / "epoch2.safetensors",
+                         tmp_path / "broken" / "epoch2.safetensors")
     with pytest.raises(ValueError, match="another training run.*lr"):
         train(tmp_path / "grid", tmp_path / "broken", **{**kw, "lr": 2e-3})
 
@@ -340,6 +336,15 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
         export_checkpoint_weights(tmp_path / "nothing", tmp_path / "x.safetensors")
 
 
+def _assert_same_weights(path_a, path_b):
+    from drake_grasp.network import load_weights
+
+    a, _ = load_weights(path_a)
+    b, _ = load_weights(path_b)
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.equal(x, y), name
+
+
 def _label_folders(tmp_path, n=3, images=6):
     """`n` dense-label folders of one part each (2 scenes of `images` images)."""
     folders = []
@@ -390,7 +395,6 @@ def test_a_killed_streamed_run_resumes_to_the_uninterrupted_weights(tmp_path, ca
     unbroken run's weights; its identity names the grouping, so an in-memory run's folder
     refuses it; a misshapen part is named when its group is reached."""
     from drake_grasp.cli import main
-    from drake_grasp.network import load_weights
 
     folders = _label_folders(tmp_path, n=3, images=4)  # 3 parts of 8 images
     kw = dict(test_data=None, init=None, epochs=2, batch=5, lr=1e-3, threads=1,
@@ -402,10 +406,8 @@ def test_a_killed_streamed_run_resumes_to_the_uninterrupted_weights(tmp_path, ca
     metrics = train(folders, tmp_path / "broken", **kw)
     assert [r["epoch"] for r in metrics["epochs"]] == [1, 2]
     assert [r["images"] for r in metrics["epochs"]] == [24, 24]
-    a, _ = load_weights(tmp_path / "whole" / "epoch2.safetensors")
-    b, _ = load_weights(tmp_path / "broken" / "epoch2.safetensors")
-    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
-        assert torch.equal(x, y), name
+    _assert_same_weights(tmp_path / "whole" / "epoch2.safetensors",
+                         tmp_path / "broken" / "epoch2.safetensors")
     with pytest.raises(ValueError, match="another training run.*stream_shards"):
         train(folders, tmp_path / "whole", **{**kw, "stream_shards": None})
     assert main(["train-grid", "--labels", ",".join(map(str, folders)), "--out",
