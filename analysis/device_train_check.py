@@ -20,6 +20,10 @@ all through `dense_training.train` itself, the code `drake-grasp train-grid` run
 3. **The step alone**: forward, backward and Adam on one batch already on the device,
    repeated: what the GPU could do if gathering the batch on the CPU cost nothing.
 
+`train` runs in full float32 (`training.full_float32`: no TF32); `--no-tf32` does the same
+for the step alone, which is outside `train`. Results on an H200:
+`analysis/results/device-train-check/`.
+
 Machines without Drake (a GPU machine that has only PyTorch): `train` reads the wrist
 camera's height in the gripper frame from the gripper model through Drake
 (`station.gripper_frame_offsets`). Without Drake this script stands in the value given by
@@ -183,6 +187,11 @@ def main(argv=None) -> int:
     p.add_argument("--cpu-threads", type=int, default=os.cpu_count())
     p.add_argument("--device", default="cuda", choices=("cuda", "cpu"),
                    help="the device checked against the CPU (cpu: a dry run of the script)")
+    p.add_argument("--no-tf32", action="store_true",
+                   help="torch.backends.{cudnn,cuda.matmul}.allow_tf32 = False for the "
+                        "step alone (train() sets it itself): full float32 convolutions "
+                        "(cuDNN's default on Ampere and later GPUs is TF32, a 10-bit "
+                        "mantissa)")
     p.add_argument("--skip", default="", help="comma-separated: resume,throughput,step")
     args = p.parse_args(argv)
     labels = Path(args.labels)
@@ -195,10 +204,15 @@ def main(argv=None) -> int:
               "run with the CPU in the GPU's place)", file=sys.stderr)
         return 2
     skip = set(filter(None, args.skip.split(",")))
+    if args.no_tf32:
+        torch.backends.cudnn.allow_tf32 = False
+        torch.backends.cuda.matmul.allow_tf32 = False
     out = {"torch": torch.__version__,
            "gpu": torch.cuda.get_device_name(0) if gpu == "cuda" else None,
            "cpu_count": os.cpu_count(), "cpu": platform.processor() or platform.machine(),
-           "drake_stand_in": stand_in_for_drake(args.camera_z), "camera_z_G_m": args.camera_z}
+           "drake_stand_in": stand_in_for_drake(args.camera_z), "camera_z_G_m": args.camera_z,
+           "cudnn_allow_tf32": torch.backends.cudnn.allow_tf32,
+           "matmul_allow_tf32": torch.backends.cuda.matmul.allow_tf32}
     from drake_grasp.dense_training import LabelStore
 
     n_images = LabelStore([labels]).n_images

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG
 from drake_grasp.network import (DistanceCNN, NetworkConfig, grid_view_mask, load_weights,
                                   save_weights)
+from drake_grasp.training import full_float32
 
 GRID_CONFIG = NetworkConfig(theta_unit="deg", action_fusion="grid")
 _THETA_PERIOD_M = 180.0 * ANGLE_WEIGHT_M_PER_DEG
@@ -459,6 +460,7 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     return metadata
 
 
+@full_float32()
 def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
@@ -481,7 +483,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     of the training images); the epoch files hold the folded plain grid net. `device`:
     where the batches run, "cpu", "cuda" or "auto" (a GPU when torch sees one); the
     labels stay in memory on the CPU, the test metrics run on the CPU, and a run may
-    resume on another device. `stream_shards`: hold only the label parts of groups of
+    resume on another device (in full float32 there: `training.full_float32`). `stream_shards`: hold only the label parts of groups of
     this many at a time (`LabelStore`) instead of every label in memory.
     """
     from tqdm import tqdm

@@ -41,6 +41,7 @@ Output folder:
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -395,6 +396,27 @@ def resolve_data_dirs(data: str | Path, test_data: str | Path | None) -> tuple[P
     return train, test
 
 
+@contextlib.contextmanager
+def full_float32():
+    """cuDNN's convolutions and CUDA's matrix products in full float32 while inside.
+
+    PyTorch lets cuDNN run float32 convolutions in TF32 (a 10-bit mantissa) by default on
+    Ampere and later GPUs. A run resumed across devices then changes arithmetic mid-run:
+    measured on an H200 (`analysis/results/device-train-check/`), a CPU run and the same
+    run resumed on the GPU after 4 of 6 steps ended 1.1e-4 apart in the weights with TF32
+    and 1.7e-6 apart without it, at 6% of the GPU step's speed (training is bound by
+    gathering batches on the CPU). Restores the flags on the way out. Used as a
+    decorator by both trainers; no effect on the CPU.
+    """
+    saved = (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32)
+    torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+
+
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -539,6 +561,7 @@ class TrainLock(GenerateLock):
     WHAT = "training run"
 
 
+@full_float32()
 def train(*, data: str | Path, out: str | Path, test_data: str | Path | None = None,
           config: TrainConfig | None = None, network: NetworkConfig | None = None,
           progress: bool = True) -> dict:

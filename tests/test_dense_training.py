@@ -150,10 +150,46 @@ def test_a_killed_run_resumes_to_the_uninterrupted_weights(tmp_path):
         train(tmp_path / "grid", tmp_path / "broken", **{**kw, "lr": 2e-3})
 
 
+def test_training_runs_in_full_float32_and_restores_the_flags(tmp_path, monkeypatch):
+    """TF32 convolutions (PyTorch's default for cuDNN) would change a run's arithmetic
+    when it resumes on a GPU (measured: analysis/results/device-train-check/); the
+    trainer turns them off for its duration only."""
+    import drake_grasp.dense_training as dt
+    from drake_grasp.training import full_float32
+
+    flags = lambda: (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32)
+    saved = flags()
+    try:
+        torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = True
+        _check_full_float32(tmp_path, monkeypatch, dt, full_float32, flags)
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+
+
+def _check_full_float32(tmp_path, monkeypatch, dt, full_float32, flags):
+    with pytest.raises(RuntimeError, match="inside"):
+        with full_float32():
+            assert flags() == (False, False)
+            raise RuntimeError("inside")
+    assert flags() == (True, True)
+
+    seen = []
+    real_view_masks = dt.view_masks
+    monkeypatch.setattr(dt, "view_masks", lambda *a, **k: (seen.append(flags()),
+                                                           real_view_masks(*a, **k))[1])
+    _shard(tmp_path / "data", scenes=1, images=4)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    train(tmp_path / "grid", tmp_path / "run", test_data=None, init=None, epochs=1, batch=4,
+          threads=1, progress=False)
+    assert seen and all(f == (False, False) for f in seen)
+    assert flags() == (True, True)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
-    """`device`: the checkpoint moves between devices; the GPU's float arithmetic
-    differs from the CPU's in the last bits, so the weights agree to a tolerance."""
+    """`device`: the checkpoint moves between devices; the GPU's float32 arithmetic
+    differs from the CPU's in the last bits, so the weights agree to a tolerance (with
+    TF32 convolutions they did not: 1.1e-4 apart on an H200; 1.7e-6 in full float32)."""
     from drake_grasp.network import load_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
