@@ -483,8 +483,9 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     of the training images); the epoch files hold the folded plain grid net. `device`:
     where the batches run, "cpu", "cuda" or "auto" (a GPU when torch sees one); the
     labels stay in memory on the CPU, the test metrics run on the CPU, and a run may
-    resume on another device (in full float32 there: `training.full_float32`). `stream_shards`: hold only the label parts of groups of
-    this many at a time (`LabelStore`) instead of every label in memory.
+    resume on another device (in full float32 there: `training.full_float32`).
+    `stream_shards`: hold only the label parts of groups of this many at a time
+    (`LabelStore`) instead of every label in memory.
     """
     from tqdm import tqdm
 

@@ -401,12 +401,13 @@ def full_float32():
     """cuDNN's convolutions and CUDA's matrix products in full float32 while inside.
 
     PyTorch lets cuDNN run float32 convolutions in TF32 (a 10-bit mantissa) by default on
-    Ampere and later GPUs. A run resumed across devices then changes arithmetic mid-run:
-    measured on an H200 (`analysis/results/device-train-check/`), a CPU run and the same
-    run resumed on the GPU after 4 of 6 steps ended 1.1e-4 apart in the weights with TF32
-    and 1.7e-6 apart without it, at 6% of the GPU step's speed (training is bound by
-    gathering batches on the CPU). Restores the flags on the way out. Used as a
-    decorator by both trainers; no effect on the CPU.
+    Ampere and later GPUs, so a run resumed across devices would change its arithmetic
+    mid-run. Measured on an H200 (`analysis/results/device-train-check/`): a CPU run and
+    the same run resumed on the GPU after 4 of 6 steps ended 1.1e-4 apart in the weights
+    with TF32 and 1.7e-6 apart without it; full float32 cost at most 6% of the GPU step's
+    speed (batch 1000), and `train-grid`, bound by building batches on the CPU, was not
+    slower. Restores the flags on the way out. Used as a decorator by both trainers; no
+    effect on the CPU.
     """
     saved = (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32)
     torch.backends.cudnn.allow_tf32 = False
