@@ -458,3 +458,26 @@ def test_a_killed_streamed_run_resumes_to_the_uninterrupted_weights(tmp_path, ca
     np.savez(part, **bad)
     with pytest.raises(ValueError, match=r"grid2/shard-00000.npz: 'grid' has shape \(8, 9,"):
         train(folders, tmp_path / "bad", **kw)
+
+
+def test_device_train_check_dry_run_on_the_cpu(tmp_path, analysis_script):
+    """analysis/device_train_check.py with the CPU in the GPU's place: its resume check
+    runs the product's trainer twice and compares (on one device, bit for bit); with
+    Drake present the camera height it would stand in is checked against the gripper
+    model, and a wrong one is refused."""
+    script = analysis_script("device_train_check")
+    _shard(tmp_path / "data", scenes=1, images=5)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    out = tmp_path / "check.json"
+    assert script.main(["--labels", str(tmp_path / "grid"), "--out", str(out), "--device", "cpu",
+                        "--cpu-threads", "1", "--skip", "throughput,step"]) == 0
+    got = json.loads(out.read_text())
+    assert got["drake_stand_in"] is False and got["camera_z_G_m"] == CAMERA_Z
+    assert got["label_images"] == 5
+    for key in ("resume_test_size", "resume_all_images"):
+        assert got[key]["within_rtol_1e-4_atol_1e-5"] is True
+        assert got[key]["max_abs_diff"] == 0.0
+    with pytest.raises(ValueError, match="--camera-z -0.1: the gripper model gives"):
+        script.main(["--labels", str(tmp_path / "grid"), "--out", str(out), "--device", "cpu",
+                     "--camera-z", "-0.1", "--skip", "resume,throughput,step"])
+    assert script.main(["--labels", str(tmp_path / "data"), "--out", str(out)]) == 2
