@@ -139,7 +139,7 @@ def throughput(folders, work: Path, *, device: str, batch: int, threads: int,
 
 def step_alone(folder: Path, *, device: str, batch: int, steps: int) -> dict:
     """Forward, backward and Adam on one resident batch, `steps` times after 5 warm-ups."""
-    from drake_grasp.dense_training import BatchNormTrunk, LabelStore, view_masks
+    from drake_grasp.dense_training import BatchNormTrunk, LabelStore, batch_tensors
     from drake_grasp.network import DistanceCNN, NetworkConfig
     from drake_grasp.station import gripper_frame_offsets
 
@@ -150,12 +150,8 @@ def step_alone(folder: Path, *, device: str, batch: int, steps: int) -> dict:
     model = BatchNormTrunk(DistanceCNN(cfg, generator=torch.Generator().manual_seed(0)))
     model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=2e-4)
-    images = model.preprocess(data["depth"].astype(np.float32)).to(device)
-    target = torch.from_numpy(data["grid"].astype(np.float32)).to(device)
     camera_z = float(gripper_frame_offsets()[2].translation()[2])
-    mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
-    mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
-    mask = mask & torch.isfinite(target)
+    images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
 
     def step():
         loss = (model.image_features(images) - target).abs()[mask].mean()

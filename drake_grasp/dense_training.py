@@ -460,6 +460,17 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     return metadata
 
 
+def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device):
+    """A batch of `LabelStore.take` on `device`: the normalized images, the label grids,
+    and the mask of the nodes the loss counts (in the camera's view at the image's
+    height, and labelled)."""
+    images = model.preprocess(data["depth"].astype(np.float32)).to(device)
+    target = torch.from_numpy(data["grid"].astype(np.float32)).to(device)
+    mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
+    mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
+    return images, target, mask & torch.isfinite(target)
+
+
 @full_float32()
 def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
@@ -577,13 +588,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             idx = np.sort(order[start:start + batch])
             store.release_before(idx)
             data = store.take(idx)
-            images = model.preprocess(data["depth"].astype(np.float32)).to(device)
-            target = torch.from_numpy(data["grid"].astype(np.float32)).to(device)
-            mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
-            mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
-            mask = mask & torch.isfinite(target)
-            pred = model.image_features(images)
-            loss = (pred - target).abs()[mask].mean()
+            images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
+            loss = (model.image_features(images) - target).abs()[mask].mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
