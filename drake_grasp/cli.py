@@ -479,10 +479,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
                    help="grasp this object: candidates restricted to its image region")
     p.add_argument("--weights", default=None,
-                   help="CNN weights file (default: models/cnn-grid-bn12500/, the "
+                   help="CNN weights file (default: models/cnn-grid-bn12500-ep3/, the "
                    "grid head trained with BatchNorm, last on the paper's 12,500 scenes; "
-                   "models/cnn-grid-bn12-ep5/, models/cnn-grid-bn12/, models/cnn-grid-bn/ "
-                   "and models/cnn-grid/ are the "
+                   "models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
+                   "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/ are the "
                    "grid heads before it, models/cnn/ the paper's "
                    "net, each weights.safetensors); FILE,FILE,... "
                    "scores with the mean of several nets (an ensemble)")
@@ -778,9 +778,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
                         "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped grid head "
-                        "models/cnn-grid-bn12500/weights.safetensors (the grid heads before it: "
-                        "models/cnn-grid-bn12-ep5/, models/cnn-grid-bn12/, models/cnn-grid-bn/ "
-                        "and models/cnn-grid/; "
+                        "models/cnn-grid-bn12500-ep3/weights.safetensors (the grid heads "
+                        "before it: models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
+                        "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/; "
                         "the paper's net: "
                         "models/cnn/; each weights.safetensors); FILE,FILE,... scores with the "
                         "mean of several nets (an ensemble). Its sha256 is part of the run's "

@@ -47,11 +47,13 @@ GRID_BN = models_dir() / "cnn-grid-bn"
 GRID_BN12 = models_dir() / "cnn-grid-bn12"
 GRID_BN12_EP5 = models_dir() / "cnn-grid-bn12-ep5"
 GRID_BN12500 = models_dir() / "cnn-grid-bn12500"
+GRID_BN12500_EP3 = models_dir() / "cnn-grid-bn12500-ep3"
 
 
-@pytest.mark.parametrize("folder", [GRID, GRID_BN, GRID_BN12, GRID_BN12_EP5, GRID_BN12500],
+@pytest.mark.parametrize("folder", [GRID, GRID_BN, GRID_BN12, GRID_BN12_EP5, GRID_BN12500,
+                                    GRID_BN12500_EP3],
                          ids=["cnn-grid", "cnn-grid-bn", "cnn-grid-bn12", "cnn-grid-bn12-ep5",
-                              "cnn-grid-bn12500"])
+                              "cnn-grid-bn12500", "cnn-grid-bn12500-ep3"])
 def test_the_grid_weights_are_the_last_epoch_of_their_run(folder):
     model, meta = load_weights(folder / "weights.safetensors")
     metrics = json.loads((folder / "metrics.json").read_text())
@@ -64,23 +66,25 @@ def test_the_grid_weights_are_the_last_epoch_of_their_run(folder):
 def test_the_episodes_default_cnn_is_the_batchnorm_grid_head_and_the_others_stay_shipped():
     from drake_grasp.montecarlo import weights_path
     from drake_grasp.scenario import load_scenario
-    from drake_grasp.systems.evaluator import (BN12_WEIGHTS, BN_WEIGHTS, DEFAULT_WEIGHTS,
-                                               EP5_WEIGHTS, GRID_WEIGHTS, PAPER_WEIGHTS,
-                                               load_cnn)
+    from drake_grasp.systems.evaluator import (BN12_WEIGHTS, BN12500_WEIGHTS, BN_WEIGHTS,
+                                               DEFAULT_WEIGHTS, EP5_WEIGHTS, GRID_WEIGHTS,
+                                               PAPER_WEIGHTS, load_cnn)
 
-    assert models_dir() / DEFAULT_WEIGHTS == GRID_BN12500 / "weights.safetensors"
+    assert models_dir() / DEFAULT_WEIGHTS == GRID_BN12500_EP3 / "weights.safetensors"
+    assert models_dir() / BN12500_WEIGHTS == GRID_BN12500 / "weights.safetensors"
     assert models_dir() / EP5_WEIGHTS == GRID_BN12_EP5 / "weights.safetensors"
     assert models_dir() / BN12_WEIGHTS == GRID_BN12 / "weights.safetensors"
     assert models_dir() / BN_WEIGHTS == GRID_BN / "weights.safetensors"
     assert models_dir() / GRID_WEIGHTS == GRID / "weights.safetensors"
     assert load_cnn("").config.action_fusion == "grid"
+    assert load_cnn(str(models_dir() / BN12500_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / EP5_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / BN12_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / BN_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / GRID_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / PAPER_WEIGHTS)).config.action_fusion == "tiled"
     ctr = load_scenario(scenario_text="{policy: ctr}")
-    assert weights_path(ctr) == str(GRID_BN12500 / "weights.safetensors")
+    assert weights_path(ctr) == str(GRID_BN12500_EP3 / "weights.safetensors")
 
 def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path):
     """A trial recorded with `controller.weights: ""` ran the default of its day; its
@@ -101,11 +105,12 @@ def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path
                                {"name": "ctr", "weights_sha256": file_sha256(path)}]}
 
     for earlier in (GRID / "weights.safetensors", GRID_BN / "weights.safetensors",
-                    GRID_BN12 / "weights.safetensors", GRID_BN12_EP5 / "weights.safetensors"):
+                    GRID_BN12 / "weights.safetensors", GRID_BN12_EP5 / "weights.safetensors",
+                    GRID_BN12500 / "weights.safetensors"):
         got = recorded_weights(ctr, run_info(earlier), "ctr")
         assert got.controller.weights == str(earlier)
     grid = GRID / "weights.safetensors"
-    assert recorded_weights(ctr, run_info(GRID_BN12500 / "weights.safetensors"), "ctr") is ctr
+    assert recorded_weights(ctr, run_info(GRID_BN12500_EP3 / "weights.safetensors"), "ctr") is ctr
     explicit = dataclasses.replace(ctr, controller=dataclasses.replace(
         ctr.controller, weights=str(GRID_BN12 / "weights.safetensors")))
     assert recorded_weights(explicit, run_info(grid), "ctr") is explicit

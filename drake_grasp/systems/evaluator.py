@@ -25,15 +25,17 @@ if TYPE_CHECKING:
     from drake_grasp.network import DistanceCNN
 
 # The default distance CNN: the paper's trunk with the grid head, trained with BatchNorm
-# (folded into its layers), last on the paper's 12,500 scenes for 2 epochs
-# (models/cnn-grid-bn12500/README.md: EP5_WEIGHTS trained on with 5,000 more scenes;
-# against it on fresh seeds, clutter and clutter-shift pooled 257/282 vs 239/282,
-# isolation 119 vs 119 of 120: the rule of analysis/results/bn-paper-scale/PLAN.md).
-# EP5_WEIGHTS (5 epochs on 7,500 scenes), BN12_WEIGHTS (2 epochs on those scenes),
-# BN_WEIGHTS (on 2,500 scenes), the grid head trained without BatchNorm (GRID_WEIGHTS) and
-# the paper's tiled net (PAPER_WEIGHTS) stay shipped and selectable; records made with an
-# earlier default replay with it (`montecarlo.recorded_weights`).
-DEFAULT_WEIGHTS = "cnn-grid-bn12500/weights.safetensors"
+# (folded into its layers), last on the paper's 12,500 scenes for 3 epochs
+# (models/cnn-grid-bn12500-ep3/README.md: BN12500_WEIGHTS trained one epoch more; against
+# it on fresh seeds, clutter and clutter-shift pooled 262/287 vs 241/278, isolation 117 vs
+# 117 of 120: the rule of analysis/results/bn-paper-scale-ep3/PLAN.md).
+# BN12500_WEIGHTS (2 epochs on 12,500 scenes), EP5_WEIGHTS (5 epochs on 7,500 scenes),
+# BN12_WEIGHTS (2 epochs on those scenes), BN_WEIGHTS (on 2,500 scenes), the grid head
+# trained without BatchNorm (GRID_WEIGHTS) and the paper's tiled net (PAPER_WEIGHTS) stay
+# shipped and selectable; records made with an earlier default replay with it
+# (`montecarlo.recorded_weights`).
+DEFAULT_WEIGHTS = "cnn-grid-bn12500-ep3/weights.safetensors"
+BN12500_WEIGHTS = "cnn-grid-bn12500/weights.safetensors"
 EP5_WEIGHTS = "cnn-grid-bn12-ep5/weights.safetensors"
 BN12_WEIGHTS = "cnn-grid-bn12/weights.safetensors"
 BN_WEIGHTS = "cnn-grid-bn/weights.safetensors"
@@ -78,8 +80,9 @@ def needs_torch(weights: str) -> bool:
 def load_cnn(weights: str = "", *, threads: int = 1
              ) -> Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble]:
     """The distance CNN from a weights file; "" -> the shipped default,
-    `models/cnn-grid-bn12500/` (`DEFAULT_WEIGHTS`; the same net before the last 5,000
-    scenes is `models/cnn-grid-bn12-ep5/`, `EP5_WEIGHTS`, 3 epochs before that
+    `models/cnn-grid-bn12500-ep3/` (`DEFAULT_WEIGHTS`; the same net one epoch before is
+    `models/cnn-grid-bn12500/`, `BN12500_WEIGHTS`, before the last 5,000 scenes
+    `models/cnn-grid-bn12-ep5/`, `EP5_WEIGHTS`, 3 epochs before that
     `models/cnn-grid-bn12/`, `BN12_WEIGHTS`, on fewer scenes `models/cnn-grid-bn/`, `BN_WEIGHTS`,
     the grid head trained without BatchNorm `models/cnn-grid/`, `GRID_WEIGHTS`, the paper's
     tiled net `models/cnn/`, `PAPER_WEIGHTS`).
