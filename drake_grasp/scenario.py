@@ -291,11 +291,8 @@ class ControllerConfig:
     num_candidates: int = 128
     sample_xy_m: float = 0.04
     sample_theta_deg: float = 45.0
-    # CNN weights; "" = the shipped models/cnn-grid-bn12500-ep3/weights.safetensors (the
-    # grid head trained with BatchNorm, last on the paper's 12,500 scenes;
-    # models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, models/cnn-grid-bn12/,
-    # models/cnn-grid-bn/ and models/cnn-grid/ are the grid heads before it, models/cnn/
-    # the paper's tiled net, each weights.safetensors);
+    # CNN weights; "" = the shipped default (`systems.evaluator.DEFAULT_WEIGHTS`, where the
+    # earlier shipped nets are listed too);
     # an X.onnx file from `drake-grasp export-onnx` runs the CNN with onnxruntime instead
     # of torch;
     # "A,B,..." scores each candidate with the mean of those nets (`CnnEnsemble`).

@@ -79,13 +79,8 @@ def needs_torch(weights: str) -> bool:
 
 def load_cnn(weights: str = "", *, threads: int = 1
              ) -> Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble]:
-    """The distance CNN from a weights file; "" -> the shipped default,
-    `models/cnn-grid-bn12500-ep3/` (`DEFAULT_WEIGHTS`; the same net one epoch before is
-    `models/cnn-grid-bn12500/`, `BN12500_WEIGHTS`, before the last 5,000 scenes
-    `models/cnn-grid-bn12-ep5/`, `EP5_WEIGHTS`, 3 epochs before that
-    `models/cnn-grid-bn12/`, `BN12_WEIGHTS`, on fewer scenes `models/cnn-grid-bn/`, `BN_WEIGHTS`,
-    the grid head trained without BatchNorm `models/cnn-grid/`, `GRID_WEIGHTS`, the paper's
-    tiled net `models/cnn/`, `PAPER_WEIGHTS`).
+    """The distance CNN from a weights file; "" -> the shipped default, `DEFAULT_WEIGHTS`
+    under `models/` (the earlier shipped nets are the other `*_WEIGHTS` constants above).
     Several files separated by commas load a `CnnEnsemble` of them (the mean distance).
 
     A path ending in ``.onnx`` (the image file of ``drake-grasp export-onnx``, its
