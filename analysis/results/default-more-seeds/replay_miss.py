@@ -1,0 +1,74 @@
+"""Recorded attempts replayed exactly, with the gripper's and named objects' positions read
+every 10 ms and printed at the judge's phase starts: were the objects of a 'missed'
+attempt lifted after all?
+
+    python default-more-seeds/replay_miss.py default-more-seeds/cnn-clutter-seed28 banana_001,hammer_000 \
+        clutter/ctr/0004/attempt06,clutter/ctr/0004/attempt07,clutter/ctr/0004/attempt08   # from analysis/results/
+
+Each line: time, grasp frame xyz (m), left and right pad heights (m), distance between the
+pads' reference points (m), and each named object's body origin (m).
+"""
+import sys
+
+import numpy as np
+import pydrake.systems.analysis as A
+from pydrake.multibody.tree import ModelInstanceIndex
+
+import drake_grasp.episode as E
+from drake_grasp.montecarlo import recorded_scenario
+from drake_grasp.results import load_records
+from drake_grasp.scene import SceneSpec
+
+TRACE = []
+PLANT = [None]
+WATCH = sys.argv[2].split(",")
+_Base = A.Simulator
+
+
+def object_body(plant, object_id):
+    """The first body of the model instance named '<object_k>::<object_id>'."""
+    names = [plant.GetModelInstanceName(ModelInstanceIndex(i)) for i in range(plant.num_model_instances())]
+    name = next(n for n in names if n.endswith("::" + object_id))
+    return plant.get_body(plant.GetBodyIndices(plant.GetModelInstanceByName(name))[0])
+
+
+class Tracing(_Base):
+    def AdvanceTo(self, t_end):
+        ctx = self.get_context()
+        while ctx.get_time() < t_end - 1e-9:
+            r = _Base.AdvanceTo(self, min(ctx.get_time() + 0.01, t_end))
+            plant = PLANT[0]
+            pc = plant.GetMyContextFromRoot(ctx)
+            g = plant.GetFrameByName("grasp_frame").CalcPoseInWorld(pc).translation()
+            pl = plant.GetBodyByName("left_finger").EvalPoseInWorld(pc).multiply(np.array([-0.003, 0, 0.135]))
+            pr = plant.GetBodyByName("right_finger").EvalPoseInWorld(pc).multiply(np.array([0.003, 0, 0.135]))
+            objs = {n: [round(float(v), 4) for v in object_body(plant, n).EvalPoseInWorld(pc).translation()]
+                    for n in WATCH}
+            TRACE.append((round(ctx.get_time(), 3), [round(float(v), 4) for v in g], round(float(pl[2]), 4),
+                          round(float(pr[2]), 4), round(float(np.linalg.norm(pl - pr)), 4), objs))
+        return r
+
+
+_build = E.build_episode_diagram
+
+
+def build(*a, **k):
+    ed = _build(*a, **k)
+    PLANT[0] = ed.station.plant
+    return ed
+
+
+E.build_episode_diagram = build
+A.Simulator = Tracing
+want = sys.argv[3].split(",")
+for rec in load_records(sys.argv[1]):
+    if rec.trial_id not in want:
+        continue
+    TRACE.clear()
+    r = E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
+                           scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
+    judge = r.details["judge"]
+    print(rec.trial_id, "recorded:", rec.failure_class, "replayed success:", r.success,
+          "target:", judge.get("target_object_id"), "held:", judge.get("held_object_id"))
+    for phase, t in judge["phase_start_s"].items():
+        print(" ", phase, min(TRACE, key=lambda x: abs(x[0] - t)))
