@@ -7,7 +7,15 @@ attempt lifted after all?
 
 Each line: time, grasp frame xyz (m), left and right pad heights (m), distance between the
 pads' reference points (m), and each named object's body origin (m).
+
+    python default-more-seeds/replay_miss.py --count-lifted RUN [RUN...]
+
+replays every failed attempt of the runs and prints the objects whose body origin is more
+than 10 cm above the table when the attempt ends (the hand holds at about 17.5 cm; objects
+on the table have their origins under 8 cm): a failure with two objects up is a two-object
+hold the judge's one-object rule does not count.
 """
+import json
 import sys
 
 import numpy as np
@@ -21,7 +29,8 @@ from drake_grasp.scene import SceneSpec
 
 TRACE = []
 PLANT = [None]
-WATCH = sys.argv[2].split(",")
+COUNT = sys.argv[1] == "--count-lifted"
+WATCH = [] if COUNT else sys.argv[2].split(",")
 _Base = A.Simulator
 
 
@@ -60,6 +69,19 @@ def build(*a, **k):
 
 E.build_episode_diagram = build
 A.Simulator = Tracing
+if COUNT:
+    for folder in sys.argv[2:]:
+        for rec in load_records(folder):
+            if rec.success or rec.failure_class == "simulation-error":
+                continue
+            WATCH[:] = list(rec.object_ids)
+            TRACE.clear()
+            r = E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
+                                   scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
+            up = sorted(n for n, xyz in TRACE[-1][5].items() if xyz[2] > 0.10)
+            print(json.dumps({"run": folder, "trial": rec.trial_id, "recorded": rec.failure_class,
+                              "replayed_success": bool(r.success), "objects_up_at_end": up}), flush=True)
+    sys.exit(0)
 want = sys.argv[3].split(",")
 for rec in load_records(sys.argv[1]):
     if rec.trial_id not in want:
