@@ -69,15 +69,22 @@ def build(*a, **k):
 
 E.build_episode_diagram = build
 A.Simulator = Tracing
+
+
+def replay(rec):
+    """The recorded attempt simulated again from its scene, scenario and seed, traced."""
+    TRACE.clear()
+    return E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
+                              scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
+
+
 if COUNT:
     for folder in sys.argv[2:]:
         for rec in load_records(folder):
             if rec.success or rec.failure_class == "simulation-error":
                 continue
             WATCH[:] = list(rec.object_ids)
-            TRACE.clear()
-            r = E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
-                                   scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
+            r = replay(rec)
             up = sorted(n for n, xyz in TRACE[-1][5].items() if xyz[2] > 0.10)
             print(json.dumps({"run": folder, "trial": rec.trial_id, "recorded": rec.failure_class,
                               "replayed_success": bool(r.success), "objects_up_at_end": up}), flush=True)
@@ -86,9 +93,7 @@ want = sys.argv[3].split(",")
 for rec in load_records(sys.argv[1]):
     if rec.trial_id not in want:
         continue
-    TRACE.clear()
-    r = E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
-                           scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
+    r = replay(rec)
     judge = r.details["judge"]
     print(rec.trial_id, "recorded:", rec.failure_class, "replayed success:", r.success,
           "target:", judge.get("target_object_id"), "held:", judge.get("held_object_id"))
