@@ -29,6 +29,7 @@ from drake_grasp.scene import SceneSpec
 
 TRACE = []
 PLANT = [None]
+BODIES = {}  # object id -> its body in the episode being replayed (looked up once per replay)
 COUNT = sys.argv[1] == "--count-lifted"
 WATCH = [] if COUNT else sys.argv[2].split(",")
 _Base = A.Simulator
@@ -51,7 +52,10 @@ class Tracing(_Base):
             g = plant.GetFrameByName("grasp_frame").CalcPoseInWorld(pc).translation()
             pl = plant.GetBodyByName("left_finger").EvalPoseInWorld(pc).multiply(np.array([-0.003, 0, 0.135]))
             pr = plant.GetBodyByName("right_finger").EvalPoseInWorld(pc).multiply(np.array([0.003, 0, 0.135]))
-            objs = {n: [round(float(v), 4) for v in object_body(plant, n).EvalPoseInWorld(pc).translation()]
+            for n in WATCH:
+                if n not in BODIES:
+                    BODIES[n] = object_body(plant, n)
+            objs = {n: [round(float(v), 4) for v in BODIES[n].EvalPoseInWorld(pc).translation()]
                     for n in WATCH}
             TRACE.append((round(ctx.get_time(), 3), [round(float(v), 4) for v in g], round(float(pl[2]), 4),
                           round(float(pr[2]), 4), round(float(np.linalg.norm(pl - pr)), 4), objs))
@@ -74,6 +78,7 @@ A.Simulator = Tracing
 def replay(rec):
     """The recorded attempt simulated again from its scene, scenario and seed, traced."""
     TRACE.clear()
+    BODIES.clear()
     return E.simulate_episode(recorded_scenario(rec.scenario_yaml), scenario_name=rec.scenario_name,
                               scene=SceneSpec.from_dict(rec.extra["scene"]), record_depth=False).result
 
