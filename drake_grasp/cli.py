@@ -761,7 +761,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--conditions", default="",
                    help="comma-separated subset of the experiment's conditions (default: "
                         "all); an entry MODULE:FACTORY adds your own policy as a condition "
-                        "on the same seeds, e.g. ctr,centroid_policy:make_policy")
+                        "on the same seeds, e.g. ctr,centroid_policy:make_policy; a built-in "
+                        "policy the experiment does not list (ctr, cnn-ctr, cnn-only, gpd, "
+                        "gpd-geometric, init) is added the same way, e.g. clutter's cnn-ctr")
     p.add_argument("--force-new", action="store_true",
                    help="when --out holds a different run (another experiment, seed, object "
                         "library, resolved scenario, CNN or GPD weights or code version: "

@@ -231,12 +231,20 @@ EXPERIMENTS: dict[str, Experiment] = {
 }
 
 
+# Built-in policies that `evaluate --conditions` may add to an experiment whose own
+# conditions do not include them (e.g. `cnn-ctr` in clutter); each runs as
+# `plugin_condition` says, as a user policy does.
+EXTRA_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init")
+
+
 def plugin_condition(experiment: Experiment, spec: str) -> Condition:
-    """The condition a user policy (``MODULE:FACTORY``, `drake_grasp.plugins`) runs as in
-    `experiment`: named `plugins.condition_name(spec)` ("centroid_policy.make_policy"), with
-    the experiment's settings that all of its conditions share (disturbance, depth noise,
-    controller profile), and no kinematic noise (the noise models act inside the built-in
-    controller). Its trials get the same seeds, so the same scenes, as the others.
+    """The condition a user policy (``MODULE:FACTORY``, `drake_grasp.plugins`), or a
+    built-in policy of `EXTRA_POLICIES` the experiment does not list, runs as in
+    `experiment`: named `plugins.condition_name(spec)` ("centroid_policy.make_policy"; a
+    built-in: its own name), with the experiment's settings that all of its conditions
+    share (disturbance, depth noise, controller profile), and no kinematic noise (for a
+    user policy the noise models act inside the built-in controller; a built-in added so
+    runs noise-free too). Its trials get the same seeds, so the same scenes, as the others.
 
     Raises:
         ValueError: a malformed spec, or one whose name clashes with a condition of the
@@ -244,7 +252,13 @@ def plugin_condition(experiment: Experiment, spec: str) -> Condition:
     """
     from drake_grasp.plugins import condition_name
 
-    name = condition_name(spec)
+    if spec in EXTRA_POLICIES:
+        if any(c.name == spec for c in experiment.conditions):
+            raise ValueError(f"--conditions: {spec!r} is already a condition of experiment "
+                             f"{experiment.name}; it runs as the experiment defines it")
+        name = spec
+    else:
+        name = condition_name(spec)
     if any(c.name == name for c in experiment.conditions):
         raise ValueError(f"--conditions: user policy {spec!r} would be named {name!r}, which is "
                          f"already a condition of experiment {experiment.name}")

@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.experiments import (CNN_POLICIES, Condition, Experiment, condition_scenario,
-                                     get_experiment, plugin_condition, trial_scenario,
-                                     trial_seed)
+from drake_grasp.experiments import (CNN_POLICIES, EXTRA_POLICIES, Condition, Experiment,
+                                     condition_scenario, get_experiment, plugin_condition,
+                                     trial_scenario, trial_seed)
 from drake_grasp.provenance import code_tree, code_version, file_sha256
 
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
@@ -58,7 +58,8 @@ class TrialTask:
     base_seed: int
     # A `PHYSICS_PROFILES` name the trial runs with; "" = the scenario's (the default).
     physics_profile: str = ""
-    # A user policy's ``MODULE:FACTORY`` (`drake_grasp.plugins`) when `condition` is one
+    # A user policy's ``MODULE:FACTORY`` (`drake_grasp.plugins`), or a built-in policy of
+    # `experiments.EXTRA_POLICIES` the experiment does not list, when `condition` is one
     # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
     policy_spec: str = ""
     # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
@@ -118,8 +119,9 @@ def task_experiment(task: TrialTask) -> Experiment:
 def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
                conditions: list[str] | None = None) -> list[TrialTask]:
     """The tasks of a run: trial i of every condition asked (the experiment's order, then
-    the user policies, ``MODULE:FACTORY`` entries of `conditions`, in the order given), all
-    with trial i's seed."""
+    the user policies, ``MODULE:FACTORY`` entries of `conditions`, and the built-in
+    policies of `experiments.EXTRA_POLICIES` that the experiment does not list, in the
+    order given), all with trial i's seed."""
     from drake_grasp.plugins import is_policy_spec
 
     n = experiment.trials if trials is None else int(trials)
@@ -128,11 +130,14 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
     names = [c.name for c in experiment.conditions]
     specs = []
     if conditions:
-        specs = list(dict.fromkeys(c for c in conditions if is_policy_spec(c)))
+        specs = list(dict.fromkeys(
+            c for c in conditions
+            if is_policy_spec(c) or (c in EXTRA_POLICIES and c not in names)))
         unknown = [c for c in conditions if c not in names and c not in specs]
         if unknown:
             raise ValueError(f"--conditions: {unknown} not in experiment "
-                             f"{experiment.name}; its conditions: {names}, or a user policy "
+                             f"{experiment.name}; its conditions: {names}, a built-in "
+                             f"policy {list(EXTRA_POLICIES)} or a user policy "
                              "MODULE:FACTORY (see drake_grasp.plugins)")
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
@@ -253,8 +258,10 @@ def plugin_identity(experiment: Experiment, spec: str, *, objects_dir: str | Non
     from drake_grasp.plugins import policy_source
 
     condition = plugin_condition(experiment, spec)
-    return {**condition_identity(experiment, condition, objects_dir=objects_dir),
-            "policy_source": policy_source(spec)}
+    identity = condition_identity(experiment, condition, objects_dir=objects_dir)
+    if spec in EXTRA_POLICIES:  # a built-in: its code is the package's (`code_tree`)
+        return identity
+    return {**identity, "policy_source": policy_source(spec)}
 
 
 def check_user_policy(experiment: Experiment, spec: str, *, objects_dir: str | None = None) -> None:
@@ -262,6 +269,8 @@ def check_user_policy(experiment: Experiment, spec: str, *, objects_dir: str | N
     (`plugins.make_policy_system`), so a bad spec fails before any trial runs."""
     from drake_grasp.plugins import make_policy_system
 
+    if spec in EXTRA_POLICIES:  # a built-in policy: nothing of the user's to check
+        return
     make_policy_system(spec, condition_scenario(experiment, plugin_condition(experiment, spec),
                                                 objects_dir=objects_dir))
 
@@ -708,7 +717,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             ``MODULE:FACTORY`` adds a user policy (`drake_grasp.plugins`) as a condition
             of its own (`experiments.plugin_condition`): same seeds and scenes, judged by
             the same judge, in the same report. It is built and checked once before any
-            trial runs; run.json records its code's sha256 ("plugin_conditions").
+            trial runs; run.json records its code's sha256 ("plugin_conditions"). A
+            built-in policy of `experiments.EXTRA_POLICIES` that the experiment does not
+            list (`cnn-ctr` in clutter) is added the same way, recorded there too.
         progress: Show a progress bar.
         report: Write the report of the trials this call asked for: trials 0..trials-1 of
             the conditions asked (`make_report(..., trials=...)`); other records in the

@@ -665,3 +665,54 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
                                       "--ctr-text", "{stop_distance_m: 0.2}"])
     assert args.ctr_text == "{stop_distance_m: 0.2}"
+
+
+def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_condition(
+        tmp_path, monkeypatch):
+    """`--conditions cnn-ctr` in clutter (whose conditions are ctr and gpd): the built-in
+    policy runs as a condition of its own on the same seeds, with the settings every
+    clutter condition shares (robot profile) and the closed-loop options; run.json records
+    its identity; a listed name stays the experiment's own condition; an unknown name is
+    refused naming what is allowed."""
+    exp = dataclasses.replace(EXPERIMENTS["clutter"],
+                              ctr_controller_text="{converge_step_ratio: 0.2}")
+    tasks = m.plan_tasks(exp, trials=2, seed=5, conditions=["ctr", "cnn-ctr"])
+    assert [(t.condition, t.index, t.policy_spec) for t in tasks] == [
+        ("ctr", 0, ""), ("cnn-ctr", 0, "cnn-ctr"), ("ctr", 1, ""), ("cnn-ctr", 1, "cnn-ctr")]
+    extra = m.task_condition(tasks[1], exp)
+    assert (extra.name, extra.policy, extra.noise) == ("cnn-ctr", "cnn-ctr", "none")
+    from drake_grasp.experiments import condition_scenario
+    s = condition_scenario(exp, extra)
+    assert s.policy == "cnn-ctr"
+    assert (s.controller.step_ratio, s.controller.converge_step_ratio) == (0.5, 0.2)
+    assert s.scene.clutter_objects == 10
+    # perception lists cnn-ctr: it is that experiment's own condition, not an extra one
+    own = m.plan_tasks(EXPERIMENTS["perception"], trials=1, seed=0, conditions=["cnn-ctr"])
+    assert [(t.condition, t.policy_spec) for t in own] == [("cnn-ctr", "")]
+    with pytest.raises(ValueError, match=r"\['scripted2'\] not in experiment clutter; its "
+                                         r"conditions: \['ctr', 'gpd'\], a built-in policy "
+                                         r"\['ctr', 'cnn-ctr'"):
+        m.plan_tasks(exp, trials=1, seed=0, conditions=["scripted2"])
+
+    def no_physics(*args, **kwargs):
+        raise RuntimeError("no physics here (test)")
+
+    monkeypatch.setattr(m, "_simulate", no_physics)
+    kw = dict(experiment="smoke", out=tmp_path / "run", trials=1, workers=1, seed=3,
+              progress=False, report=False)
+    assert m.evaluate(conditions=["init", "cnn-only"], **kw)["ran"] == 2
+    records = load_records(tmp_path / "run")
+    assert {(r.condition, r.policy) for r in records} == {("init", "init"),
+                                                          ("cnn-only", "cnn-only")}
+    assert len({(r.seed, tuple(r.object_ids)) for r in records}) == 1  # the same trial
+    ident = read_run_info(tmp_path / "run")["plugin_conditions"]["cnn-only"]
+    assert ident["policy"] == "cnn-only" and "policy_source" not in ident
+    assert len(ident["weights_sha256"]) == 64
+    # a resume may leave it out or bring it back; other weights for it are another run
+    assert m.evaluate(conditions=["init"], **kw)["ran"] == 0
+    assert m.evaluate(conditions=["cnn-only"], **kw)["ran"] == 0
+    other = tmp_path / "other.safetensors"
+    shutil.copy(Path(m.__file__).resolve().parents[1] / "models" / "cnn" / "weights.safetensors",
+                other)
+    with pytest.raises(ValueError, match=r"plugin_conditions.cnn-only.scenario.controller.weights"):
+        m.evaluate(conditions=["cnn-only"], weights=str(other), **kw)
