@@ -12,6 +12,7 @@ import argparse
 import collections
 import json
 import math
+import re
 import statistics
 from pathlib import Path
 
@@ -57,6 +58,9 @@ def arm(folders: dict[int, Path], condition: str) -> dict:
     grasped = attempts = runs = 0
     classes, ends = collections.Counter(), collections.Counter()
     converged, final, walls, missing = 0, [], [], []
+    # Failures by the object class the judge's reason names (the one held, pushed or
+    # touched first; "none named" for misses that name none).
+    failed_class = collections.Counter()
     for seed, folder in folders.items():
         if not (folder / "run.json").is_file():
             missing.append(seed)
@@ -75,6 +79,9 @@ def arm(folders: dict[int, Path], condition: str) -> dict:
             attempts += 1
             grasped += bool(r.success)
             classes[r.failure_class] += 1
+            if not r.success:
+                m = re.search(r"([a-z_]+)_\d{3}", r.failure_reason or "")
+                failed_class[m.group(1) if m else "none named"] += 1
             stop = str((r.extra or {}).get("stop_reason", ""))
             converged += "converged" in stop and "not converged" not in stop
             if r.final_distance_m is not None:
@@ -87,6 +94,7 @@ def arm(folders: dict[int, Path], condition: str) -> dict:
             "rate": grasped / attempts if attempts else None, "ci95": [lo, hi],
             "attempts_per_run": attempts / runs if runs else None,
             "failure_classes": {k: v for k, v in classes.items() if k != "none"},
+            "failures_by_object_class": dict(failed_class.most_common()),
             "run_ends": dict(ends), "ended_by_convergence_test": converged,
             "final_distance_median_m": statistics.median(final) if final else None,
             "attempt_wall_s_sum": sum(walls)}
