@@ -140,7 +140,44 @@ def main() -> None:
               f"ends {a['run_ends']}, converged {a['ended_by_convergence_test']}"
               f"{' (incomplete: seeds ' + str(a['missing']) + ' missing)' if a['missing'] else ''}"
               f"{extra}")
+    arms["oracle, default's clutter attempts"] = oracle = oracle_summary()
+    if oracle["attempts"]:
+        print(f"oracle on the default's clutter attempts (seeds {oracle['seeds']}): "
+              f"{oracle['attempts']} attempts, replayed with the CNN {oracle['cnn']} "
+              f"(recorded {oracle['recorded']}), with the true distances {oracle['oracle']} "
+              f"{100 * oracle['oracle'] / oracle['attempts']:.1f}% "
+              f"[{100 * oracle['oracle_ci95'][0]:.1f}, {100 * oracle['oracle_ci95'][1]:.1f}]; "
+              f"paired CNN only / truth only {oracle['cnn_only']} / {oracle['oracle_only']}; "
+              f"the truth's failures {oracle['oracle_failures']}")
     Path(args.out).write_text(json.dumps(arms, indent=1) + "\n")
+
+
+def oracle_summary() -> dict:
+    """`oracle/seedS/oracle_ctr_clutter.json` (`analysis/oracle_ctr.py --records` on the
+    default's clutter runs) pooled over the seeds there are."""
+    out = {"seeds": [], "attempts": 0, "recorded": 0, "cnn": 0, "oracle": 0, "cnn_only": 0,
+           "oracle_only": 0, "without_true_grasps": 0, "oracle_failures": []}
+    for seed in CLUTTER_SEEDS:
+        f = HERE / "oracle" / f"seed{seed}" / "oracle_ctr_clutter.json"
+        if not f.is_file():
+            continue
+        data = json.loads(f.read_text())
+        s = data["summary"]
+        out["seeds"].append(seed)
+        out["attempts"] += s["attempts"]
+        for k in ("recorded", "cnn", "oracle"):
+            out[k] += s[k]["successes"]
+        out["cnn_only"] += s["paired_cnn_vs_oracle"]["cnn_only"]
+        out["oracle_only"] += s["paired_cnn_vs_oracle"]["oracle_only"]
+        out["without_true_grasps"] += s["without_true_grasps"]
+        out["oracle_failures"] += [
+            {"trial_id": r["trial_id"], "seed": seed, "true_grasps": r["num_true_grasps"],
+             "reason": r["oracle"]["failure_reason"],
+             "final_distance_m": r["oracle"]["final_distance_m"]}
+            for r in data["rows"] if not r["oracle"]["success"]]
+    if out["attempts"]:
+        out["oracle_ci95"] = list(wilson_interval(out["oracle"], out["attempts"]))
+    return out
 
 
 if __name__ == "__main__":
