@@ -6,6 +6,9 @@ trained on different sets on one test set.
     git show a027dc1:models/cnn/weights.safetensors > w400.safetensors   # the 400-scene weights
     python analysis/cnn_eval.py --weights w400.safetensors \
         --test-data data/paper_test --out analysis/results/cnn-paper-scale/400-scene-weights_on_paper_test.json
+
+Several files separated by commas score as their mean (what `controller.weights: A,B`
+does in an episode, `evaluator.CnnEnsemble`); the members must share the input config.
 """
 
 from __future__ import annotations
@@ -16,14 +19,51 @@ import time
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from drake_grasp.cnn_metrics import l1_by_label, ranking_metrics
 from drake_grasp.network import MirrorAveragedCNN, load_weights
 from drake_grasp.training import ChunkCache, ShardSet
 
+class MeanCNN(nn.Module):
+    """Distance CNNs of one input config scored as their mean, with the interface the
+    metrics use (`preprocess`, `forward_factored`, `image_features`, `score_actions`)."""
+
+    def __init__(self, members) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+        first = self.members[0].config
+        for i, m in enumerate(self.members[1:], 1):
+            for key in ("image_size", "depth_reference", "depth_offset_m", "depth_scale_m",
+                        "depth_clip_near_m", "depth_clip_far_m"):
+                if getattr(m.config, key) != getattr(first, key):
+                    raise ValueError(f"--weights: member {i} has {key} = "
+                                     f"{getattr(m.config, key)!r}, member 0 "
+                                     f"{getattr(first, key)!r}; expected one input config")
+        self.config = first
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.members[0].dtype
+
+    def preprocess(self, depth):
+        return self.members[0].preprocess(depth)
+
+    def forward_factored(self, images, actions):
+        return torch.stack([m.forward_factored(images, actions) for m in self.members]).mean(0)
+
+    def image_features(self, images):
+        return [m.image_features(images) for m in self.members]
+
+    def score_actions(self, features, actions):
+        return torch.stack([m.score_actions(f, actions).reshape(-1)
+                            for m, f in zip(self.members, features)]).mean(0)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--weights", required=True, help="a weights.safetensors file")
+    parser.add_argument("--weights", required=True, help="a weights.safetensors file, or several "
+                        "separated by commas (scored as their mean)")
     parser.add_argument("--test-data", required=True, help="a `generate` folder (test split)")
     parser.add_argument("--ranking-images", type=int, default=200,
                         help="test images for the ranking metrics (default 200, as train)")
@@ -34,9 +74,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", required=True, help="JSON file to write")
     args = parser.parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
-    model, _ = load_weights(args.weights)
-    if args.mirror:
-        model = MirrorAveragedCNN(model)
+    files = [f.strip() for f in args.weights.split(",")]
+    if not all(files):
+        raise SystemExit(f"--weights: {args.weights!r} has an empty item; expected FILE or "
+                         "FILE,FILE,...")
+    models = [load_weights(f)[0] for f in files]
+    if args.mirror:  # each member mirror-averaged, as in an episode
+        models = [MirrorAveragedCNN(m) for m in models]
+    model = models[0] if len(models) == 1 else MeanCNN(models)
     t0 = time.perf_counter()
     data = ShardSet(args.test_data, ChunkCache(int(2e9)))
     l1, by_label = l1_by_label(model, data)
