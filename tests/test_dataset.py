@@ -490,6 +490,52 @@ def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path, 
         DepthGraspDataset(out))
 
 
+def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_path, analysis_script):
+    """analysis/cnn_eval.py --weights A,B: every distance is the mean of the two nets' (as
+    `controller.weights: A,B` scores in an episode); an empty item is refused."""
+    import torch
+
+    from drake_grasp.network import load_weights
+    from drake_grasp.training import ChunkCache, ShardSet
+
+    out, _ = reference
+    script = analysis_script("cnn_eval")
+    a = ROOT / "models" / "cnn-grid-bn12500-ep3" / "weights.safetensors"
+    b = ROOT / "models" / "cnn-grid-bn" / "weights.safetensors"
+    result = script.main(["--weights", f"{a},{b}", "--test-data", str(out),
+                          "--ranking-images", "3", "--out", str(tmp_path / "eval.json")])
+    nets = [load_weights(w)[0].eval() for w in (a, b)]
+    data = ShardSet(out, ChunkCache(int(1e9)))
+    depth, offsets, labels = data.gather(np.arange(len(data)))
+    with torch.no_grad():
+        preds = [n.forward_factored(n.preprocess(depth), torch.as_tensor(offsets, dtype=n.dtype))
+                 .double().numpy() for n in nets]
+    errors = [np.abs(p - labels).mean() for p in preds]
+    expected = np.abs(0.5 * (preds[0] + preds[1]) - labels).mean()
+    assert result["test_l1_m"] == pytest.approx(expected, rel=1e-5)
+    assert errors[0] != pytest.approx(errors[1], rel=1e-3)  # two different nets
+    assert result["ranking"]["images"] == 3
+    # the episode's ensemble (`load_cnn("A,B")`, `score_candidates`) scores alike
+    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+
+    mean = script.MeanCNN(nets)
+    actions = np.array([[0.0, 0.0, 0.0], [0.02, -0.01, 30.0], [-0.03, 0.01, -60.0]], np.float32)
+    with torch.inference_mode():
+        ours = mean.score_actions(mean.image_features(mean.preprocess(depth[:1])), actions)
+    episode = score_candidates(load_cnn(f"{a},{b}"), depth[0], actions)
+    np.testing.assert_allclose(ours.double().numpy(), episode, atol=1e-6)
+    from dataclasses import replace
+
+    from drake_grasp.network import DistanceCNN
+
+    other = DistanceCNN(replace(nets[0].config, depth_offset_m=0.4))
+    with pytest.raises(ValueError, match="member 1 has depth_offset_m = 0.4"):
+        script.MeanCNN([nets[0], other])
+    with pytest.raises(SystemExit, match="empty item"):
+        script.main(["--weights", f"{a},", "--test-data", str(out), "--out", str(tmp_path / "x.json")])
+    assert not (tmp_path / "x.json").exists()
+
+
 def test_spearman_matches_scipy_and_is_nan_without_an_order():
     from scipy.stats import spearmanr
 
