@@ -741,7 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="run one of the paper's experiments (Monte Carlo) and "
                                          "write its report; re-running resumes")
     p.add_argument("--experiment", required=True,
-                   help="sim-distance, perception, isolation, clutter, clutter-shift, "
+                   help="smoke, sim-distance, perception, isolation, clutter, clutter-shift, "
                         "sweep-noise, sweep-depth-noise, sweep-offset, sweep-latency, "
                         "sweep-control-period, sweep-dropped-frames, "
                         "sweep-camera-translation or sweep-camera-rotation")
