@@ -25,6 +25,7 @@ from drake_grasp.cnn_metrics import l1_by_label, ranking_metrics
 from drake_grasp.network import MirrorAveragedCNN, load_weights
 from drake_grasp.training import ChunkCache, ShardSet
 
+
 class MeanCNN(nn.Module):
     """Distance CNNs of one input config scored as their mean, with the interface the
     metrics use (`preprocess`, `forward_factored`, `image_features`, `score_actions`)."""
