@@ -22,6 +22,12 @@ execution (pushing, collisions, slips) whatever the scores?
 
     python analysis/oracle_ctr.py --records analysis/results/gpd-view-068/clutter \
         --workers 2 --out analysis/results/oracle-ctr-clutter
+
+`--oracle-phase descent` scores with the truth only the decisions of the descent (those
+taken before the stop rule has fired: which object and where the hand goes) and leaves
+the decisions at the stop height (convergence, from the one after the rule fired) to the
+CNN; `--oracle-phase stop` the other way round. `--arms oracle` skips the CNN's replay
+(the records are its outcomes).
 """
 
 from __future__ import annotations
@@ -34,8 +40,13 @@ from pathlib import Path
 import numpy as np
 
 
-def _oracle_controller(truth_xy_theta: np.ndarray):
-    """A GraspController subclass whose candidates are scored by the true distance."""
+ORACLE_PHASES = ("all", "descent", "stop")
+
+
+def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
+    """A GraspController subclass whose candidates are scored by the true distance: at
+    every decision (`phase` "all"), only in the descent ("descent": before the stop
+    rule has fired) or only at the stop height ("stop": the decisions after it fired)."""
     from drake_grasp.actions import apply_actions
     from drake_grasp.grasps import distance_to_nearest_grasp
     from drake_grasp.systems.controller import GraspController
@@ -44,6 +55,8 @@ def _oracle_controller(truth_xy_theta: np.ndarray):
         oracle_steps = 0  # decisions scored by the truth (a check that it was used)
 
         def _ctr_step(self, context, s, t):
+            if phase != "all" and (phase == "stop") != bool(s.converging):
+                return super()._ctr_step(context, s, t)  # the CNN decides this step
             hand = s.hand
             port = self._distances
 
@@ -66,7 +79,7 @@ def _oracle_controller(truth_xy_theta: np.ndarray):
     return OracleController
 
 
-def run_trial(index: int, seed: int) -> dict:
+def run_trial(index: int, seed: int, phase: str = "all") -> dict:
     from drake_grasp.episode import controller_class, simulate_episode
     from drake_grasp.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.grasps import find_grasps
@@ -80,7 +93,7 @@ def run_trial(index: int, seed: int) -> dict:
     scene = scenario_scene(scenario, library)
     truth = find_grasps(scene, library, np.random.default_rng([scenario.seed, 61])).xy_theta
     t0 = time.perf_counter()
-    oracle = _oracle_controller(np.asarray(truth, float))
+    oracle = _oracle_controller(np.asarray(truth, float), phase)
     with controller_class(oracle):
         ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False)
     r = ep.result
@@ -92,8 +105,9 @@ def run_trial(index: int, seed: int) -> dict:
             "wall_s": time.perf_counter() - t0}
 
 
-def run_attempt(path: str) -> dict:
-    """One recorded clutter attempt's pile, simulated by CTR with the CNN and by the oracle."""
+def run_attempt(path: str, arms=("cnn", "oracle"), phase: str = "all") -> dict:
+    """One recorded clutter attempt's pile, simulated by CTR with the CNN and by the oracle
+    (`arms`; the oracle scoring the decisions of `phase`)."""
     import contextlib
 
     from drake_grasp.episode import controller_class
@@ -109,9 +123,9 @@ def run_attempt(path: str) -> dict:
     row = {"trial_id": rec["trial_id"], "objects": len(scene.objects),
            "recorded": {"success": bool(rec["success"]), "failure_class": rec["failure_class"]},
            "num_true_grasps": int(len(truth))}
-    for name in ("cnn", "oracle"):
+    for name in arms:
         t0 = time.perf_counter()
-        oracle = _oracle_controller(np.asarray(truth, float)) if name == "oracle" else None
+        oracle = _oracle_controller(np.asarray(truth, float), phase) if name == "oracle" else None
         with controller_class(oracle) if oracle is not None else contextlib.nullcontext():
             run = _simulate(scenario, library, scene=scene)
         r = run.result
@@ -135,22 +149,29 @@ def clutter_main(args) -> int:
         paths = paths[:args.trials]
     if not paths:
         raise SystemExit(f"{args.records}/trials: no records of condition {args.condition!r}")
-    rows = parallel_map(run_attempt, [(p,) for p in paths], workers=args.workers,
-                        desc="oracle ctr, clutter")
+    arms = tuple(a.strip() for a in args.arms.split(","))
+    if not arms or any(a not in ("cnn", "oracle") for a in arms):
+        raise SystemExit(f"--arms: {args.arms!r}; expected cnn, oracle or cnn,oracle")
+    rows = parallel_map(run_attempt, [(p, arms, args.oracle_phase) for p in paths],
+                        workers=args.workers, desc="oracle ctr, clutter")
     summary = {"attempts": len(rows), "records": str(args.records), "condition": args.condition,
+               "arms": list(arms), "oracle_phase": args.oracle_phase,
                "code_version": code_version()}
-    for name in ("recorded", "cnn", "oracle"):
+    for name in ("recorded",) + arms:
         k = sum(r[name]["success"] for r in rows)
         classes: dict = {}
         for r in rows:
             classes[r[name]["failure_class"]] = classes.get(r[name]["failure_class"], 0) + 1
         summary[name] = {"successes": k, "rate": k / len(rows),
                          "ci95": list(wilson_interval(k, len(rows))), "failure_classes": classes}
-    summary["paired_cnn_vs_oracle"] = {
-        "both": sum(r["cnn"]["success"] and r["oracle"]["success"] for r in rows),
-        "cnn_only": sum(r["cnn"]["success"] and not r["oracle"]["success"] for r in rows),
-        "oracle_only": sum(r["oracle"]["success"] and not r["cnn"]["success"] for r in rows),
-        "neither": sum(not r["cnn"]["success"] and not r["oracle"]["success"] for r in rows)}
+    if "oracle" in arms:  # against the CNN's replay, or its records without one
+        ref = "cnn" if "cnn" in arms else "recorded"
+        summary["paired_cnn_vs_oracle"] = {
+            "cnn_from": ref,
+            "both": sum(r[ref]["success"] and r["oracle"]["success"] for r in rows),
+            "cnn_only": sum(r[ref]["success"] and not r["oracle"]["success"] for r in rows),
+            "oracle_only": sum(r["oracle"]["success"] and not r[ref]["success"] for r in rows),
+            "neither": sum(not r[ref]["success"] and not r["oracle"]["success"] for r in rows)}
     summary["without_true_grasps"] = sum(r["num_true_grasps"] == 0 for r in rows)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -170,6 +191,11 @@ def main(argv=None) -> int:
     p.add_argument("--records", default="",
                    help="a clutter experiment's results folder: replay its CTR attempts' piles")
     p.add_argument("--condition", default="ctr", help="with --records: the condition's records")
+    p.add_argument("--arms", default="cnn,oracle",
+                   help="with --records: cnn, oracle or cnn,oracle (default)")
+    p.add_argument("--oracle-phase", default="all", choices=ORACLE_PHASES,
+                   help="the decisions the truth scores: all (default), descent (before the "
+                        "stop rule fired) or stop (at the stop height, after it fired)")
     args = p.parse_args(argv)
     if args.records:
         return clutter_main(args)
@@ -179,7 +205,7 @@ def main(argv=None) -> int:
     from drake_grasp.montecarlo import parallel_map
     from drake_grasp.results import wilson_interval
 
-    trials = parallel_map(run_trial, [(i, args.seed) for i in range(args.trials)],
+    trials = parallel_map(run_trial, [(i, args.seed, args.oracle_phase) for i in range(args.trials)],
                           workers=args.workers, desc="oracle ctr")
     k = sum(t["success"] for t in trials)
     lo, hi = wilson_interval(k, len(trials))

@@ -360,3 +360,15 @@ def test_oracle_analysis_scores_every_step_with_the_true_distance(analysis_scrip
     assert trial["num_true_grasps"] > 0
     assert trial["oracle_steps"] == trial["control_steps"] > 0
     assert trial["success"] and trial["final_distance_m"] < 0.01
+
+
+def test_oracle_analysis_phase_scores_only_the_descent_or_only_the_stop_height(analysis_script):
+    """analysis/oracle_ctr.py --oracle-phase: "descent" hands the truth only the decisions
+    before the stop rule fired, "stop" only those after; the CNN takes the others."""
+    oracle = analysis_script("oracle_ctr")
+    descent = oracle.run_trial(0, 0, "descent")
+    stop = oracle.run_trial(0, 0, "stop")
+    for trial in (descent, stop):
+        assert 0 < trial["oracle_steps"] < trial["control_steps"], trial
+    with pytest.raises(SystemExit):
+        oracle.main(["--out", "unused", "--oracle-phase", "final"])
