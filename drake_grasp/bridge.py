@@ -75,6 +75,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drake_grasp.policies import SENSOR_POLICIES
+
 MAGIC = b"DGLB"
 PROTOCOL_VERSION = 1
 LOOPBACK = "127.0.0.1"
@@ -91,7 +93,7 @@ CONTROL_STATUS = "CONTROL_STATUS"
 IMAGE_CHANNELS = {"depth_image": "WRIST_DEPTH", "label_image": "WRIST_LABEL",
                   "gpd_depth_image": "GPD_DEPTH"}
 CONTROL_STATUS_NAMES = ("control_step", "approaching", "motion_phase")
-BRIDGE_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init")
+BRIDGE_POLICIES = SENSOR_POLICIES  # every built-in policy but `scripted`
 
 
 class BridgeError(ConnectionError):

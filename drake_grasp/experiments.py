@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drake_grasp.policies import CLOSED_LOOP_POLICIES
+from drake_grasp.policies import CLOSED_LOOP_POLICIES, SENSOR_POLICIES
 from drake_grasp.scenario import Scenario, apply_controller_text, load_scenario
 
 
@@ -234,7 +234,7 @@ EXPERIMENTS: dict[str, Experiment] = {
 # Built-in policies that `evaluate --conditions` may add to an experiment whose own
 # conditions do not include them (e.g. `cnn-ctr` in clutter); each runs as
 # `plugin_condition` says, as a user policy does.
-EXTRA_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init")
+EXTRA_POLICIES = SENSOR_POLICIES
 
 
 def plugin_condition(experiment: Experiment, spec: str) -> Condition:

@@ -28,6 +28,10 @@ from drake_grasp.grasps import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
 
 # The policies that decide at every control step (CTR, and CTR after a one-shot start).
 CLOSED_LOOP_POLICIES = ("ctr", "cnn-ctr")
+# The built-in policies that act on the station's sensors alone: all of
+# `scenario.POLICIES` but `scripted`, which reads the true object poses. The bridge runs
+# these across a process boundary; `evaluate --conditions` may add them to an experiment.
+SENSOR_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init")
 
 
 def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,

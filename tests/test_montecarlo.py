@@ -667,6 +667,19 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
     assert args.ctr_text == "{stop_distance_m: 0.2}"
 
 
+def test_sensor_policies_are_every_builtin_policy_but_scripted():
+    """`policies.SENSOR_POLICIES` (what the bridge runs and `evaluate --conditions` may
+    add) stays `scenario.POLICIES` less `scripted`, the one that reads the true poses."""
+    from drake_grasp.bridge import BRIDGE_POLICIES
+    from drake_grasp.experiments import EXTRA_POLICIES
+    from drake_grasp.policies import SENSOR_POLICIES
+    from drake_grasp.scenario import POLICIES
+
+    assert set(SENSOR_POLICIES) == set(POLICIES) - {"scripted"}
+    assert len(set(SENSOR_POLICIES)) == len(SENSOR_POLICIES)
+    assert BRIDGE_POLICIES == EXTRA_POLICIES == SENSOR_POLICIES
+
+
 def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_condition(
         tmp_path, monkeypatch):
     """`--conditions cnn-ctr` in clutter (whose conditions are ctr and gpd): the built-in
