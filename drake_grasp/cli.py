@@ -239,7 +239,7 @@ def _cmd_train_grid(args) -> int:
                          batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
                          threads=args.threads, checkpoint_minutes=args.checkpoint_minutes,
                          trunk=args.trunk, batch_norm=args.batch_norm, device=args.device,
-                         stream_shards=args.stream_shards)
+                         stream_shards=args.stream_shards, augment=args.augment)
     last = metrics["epochs"][-1] if metrics["epochs"] else {}
     print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
                       **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
@@ -672,6 +672,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "a time (an epoch permutes the parts, then the images within each "
                         "group): for label sets larger than memory (300,000 images take "
                         "14 GB in memory); default: every label in memory")
+    p.add_argument("--augment", default="none", choices=("none", "mirror", "d4"),
+                   help="train on each image (and its labels) under a random symmetry of "
+                        "the wrist camera: mirror (flipped left-right or not) or d4 (also "
+                        "turned 0, 90, 180 or 270 degrees about the optical axis); "
+                        "default none")
     p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

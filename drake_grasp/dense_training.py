@@ -44,6 +44,78 @@ _SHIFT_M = 50.0  # x, y moved into the k-d tree's positive box
 _BOX_M = 1000.0
 
 
+# The wrist camera looks straight down along z_G, so turning the hand about the camera's
+# axis turns the image about its optical axis, and reflecting the scene in the camera's
+# y-z plane flips it left-right: the dihedral group of the square ("D4": 4 turns by 90
+# degrees, each with or without the flip). The labels follow exactly, because a label is
+# a distance between planar poses and the scene's grasps turn (or reflect) with it
+# (gravity and the 2F-85 are symmetric). The rendered image turns about pixel
+# (OPTICAL_AXIS_PX, OPTICAL_AXIS_PX), measured: a 64-pixel image rendered from a hand
+# turned 90, 180 or 270 degrees about the camera's axis equals the turned image pixel
+# for pixel except its last row and column (`tests/test_dense_training.py`); those two
+# have no partner inside the image and repeat their neighbours.
+OPTICAL_AXIS_PX = 31
+AUGMENTATIONS = {"none": ((0, False),),
+                 "mirror": ((0, False), (0, True)),
+                 "d4": tuple((k, f) for f in (False, True) for k in range(4))}
+
+
+def turn_images(depth: np.ndarray, k: int, flip: bool) -> np.ndarray:
+    """Depth images (..., H, W) as seen after the symmetry (k quarter turns, `np.rot90`'s
+    sense on (rows, columns), after a left-right flip when `flip`) about the optical axis
+    at pixel (`OPTICAL_AXIS_PX`, `OPTICAL_AXIS_PX`)."""
+    depth = np.asarray(depth)
+    h, w = depth.shape[-2:]
+    side = 2 * OPTICAL_AXIS_PX + 1
+    if h != w or h < side:
+        raise ValueError(f"turn_images: expected square images of at least {side} pixels, "
+                         f"got {h} x {w}")
+    if k % 4 == 0 and not flip:
+        return depth.copy()
+    core = depth[..., :side, :side]
+    if flip:
+        core = core[..., ::-1]
+    core = np.rot90(core, k, axes=(-2, -1))
+    pad = [(0, 0)] * (depth.ndim - 2) + [(0, h - side), (0, w - side)]
+    return np.ascontiguousarray(np.pad(core, pad, mode="edge"))
+
+
+def turn_grids(grid: np.ndarray, k: int, flip: bool) -> np.ndarray:
+    """Label grids (..., T, N, N) (theta, y, x, as the grid head's output) under the
+    symmetry that `turn_images(images, k, flip)` applies to their images: the same turn of
+    the (y, x) nodes about the camera's centre, theta -> -theta for the flip, and +90
+    degrees for an odd number of quarter turns."""
+    grid = np.asarray(grid)
+    t_bins = grid.shape[-3]
+    if k % 2 and t_bins % 2:
+        raise ValueError(f"turn_grids: a quarter turn needs theta bins that hold 90 degrees, "
+                         f"got {t_bins} bins over 180")
+    out = grid[..., ::-1] if flip else grid
+    out = np.rot90(out, k, axes=(-2, -1))
+    t = np.arange(t_bins)
+    src = (-t if flip else t) + (k % 2) * (t_bins // 2)  # output bin of input bin t
+    turned = np.empty_like(out)
+    turned[..., src % t_bins, :, :] = out
+    return turned
+
+
+def augment_batch(data: dict, augment: str, rng: np.random.Generator) -> dict:
+    """A batch of `LabelStore.take` with each image (and its label grid) under a symmetry
+    of `AUGMENTATIONS[augment]` drawn from `rng`; hand heights (and so the view masks,
+    which are square about the camera's centre) are unchanged."""
+    ops = AUGMENTATIONS[augment]
+    if len(ops) == 1:
+        return data
+    pick = rng.integers(0, len(ops), len(data["depth"]))
+    depth, grid = data["depth"].copy(), data["grid"].copy()
+    for j, (k, flip) in enumerate(ops):
+        rows = np.flatnonzero(pick == j)
+        if len(rows) and (k or flip):
+            depth[rows] = turn_images(depth[rows], k, flip)
+            grid[rows] = turn_grids(grid[rows], k, flip)
+    return {**data, "depth": depth, "grid": grid}
+
+
 def grid_node_actions(cfg: NetworkConfig) -> np.ndarray:
     """The grid head's node actions (T * N * N, 3) = (x [m], y [m], theta [deg]) in the
     order of its output (theta, y, x)."""
@@ -394,7 +466,7 @@ def _fingerprint(folder) -> str:
 
 
 def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
-              seed, batch_norm=False, stream_shards=None) -> dict:
+              seed, batch_norm=False, stream_shards=None, augment="none") -> dict:
     from drake_grasp.network import tensors_sha256
 
     init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
@@ -404,7 +476,8 @@ def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr
             # only when on, so that runs made before the option keep their identity
             **({"batch_norm": True} if batch_norm else {}),
             # streaming takes the images in another order: another run
-            **({"stream_shards": int(stream_shards)} if stream_shards is not None else {})}
+            **({"stream_shards": int(stream_shards)} if stream_shards is not None else {}),
+            **({"augment": augment} if augment != "none" else {})}
 
 
 def _trunk(cfg: NetworkConfig) -> tuple[int, int, int]:
@@ -477,7 +550,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
           checkpoint_minutes: float = 5.0, progress: bool = True,
           trunk: tuple[int, int, int] | None = None, batch_norm: bool = False,
-          device: str = "cpu", stream_shards: int | None = None,
+          device: str = "cpu", stream_shards: int | None = None, augment: str = "none",
           _stop_after_batches: int | None = None) -> dict:
     """Adam on the masked L1 over every in-view grid node, the learning rate times
     `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
@@ -496,7 +569,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     labels stay in memory on the CPU, the test metrics run on the CPU, and a run may
     resume on another device (in full float32 there: `training.full_float32`).
     `stream_shards`: hold only the label parts of groups of this many at a time
-    (`LabelStore`) instead of every label in memory.
+    (`LabelStore`) instead of every label in memory. `augment`: "none", "mirror" (each
+    image flipped left-right or not) or "d4" (also turned by 0, 90, 180 or 270 degrees),
+    with its label grid (`augment_batch`); the draws are seeded by (seed, epoch, batch),
+    so a resumed run takes the ones an unbroken run would.
     """
     from tqdm import tqdm
 
@@ -504,6 +580,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     from drake_grasp.station import gripper_frame_offsets
     from drake_grasp.training import _device, load_checkpoint
 
+    if augment not in AUGMENTATIONS:
+        raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
     torch.set_num_threads(threads)
     device = _device(device)
     out = Path(out)
@@ -532,7 +610,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     store = LabelStore(folders, stream_shards)
     n_images = store.n_images
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
-                         seed=seed, batch_norm=batch_norm, stream_shards=stream_shards)
+                         seed=seed, batch_norm=batch_norm, stream_shards=stream_shards,
+                         augment=augment)
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt_path = out / "checkpoint.pt"
@@ -587,7 +666,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         for start in starts[batch_index:]:
             idx = np.sort(order[start:start + batch])
             store.release_before(idx)
-            data = store.take(idx)
+            data = augment_batch(store.take(idx), augment,
+                                 np.random.default_rng([seed, 3, epoch, batch_index]))
             images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
             loss = (model.image_features(images) - target).abs()[mask].mean()
             opt.zero_grad(set_to_none=True)

@@ -10,13 +10,17 @@ import torch
 from drake_grasp.actions import apply_actions
 from drake_grasp.dataset import SceneSamples, shard_name, write_shard
 from drake_grasp.dense_training import (
+    AUGMENTATIONS,
     GRID_CONFIG,
+    augment_batch,
     build_labels,
     grid_node_actions,
     load_labels,
     nearest_grasp_tree,
     train,
     tree_distances,
+    turn_grids,
+    turn_images,
     view_masks,
 )
 from drake_grasp.grasps import distance_to_nearest_grasp
@@ -481,3 +485,162 @@ def test_device_train_check_dry_run_on_the_cpu(tmp_path, analysis_script):
         script.main(["--labels", str(tmp_path / "grid"), "--out", str(out), "--device", "cpu",
                      "--camera-z", "-0.1", "--skip", "resume,throughput,step"])
     assert script.main(["--labels", str(tmp_path / "data"), "--out", str(out)]) == 2
+
+
+# ----------------------------------------------------------------------------
+# Symmetries of the wrist camera (`train-grid --augment`).
+
+X_GC_XY = gripper_frame_offsets()[2].translation()[:2]
+
+
+def _camera_centre(hand):
+    from drake_grasp.actions import hand_axes
+
+    ex, ey = hand_axes(hand[3])
+    return hand[:2] + X_GC_XY[0] * ex + X_GC_XY[1] * ey
+
+
+def _hand_turned_about_the_camera(hand, dyaw_deg):
+    """The hand turned by `dyaw_deg` about the camera's (vertical) axis: same camera
+    centre and height, yaw + dyaw."""
+    from drake_grasp.actions import hand_axes
+
+    centre = _camera_centre(hand)
+    yaw = hand[3] + dyaw_deg
+    ex, ey = hand_axes(yaw)
+    return np.array([*(centre - X_GC_XY[0] * ex - X_GC_XY[1] * ey), hand[2], yaw])
+
+
+def _grid_at(hand, grasps):
+    """The label of every grid node (T, N, N) for this hand over these grasps."""
+    nodes = grid_node_actions(GRID_CONFIG)
+    moved = apply_actions(hand[[0, 1, 3]], nodes)
+    return tree_distances(nearest_grasp_tree(grasps), moved).reshape(GRID_CONFIG.grid_shape())
+
+
+# np.rot90's k on (rows, columns) for the hand turned by +90 degrees per step about the
+# camera's axis (measured on rendered images: the test below).
+K_PER_QUARTER_TURN_OF_THE_HAND = 3
+
+
+def test_turned_label_grids_are_the_labels_of_the_turned_hand_and_the_mirrored_scene():
+    """`turn_grids` is exact: the labels seen from the hand turned by 90, 180 or 270
+    degrees about the camera's axis, and the labels of the scene reflected in the camera's
+    y-z plane, are the original grid under the symmetry `turn_images` applies to the
+    image."""
+    from drake_grasp.actions import hand_axes
+
+    rng = np.random.default_rng(3)
+    hand = np.array([0.52, 0.03, 0.25, 37.0])
+    grasps = np.column_stack([rng.uniform(0.42, 0.62, 12), rng.uniform(-0.07, 0.13, 12),
+                              rng.uniform(-180, 180, 12)])
+    grid = _grid_at(hand, grasps)
+    assert np.ptp(grid) > 0.05
+    for j in (1, 2, 3):
+        k = (K_PER_QUARTER_TURN_OF_THE_HAND * j) % 4
+        turned = _grid_at(_hand_turned_about_the_camera(hand, 90.0 * j), grasps)
+        np.testing.assert_allclose(turn_grids(grid, k, False), turned, rtol=0, atol=1e-9)
+        assert np.abs(turn_grids(grid, (k + 2) % 4, False) - turned).max() > 0.01
+    # The scene reflected in the camera's y-z plane (normal x_G through the camera).
+    ex, _ = hand_axes(hand[3])
+    rel = grasps[:, :2] - _camera_centre(hand)
+    mirrored_xy = grasps[:, :2] - 2.0 * (rel @ ex)[:, None] * ex
+    d = np.column_stack([np.cos(np.deg2rad(grasps[:, 2])), np.sin(np.deg2rad(grasps[:, 2]))])
+    d = d - 2.0 * (d @ ex)[:, None] * ex
+    mirrored = np.column_stack([mirrored_xy, np.rad2deg(np.arctan2(d[:, 1], d[:, 0]))])
+    flipped = _grid_at(hand, mirrored)
+    np.testing.assert_allclose(turn_grids(grid, 0, True), flipped, rtol=0, atol=1e-9)
+    for k in (1, 2, 3):  # a flip, then turns of the hand
+        j = (k * K_PER_QUARTER_TURN_OF_THE_HAND) % 4
+        np.testing.assert_allclose(
+            turn_grids(grid, k, True),
+            _grid_at(_hand_turned_about_the_camera(hand, 90.0 * j), mirrored), rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="theta bins"):
+        turn_grids(np.zeros((3, 5, 5)), 1, False)
+
+
+def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
+    """`turn_images` matches Drake's renderer: the depth image from the hand turned by
+    90, 180 or 270 degrees about the camera's axis is the first image turned about pixel
+    (31, 31), pixel for pixel but the last row and column (no partner in the image);
+    turned about the image's centre (31.5, 31.5) instead, it is a pixel off."""
+    pytest.importorskip("pydrake")
+    from drake_grasp.dataset import SceneRenderer
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import build_scene_world, make_scene
+
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text="{scene: {object_ids: [tetra_pak_000], pose: lying}}")
+    settled = make_scene(scenario.scene, 0, library)
+    renderer = SceneRenderer(build_scene_world(settled, library, renderer_name="vtk"),
+                             scenario.camera)
+    hand = np.array([0.51, 0.02, 0.185, 20.0])
+    image = renderer.render(hand)
+    assert np.ptp(image[np.isfinite(image)]) > 0.02  # the object is in view
+    for j in (1, 2, 3):
+        k = (K_PER_QUARTER_TURN_OF_THE_HAND * j) % 4
+        seen = renderer.render(_hand_turned_about_the_camera(hand, 90.0 * j))
+        np.testing.assert_allclose(turn_images(image, k, False)[:63, :63], seen[:63, :63],
+                                   rtol=0, atol=1e-6)
+        off = np.abs(np.rot90(image, k) - seen)[:63, :63]
+        assert (off > 1e-3).sum() > 20
+
+
+def test_augmented_batches_turn_each_image_with_its_labels():
+    rng = np.random.default_rng(0)
+    data = {"depth": rng.uniform(0.2, 0.3, (40, 64, 64)).astype(np.float16),
+            "grid": rng.uniform(0.0, 0.2, (40, *GRID_CONFIG.grid_shape())).astype(np.float16),
+            "hand_z": rng.uniform(0.3, 0.4, 40).astype(np.float32)}
+    assert augment_batch(data, "none", np.random.default_rng(1)) is data
+    for name in ("mirror", "d4"):
+        out = augment_batch(data, name, np.random.default_rng(1))
+        pick = np.random.default_rng(1).integers(0, len(AUGMENTATIONS[name]), 40)
+        assert len(set(pick)) == len(AUGMENTATIONS[name])
+        for i, j in enumerate(pick):
+            k, flip = AUGMENTATIONS[name][j]
+            np.testing.assert_array_equal(out["depth"][i], turn_images(data["depth"][i], k, flip))
+            np.testing.assert_array_equal(out["grid"][i], turn_grids(data["grid"][i], k, flip))
+        np.testing.assert_array_equal(out["hand_z"], data["hand_z"])
+        assert out["depth"].dtype == np.float16 and out["grid"].dtype == np.float16
+    # turn_images: a quarter turn four times, or a flip twice, is the identity on the
+    # 63 x 63 core about the optical axis
+    img = data["depth"][0]
+    four = img
+    for _ in range(4):
+        four = turn_images(four, 1, False)
+    np.testing.assert_array_equal(four[:63, :63], img[:63, :63])
+    np.testing.assert_array_equal(turn_images(turn_images(img, 0, True), 0, True)[:63, :63],
+                                  img[:63, :63])
+    with pytest.raises(ValueError, match="square images"):
+        turn_images(np.zeros((64, 32)), 1, False)
+
+
+def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
+    """`train(augment="d4")`: the draws are seeded by (seed, epoch, batch), so a killed run
+    resumes to the unbroken run's weights; the augmentation is part of the run's identity,
+    and it changes what is learnt."""
+    from drake_grasp.cli import main
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False,
+              augment="d4")
+    m = train(tmp_path / "grid", tmp_path / "whole", **kw)
+    assert m["identity"]["augment"] == "d4"
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", **kw)
+    _assert_same_weights(tmp_path / "whole" / "epoch2.safetensors",
+                         tmp_path / "broken" / "epoch2.safetensors")
+    plain = train(tmp_path / "grid", tmp_path / "plain", **{**kw, "augment": "none"})
+    assert "augment" not in plain["identity"]
+    assert plain["epochs"][-1]["train_l1_m"] != m["epochs"][-1]["train_l1_m"]
+    with pytest.raises(ValueError, match="another training run.*augment"):
+        train(tmp_path / "grid", tmp_path / "whole", **{**kw, "augment": "mirror"})
+    with pytest.raises(ValueError, match="augment: expected one of"):
+        train(tmp_path / "grid", tmp_path / "x", **{**kw, "augment": "rot"})
+    assert main(["train-grid", "--labels", str(tmp_path / "grid"), "--out", str(tmp_path / "cli"),
+                 "--epochs", "1", "--batch", "4", "--threads", "1", "--device", "cpu",
+                 "--augment", "mirror"]) == 0
+    saved = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    assert saved["identity"]["augment"] == "mirror"
