@@ -563,7 +563,8 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
     """`turn_images` matches Drake's renderer: the depth image from the hand turned by
     90, 180 or 270 degrees about the camera's axis is the first image turned about pixel
     (31, 31), pixel for pixel but the last row and column (no partner in the image);
-    turned about the image's centre (31.5, 31.5) instead, it is a pixel off."""
+    turned about the image's centre (31.5, 31.5), which `CameraInfo` documents as its
+    principal point, it is a pixel off."""
     pytest.importorskip("pydrake")
     from drake_grasp.dataset import SceneRenderer
     from drake_grasp.scenario import load_scenario
@@ -572,8 +573,8 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
     scenario = load_scenario(scenario_name="isolation",
                              scenario_text="{scene: {object_ids: [tetra_pak_000], pose: lying}}")
     settled = make_scene(scenario.scene, 0, library)
-    renderer = SceneRenderer(build_scene_world(settled, library, renderer_name="vtk"),
-                             scenario.camera)
+    world = build_scene_world(settled, library, renderer_name="vtk")
+    renderer = SceneRenderer(world, scenario.camera)
     hand = np.array([0.51, 0.02, 0.185, 20.0])
     image = renderer.render(hand)
     assert np.ptp(image[np.isfinite(image)]) > 0.02  # the object is in view
@@ -584,6 +585,14 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
                                    rtol=0, atol=1e-6)
         off = np.abs(np.rot90(image, k) - seen)[:63, :63]
         assert (off > 1e-3).sum() > 20
+    # GPD's 640 x 480 camera (README, *Depth sensing*): turned 180 degrees, its image is
+    # symmetric about pixel (319, 239), half a pixel from CameraInfo's (319.5, 239.5).
+    gpd = SceneRenderer(world, scenario.gpd)
+    high = np.array([0.51, 0.02, 0.68 + CAMERA_Z, 20.0])
+    a, b = gpd.render(high), gpd.render(_hand_turned_about_the_camera(high, 180.0))
+    assert a.shape == (480, 640)
+    np.testing.assert_allclose(a[:479, :639][::-1, ::-1], b[:479, :639], rtol=0, atol=1e-6)
+    assert (np.abs(a[::-1, ::-1] - b) > 1e-3).sum() > 100
 
 
 def test_augmented_batches_turn_each_image_with_its_labels():
