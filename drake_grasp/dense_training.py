@@ -49,27 +49,34 @@ _BOX_M = 1000.0
 # y-z plane flips it left-right: the dihedral group of the square ("D4": 4 turns by 90
 # degrees, each with or without the flip). The labels follow exactly, because a label is
 # a distance between planar poses and the scene's grasps turn (or reflect) with it
-# (gravity and the 2F-85 are symmetric). The rendered image turns about pixel
-# (OPTICAL_AXIS_PX, OPTICAL_AXIS_PX), measured: a 64-pixel image rendered from a hand
-# turned 90, 180 or 270 degrees about the camera's axis equals the turned image pixel
-# for pixel except its last row and column (`tests/test_dense_training.py`); those two
-# have no partner inside the image and repeat their neighbours.
-OPTICAL_AXIS_PX = 31
+# (gravity and the 2F-85 are symmetric).
 AUGMENTATIONS = {"none": ((0, False),),
                  "mirror": ((0, False), (0, True)),
                  "d4": tuple((k, f) for f in (False, True) for k in range(4))}
 
 
+def optical_axis_px(size: int) -> int:
+    """The pixel row (column) of the optical axis in Drake's rendered images of an even
+    `size`: size / 2 - 1, half a pixel from `CameraInfo`'s documented principal point
+    (size / 2 - 0.5). Measured (`tests/test_dense_training.py`): the 64-pixel wrist image
+    rendered from a hand turned 90, 180 or 270 degrees about the camera's axis is the
+    image turned about pixel 31, and GPD's 640 x 480 image turned 180 degrees about
+    (319, 239)."""
+    if size < 2 or size % 2:
+        raise ValueError(f"optical_axis_px: measured for even image sizes, got {size}")
+    return size // 2 - 1
+
+
 def turn_images(depth: np.ndarray, k: int, flip: bool) -> np.ndarray:
-    """Depth images (..., H, W) as seen after the symmetry (k quarter turns, `np.rot90`'s
+    """Depth images (..., H, H) as seen after the symmetry (k quarter turns, `np.rot90`'s
     sense on (rows, columns), after a left-right flip when `flip`) about the optical axis
-    at pixel (`OPTICAL_AXIS_PX`, `OPTICAL_AXIS_PX`)."""
+    (`optical_axis_px`). The last row and column have no partner inside the image; they
+    repeat their neighbours."""
     depth = np.asarray(depth)
     h, w = depth.shape[-2:]
-    side = 2 * OPTICAL_AXIS_PX + 1
-    if h != w or h < side:
-        raise ValueError(f"turn_images: expected square images of at least {side} pixels, "
-                         f"got {h} x {w}")
+    if h != w:
+        raise ValueError(f"turn_images: expected square images, got {h} x {w}")
+    side = 2 * optical_axis_px(h) + 1
     if k % 4 == 0 and not flip:
         return depth.copy()
     core = depth[..., :side, :side]

@@ -17,6 +17,7 @@ from drake_grasp.dense_training import (
     grid_node_actions,
     load_labels,
     nearest_grasp_tree,
+    optical_axis_px,
     train,
     tree_distances,
     turn_grids,
@@ -591,6 +592,7 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
     high = np.array([0.51, 0.02, 0.68 + CAMERA_Z, 20.0])
     a, b = gpd.render(high), gpd.render(_hand_turned_about_the_camera(high, 180.0))
     assert a.shape == (480, 640)
+    assert (optical_axis_px(480), optical_axis_px(640)) == (239, 319)
     np.testing.assert_allclose(a[:479, :639][::-1, ::-1], b[:479, :639], rtol=0, atol=1e-6)
     assert (np.abs(a[::-1, ::-1] - b) > 1e-3).sum() > 100
 
@@ -622,6 +624,8 @@ def test_augmented_batches_turn_each_image_with_its_labels():
                                   img[:63, :63])
     with pytest.raises(ValueError, match="square images"):
         turn_images(np.zeros((64, 32)), 1, False)
+    with pytest.raises(ValueError, match="even image sizes, got 63"):
+        turn_images(np.zeros((63, 63)), 1, False)
 
 
 def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
