@@ -61,6 +61,49 @@ class MeanCNN(nn.Module):
                             for m, f in zip(self.members, features)]).mean(0)
 
 
+def view_averaged(net, views: str):
+    """A grid net whose distance grid is the mean over the symmetric views of each image
+    (`dense_training.AUGMENTATIONS[views]`: "mirror" 2, "d4" 8): every view's grid turned
+    back to the image as shown (`turn_grids`' inverse) before the mean. The net is copied
+    (sharing its tensors); `views="none"` returns it unchanged."""
+    import copy
+    import types
+
+    import numpy as np
+
+    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
+
+    if views not in AUGMENTATIONS:
+        raise SystemExit(f"--views: expected one of {sorted(AUGMENTATIONS)}, got {views!r}")
+    ops = AUGMENTATIONS[views]
+    if len(ops) == 1:
+        return net
+    if not getattr(net, "grid", False):
+        raise SystemExit(f"--views {views}: needs grid-head nets (the whole grid turns with "
+                         f"the view), got a {net.config.action_fusion!r} net")
+    shape = net.config.grid_shape()
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    back = []
+    for k, flip in ops:
+        p = turn_grids(index, k, flip).ravel()  # turned[i] = grid[p[i]]
+        inverse = np.empty_like(p)
+        inverse[p] = np.arange(len(p))
+        back.append(torch.from_numpy(inverse))
+    plain = net.image_features
+    out = copy.copy(net)
+
+    def image_features(self, images):
+        total = 0.0
+        for (k, flip), inverse in zip(ops, back):
+            turned = torch.from_numpy(turn_images(images.detach().cpu().numpy(), k, flip))
+            grid = plain(turned.to(images.dtype)).reshape(len(images), -1)
+            total = total + grid[:, inverse]
+        return (total / len(ops)).reshape(len(images), *shape)
+
+    out.image_features = types.MethodType(image_features, out)
+    return out
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", required=True, help="a weights.safetensors file, or several "
@@ -72,14 +115,21 @@ def main(argv=None) -> dict:
     parser.add_argument("--mirror", action="store_true",
                         help="score as the mean of the image and its mirror image "
                              "(network.MirrorAveragedCNN)")
+    parser.add_argument("--views", default="none", choices=("none", "mirror", "d4"),
+                        help="grid nets: average each image's grid over its mirror image "
+                             "(mirror) or also its quarter turns about the optical axis (d4), "
+                             "each turned back (README, *The camera's symmetries*)")
     parser.add_argument("--out", required=True, help="JSON file to write")
     args = parser.parse_args(argv)
+    if args.mirror and args.views != "none":
+        raise SystemExit("--mirror and --views: choose one (--views mirror averages the "
+                         "grid over the mirror image)")
     torch.set_num_threads(max(1, args.threads))
     files = [f.strip() for f in args.weights.split(",")]
     if not all(files):
         raise SystemExit(f"--weights: {args.weights!r} has an empty item; expected FILE or "
                          "FILE,FILE,...")
-    models = [load_weights(f)[0] for f in files]
+    models = [view_averaged(load_weights(f)[0], args.views) for f in files]
     if args.mirror:  # each member mirror-averaged, as in an episode
         models = [MirrorAveragedCNN(m) for m in models]
     model = models[0] if len(models) == 1 else MeanCNN(models)
@@ -88,6 +138,7 @@ def main(argv=None) -> dict:
     l1, by_label = l1_by_label(model, data)
     ranking = ranking_metrics(model, args.test_data, images=args.ranking_images, seed=0)
     out = {"weights": str(args.weights), "mirror_averaged": bool(args.mirror),
+           **({"views": args.views} if args.views != "none" else {}),
            "test_data": str(args.test_data),
            "num_test_images": len(data), "test_l1_m": l1, "l1_by_label": by_label,
            "ranking": ranking,

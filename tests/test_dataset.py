@@ -536,6 +536,49 @@ def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_pat
     assert not (tmp_path / "x.json").exists()
 
 
+def test_cnn_eval_views_average_the_grid_over_the_turned_views(reference, tmp_path, analysis_script):
+    """analysis/cnn_eval.py --views d4: a grid net's grid is the mean over the 8 turned
+    views, each turned back; "none" is the net itself; paper nets and --mirror with
+    --views are refused."""
+    import torch
+
+    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
+    from drake_grasp.network import load_weights
+    from drake_grasp.training import ChunkCache, ShardSet
+
+    out, _ = reference
+    script = analysis_script("cnn_eval")
+    weights = ROOT / "models" / "cnn-grid-bn12500-ep3" / "weights.safetensors"
+    net = load_weights(weights)[0].eval()
+    assert script.view_averaged(net, "none") is net
+    averaged = script.view_averaged(net, "d4")
+    depth = ShardSet(out, ChunkCache(int(1e9))).gather(np.arange(2))[0]
+    images = net.preprocess(depth)
+    with torch.inference_mode():
+        got = averaged.image_features(images).numpy()
+        plain = net.image_features(images).numpy()
+        views = []
+        for k, flip in AUGMENTATIONS["d4"]:
+            g = net.image_features(torch.from_numpy(turn_images(images.numpy(), k, flip))).numpy()
+            # the inverse of (k, flip): flip back after turning back
+            back = turn_grids(g, (-k) % 4, False)
+            views.append(turn_grids(back, 0, True) if flip else back)
+    np.testing.assert_allclose(got, np.mean(views, axis=0), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(net.image_features(images).detach().numpy(), plain)
+    assert np.abs(got - plain).max() > 1e-4  # the views differ
+    result = script.main(["--weights", str(weights), "--test-data", str(out), "--views", "d4",
+                          "--ranking-images", "2", "--out", str(tmp_path / "eval.json")])
+    assert result["views"] == "d4" and result["test_l1_m"] > 0
+    paper = ROOT / "models" / "cnn" / "weights.safetensors"
+    with pytest.raises(SystemExit, match="needs grid-head nets"):
+        script.main(["--weights", str(paper), "--test-data", str(out), "--views", "mirror",
+                     "--out", str(tmp_path / "x.json")])
+    with pytest.raises(SystemExit, match="choose one"):
+        script.main(["--weights", str(weights), "--test-data", str(out), "--views", "d4",
+                     "--mirror", "--out", str(tmp_path / "x.json")])
+    assert not (tmp_path / "x.json").exists()
+
+
 def test_spearman_matches_scipy_and_is_nan_without_an_order():
     from scipy.stats import spearmanr
 
