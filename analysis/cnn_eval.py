@@ -94,8 +94,9 @@ def view_averaged(net, views: str):
 
     def image_features(self, images):
         total = 0.0
+        shown = images.detach().cpu().numpy()  # once, not per view
         for (k, flip), inverse in zip(ops, back):
-            turned = torch.from_numpy(turn_images(images.detach().cpu().numpy(), k, flip))
+            turned = torch.from_numpy(turn_images(shown, k, flip))
             grid = plain(turned.to(images.dtype)).reshape(len(images), -1)
             total = total + grid[:, inverse]
         return (total / len(ops)).reshape(len(images), *shape)

@@ -673,8 +673,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         for start in starts[batch_index:]:
             idx = np.sort(order[start:start + batch])
             store.release_before(idx)
-            data = augment_batch(store.take(idx), augment,
-                                 np.random.default_rng([seed, 3, epoch, batch_index]))
+            data = store.take(idx)
+            if augment != "none":
+                data = augment_batch(data, augment,
+                                     np.random.default_rng([seed, 3, epoch, batch_index]))
             images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
             loss = (model.image_features(images) - target).abs()[mask].mean()
             opt.zero_grad(set_to_none=True)
