@@ -63,43 +63,26 @@ class MeanCNN(nn.Module):
 
 def view_averaged(net, views: str):
     """A grid net whose distance grid is the mean over the symmetric views of each image
-    (`dense_training.AUGMENTATIONS[views]`: "mirror" 2, "d4" 8): every view's grid turned
-    back to the image as shown (`turn_grids`' inverse) before the mean. The net is copied
-    (sharing its tensors); `views="none"` returns it unchanged."""
+    (`dense_training.view_averaged_grids`: "mirror" 2, "d4" 8 views, each view's grid
+    turned back to the image as shown). The net is copied (sharing its tensors);
+    `views="none"` returns it unchanged."""
     import copy
     import types
 
-    import numpy as np
-
-    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
+    from drake_grasp.dense_training import AUGMENTATIONS, view_averaged_grids
 
     if views not in AUGMENTATIONS:
         raise SystemExit(f"--views: expected one of {sorted(AUGMENTATIONS)}, got {views!r}")
-    ops = AUGMENTATIONS[views]
-    if len(ops) == 1:
+    if len(AUGMENTATIONS[views]) == 1:
         return net
     if not getattr(net, "grid", False):
         raise SystemExit(f"--views {views}: needs grid-head nets (the whole grid turns with "
                          f"the view), got a {net.config.action_fusion!r} net")
-    shape = net.config.grid_shape()
-    index = np.arange(int(np.prod(shape))).reshape(shape)
-    back = []
-    for k, flip in ops:
-        p = turn_grids(index, k, flip).ravel()  # turned[i] = grid[p[i]]
-        inverse = np.empty_like(p)
-        inverse[p] = np.arange(len(p))
-        back.append(torch.from_numpy(inverse))
-    plain = net.image_features
+    plain = copy.copy(net)
     out = copy.copy(net)
 
     def image_features(self, images):
-        total = 0.0
-        shown = images.detach().cpu().numpy()  # once, not per view
-        for (k, flip), inverse in zip(ops, back):
-            turned = torch.from_numpy(turn_images(shown, k, flip))
-            grid = plain(turned.to(images.dtype)).reshape(len(images), -1)
-            total = total + grid[:, inverse]
-        return (total / len(ops)).reshape(len(images), *shape)
+        return view_averaged_grids(plain, images, views)
 
     out.image_features = types.MethodType(image_features, out)
     return out

@@ -123,6 +123,56 @@ def augment_batch(data: dict, augment: str, rng: np.random.Generator) -> dict:
     return {**data, "depth": depth, "grid": grid}
 
 
+def view_averaged_grids(net: DistanceCNN, images: torch.Tensor, views: str, *,
+                        batch_images: int = 256) -> torch.Tensor:
+    """A grid-head net's distance grids (B, T, N, N) of normalized images (B, 1, S, S),
+    each the mean over the image's symmetric views (`AUGMENTATIONS[views]`: "mirror" 2,
+    "d4" 8; `turn_images` about the optical axis) of the view's grid turned back to the
+    image as shown (the inverse of `turn_grids`). "none": the net's own grids. The views
+    of up to `batch_images` images go through the trunk as one batch (one image's 8
+    views in a controller step)."""
+    if views not in AUGMENTATIONS:
+        raise ValueError(f"views: expected one of {sorted(AUGMENTATIONS)}, got {views!r}")
+    if not getattr(net, "grid", False):
+        raise ValueError(f"views {views!r}: needs a grid-head net (the whole grid turns with "
+                         f"the view), got a {net.config.action_fusion!r} net")
+    ops = AUGMENTATIONS[views]
+    if len(ops) == 1:
+        return net.image_features(images)
+    back = _views_back(net.config.grid_shape(), views)
+    shown = images.detach().cpu().numpy()  # once, not per view
+    per_call = max(1, int(batch_images) // len(ops))
+    out = []
+    for start in range(0, len(shown), per_call):
+        part = shown[start:start + per_call]
+        turned = np.concatenate([turn_images(part, k, flip) for k, flip in ops])
+        grids = net.image_features(torch.from_numpy(turned).to(images.dtype))
+        grids = grids.reshape(len(ops), len(part), -1)
+        mean = sum(grids[v][:, inverse] for v, inverse in enumerate(back)) / len(ops)
+        out.append(mean.reshape(len(part), *net.config.grid_shape()))
+    return torch.cat(out)
+
+
+_VIEWS_BACK: dict = {}
+
+
+def _views_back(shape: tuple, views: str) -> list:
+    """Per view of `AUGMENTATIONS[views]`, the index that turns a flattened grid of that
+    view back to the image as shown: turned[i] = grid[p[i]] (`turn_grids`), so the view's
+    grid at p^-1 is the shown image's grid."""
+    key = (tuple(shape), views)
+    if key not in _VIEWS_BACK:
+        index = np.arange(int(np.prod(shape))).reshape(shape)
+        back = []
+        for k, flip in AUGMENTATIONS[views]:
+            p = turn_grids(index, k, flip).ravel()
+            inverse = np.empty_like(p)
+            inverse[p] = np.arange(len(p))
+            back.append(torch.from_numpy(inverse))
+        _VIEWS_BACK[key] = back
+    return _VIEWS_BACK[key]
+
+
 def grid_node_actions(cfg: NetworkConfig) -> np.ndarray:
     """The grid head's node actions (T * N * N, 3) = (x [m], y [m], theta [deg]) in the
     order of its output (theta, y, x)."""

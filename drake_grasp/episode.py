@@ -454,7 +454,8 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     needs_height = needs_cnn and needs_camera_height(model)
     timer = DecisionTimer()
     score_fn = (timer.wrap(lambda d, actions, **kw: score_candidates(
-        model, d, actions, mirror=c.mirror_average, **kw)) if needs_cnn else None)
+        model, d, actions, mirror=c.mirror_average, views=c.view_average, **kw))
+        if needs_cnn else None)
     controller = builder.AddNamedSystem("controller", GraspController(
         scenario=scenario, policy=scenario.policy, X_WG_start=X_WG_start, X_GC=X_GC,
         X_GC_gpd=X_GC_gpd, score_fn=score_fn, score_needs_height=needs_height,

@@ -305,6 +305,12 @@ class ControllerConfig:
     # with the mirrored action (`network.mirror_actions`: the wrist camera, the gripper
     # and physics share that symmetry); twice the CNN's cost.
     mirror_average: bool = False
+    # Grid-head nets: "mirror" or "d4" scores the candidates on the distance grid averaged
+    # over the image's symmetric views about the optical axis (the mirror image; also its
+    # quarter turns), each view's grid turned back (`dense_training.view_averaged_grids`;
+    # README, *The camera's symmetries*); 2 or 8 passes of the CNN's trunk. "none": the
+    # image as shown. Not together with mirror_average.
+    view_average: str = "none"
 
 
 @dataclass
@@ -546,7 +552,8 @@ class Scenario:
                            ("physics.sheet_collision", self.physics.sheet_collision),
                            ("physics.table_collision", self.physics.table_collision),
                            ("physics.profile", self.physics.profile),
-                           ("gripper.force_mode", self.gripper.force_mode)):
+                           ("gripper.force_mode", self.gripper.force_mode),
+                           ("controller.view_average", self.controller.view_average)):
             allowed = _CHOICES[key]
             if value not in allowed:
                 why = _CHOICE_REASONS.get(key, "")
@@ -560,6 +567,10 @@ class Scenario:
         for key in ("visualize", "gpd.fallback_best"):
             if not isinstance(_get(self, key), bool):
                 raise ValueError(f"{key}: expected true or false, got {_get(self, key)!r}")
+        if self.controller.mirror_average and self.controller.view_average != "none":
+            raise ValueError(f"controller.view_average: got {self.controller.view_average!r} "
+                             "with controller.mirror_average true; expected one of them "
+                             "(view_average: mirror is the mirror image about the optical axis)")
         ids = self.scene.object_ids
         if not isinstance(ids, list) or not all(isinstance(i, str) and i for i in ids):
             raise ValueError(f"scene.object_ids: expected a list of object ids (strings), got {ids!r}")
@@ -812,6 +823,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "physics.table_collision": ("box", "halfspace"),
     "physics.profile": tuple(PHYSICS_PROFILES),
     "gripper.force_mode": GRIP_FORCE_MODES,
+    "controller.view_average": ("none", "mirror", "d4"),
 }
 _CHOICE_REASONS = {
     "plant.discrete_contact_approximation":

@@ -655,6 +655,9 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
     exp = dataclasses.replace(EXPERIMENTS["isolation"],
                               ctr_controller_text="{stop_distance_m: 0.2}")
     _check_controller_option(exp, "stop_distance_m", on=0.2, off=0.14)
+    _check_controller_option(dataclasses.replace(  # the test-time views of the grid net
+        EXPERIMENTS["isolation"], ctr_controller_text="{view_average: d4}"),
+        "view_average", on="d4", off="none")
     for text, message in [("{stop_distanc_m: 0.2}", "unknown key 'controller.stop_distanc_m'"),
                           ("{end_camera_height_m: 0.5}", "controller.end_camera_height_m: got 0.5"),
                           ("[0.2]", "expected a mapping of controller settings")]:

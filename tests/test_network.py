@@ -690,6 +690,77 @@ def test_the_episode_scores_the_shipped_grid_net_at_its_needed_nodes():
     assert np.allclose(score_candidates(net, depth, actions), whole.numpy(), rtol=0, atol=1e-6)
 
 
+def test_view_averaged_scores_interpolate_the_grid_averaged_over_the_turned_views():
+    """`controller.view_average: d4` / `mirror`: the controller's scores (and the
+    DistanceEvaluator's port) are the interpolation, at the candidates, of the mean of the
+    8 (2) views' grids, each view's grid turned back by hand; "none" is the image as shown;
+    with mirror_average, on a tiled paper net, or on an ONNX file, a clear error."""
+    import numpy as np
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.sensors import ImageDepth32F
+
+    from drake_grasp.assets import models_dir
+    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
+    from drake_grasp.network import action_features, grid_scores
+    from drake_grasp.systems.evaluator import DistanceEvaluator, load_cnn, score_candidates
+
+    net = load_cnn("")
+    rng = np.random.default_rng(7)
+    depth = (0.3 - 0.08 * (rng.random((64, 64)) > 0.8)).astype(np.float32)
+    depth[10:30, 20:28] = 0.22  # something the turns move
+    actions = np.column_stack([rng.uniform(-0.04, 0.04, 64), rng.uniform(-0.04, 0.04, 64),
+                               rng.uniform(-45, 45, 64)]).astype(np.float32)
+    feats = action_features(actions, net.config)[None]
+    with torch.inference_mode():
+        shown = net.preprocess(depth).numpy()
+        by_hand = {}
+        for views in ("mirror", "d4"):
+            grids = []
+            for k, flip in AUGMENTATIONS[views]:
+                g = net.image_features(torch.from_numpy(turn_images(shown, k, flip))).numpy()
+                back = turn_grids(g, (-k) % 4, False)  # turn back, then flip back
+                grids.append(turn_grids(back, 0, True) if flip else back)
+            by_hand[views] = grid_scores(net.config, torch.from_numpy(np.mean(grids, axis=0)),
+                                         feats)[0].numpy()
+    plain = score_candidates(net, depth, actions)
+    for views in ("mirror", "d4"):
+        got = score_candidates(net, depth, actions, views=views)
+        np.testing.assert_allclose(got, by_hand[views], rtol=0, atol=1e-6)
+        assert np.abs(got - plain).max() > 1e-4  # the views differ
+    np.testing.assert_array_equal(score_candidates(net, depth, actions, views="none"), plain)
+
+    builder = DiagramBuilder()
+    evaluator = builder.AddSystem(DistanceEvaluator(net, views="d4"))
+    diagram = builder.Build()
+    context = diagram.CreateDefaultContext()
+    image = ImageDepth32F(64, 64)
+    image.mutable_data[:, :, 0] = depth
+    sub = evaluator.GetMyContextFromRoot(context)
+    evaluator.get_input_port(0).FixValue(sub, image)
+    evaluator.get_input_port(1).FixValue(sub, actions.astype(float))
+    np.testing.assert_allclose(evaluator.get_output_port(0).Eval(sub), by_hand["d4"],
+                               rtol=0, atol=1e-6)
+
+    with pytest.raises(ValueError, match="mirror_average and controller.view_average"):
+        score_candidates(net, depth, actions, mirror=True, views="d4")
+    paper = load_cnn(str(models_dir() / "cnn" / "weights.safetensors"))
+    with pytest.raises(ValueError, match="view_average 'mirror': needs a grid-head torch net"):
+        score_candidates(paper, depth, actions, views="mirror")
+
+
+def test_view_average_is_checked_by_the_scenario():
+    """`controller.view_average`: one of none / mirror / d4, and not together with
+    mirror_average; each refused naming the key."""
+    from drake_grasp.scenario import load_scenario
+
+    assert load_scenario(scenario_text="controller: {view_average: d4}").controller.view_average == "d4"
+    with pytest.raises(ValueError, match="controller.view_average: got 'd8', expected one of"):
+        load_scenario(scenario_text="controller: {view_average: d8}")
+    with pytest.raises(ValueError, match="controller.view_average: got 'mirror' with "
+                                         "controller.mirror_average true"):
+        load_scenario(scenario_text="controller: {view_average: mirror, mirror_average: true}")
+
+
 def test_an_ensemble_scores_the_mean_of_its_members():
     """`load_cnn("A,B")`: a `CnnEnsemble` whose distances are the mean of A's and B's (a
     grid head and a tiled net together), with mirror averaging applied to each member."""

@@ -116,18 +116,24 @@ def needs_camera_height(model) -> bool:
 
 def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, FcnDistanceModel],
                      depth: np.ndarray, actions: np.ndarray, *, mirror: bool = False,
-                     camera_height_m: float | None = None) -> np.ndarray:
+                     views: str = "none", camera_height_m: float | None = None) -> np.ndarray:
     """Predicted distance [m] for each candidate action on one depth image (fast path).
 
     `mirror`: the mean of the scores on the image and on its mirror image with the
     mirrored actions (`network.mirror_actions`; `controller.mirror_average`).
+    `views` ("mirror" or "d4"; `controller.view_average`): a grid-head torch net's whole
+    distance grid averaged over the image's symmetric views about the optical axis, each
+    view's grid turned back (`dense_training.view_averaged_grids`), then interpolated at
+    the actions; 2 or 8 trunk passes.
     A `CnnEnsemble`: the mean of its members' scores. `camera_height_m`: the camera's
     height above the table when the image was taken, which the height-map FCN needs
     (`needs_camera_height`; the CNNs ignore it)."""
     if isinstance(model, CnnEnsemble):
-        return np.mean([score_candidates(m, depth, actions, mirror=mirror,
+        return np.mean([score_candidates(m, depth, actions, mirror=mirror, views=views,
                                          camera_height_m=camera_height_m)
                         for m in model.members], axis=0)
+    if views != "none":
+        return _score_view_averaged(model, depth, actions, mirror=mirror, views=views)
     if mirror:
         from drake_grasp.network import mirror_actions, mirror_images
 
@@ -154,6 +160,30 @@ def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, F
         return model.score_actions(features[0], np.asarray(actions, np.float32)).numpy().astype(float)
 
 
+def _score_view_averaged(model, depth: np.ndarray, actions: np.ndarray, *, mirror: bool,
+                         views: str) -> np.ndarray:
+    """`score_candidates(..., views=views)` for one grid-head torch net."""
+    label = getattr(model, "path", "") or type(model).__name__
+    if mirror:
+        raise ValueError("controller.mirror_average and controller.view_average: choose one "
+                         "(view_average: mirror averages over the mirror image about the "
+                         "optical axis)")
+    if isinstance(model, OnnxDistanceModel) or needs_camera_height(model) or not getattr(
+            model, "grid", False):
+        raise ValueError(f"controller.view_average {views!r}: needs a grid-head torch net "
+                         f"(the whole distance grid turns with the view), got {label}")
+    import torch
+
+    from drake_grasp.dense_training import view_averaged_grids
+    from drake_grasp.network import action_features, grid_scores
+
+    with torch.inference_mode():
+        images = model.preprocess(np.array(depth, np.float32))
+        grids = view_averaged_grids(model, images, views)
+        feats = action_features(np.asarray(actions, np.float32), model.config, dtype=model.dtype)
+        return grid_scores(model.config, grids, feats[None])[0].numpy().astype(float)
+
+
 class DistanceEvaluator(LeafSystem):
     """d(I, a): the CNN's predicted distance to the nearest grasp for each candidate.
 
@@ -168,15 +198,16 @@ class DistanceEvaluator(LeafSystem):
     """
 
     def __init__(self, model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, FcnDistanceModel],
-                 *, score_fn=None, mirror: bool = False):
+                 *, score_fn=None, mirror: bool = False, views: str = "none"):
         """`model`: from `load_cnn` (torch or onnxruntime backend). `score_fn(depth,
         actions)` (with `camera_height_m=` for a model that needs it) replaces
-        `score_candidates(model, ..., mirror=mirror)` (e.g. a timed wrapper of it)."""
+        `score_candidates(model, ..., mirror=mirror, views=views)` (e.g. a timed wrapper
+        of it)."""
         super().__init__()
         self._model = model
         self._needs_height = needs_camera_height(model)
         self._score_fn = score_fn or (lambda depth, actions, **kw: score_candidates(
-            model, depth, actions, mirror=mirror, **kw))
+            model, depth, actions, mirror=mirror, views=views, **kw))
         self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
         self.DeclareAbstractInputPort("candidate_actions", AbstractValue.Make(np.zeros((0, 3))))
         if self._needs_height:
