@@ -45,11 +45,12 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     (skipped when it exists). Returns the attempt's summary row."""
     from drake_grasp.actions import apply_actions
     from drake_grasp.dataset import DatasetConfig
-    from drake_grasp.episode import simulate_episode
+    from drake_grasp.episode import controller_class, simulate_episode
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.montecarlo import _model, recorded_pile
     from drake_grasp.objects import load_library
     from drake_grasp.results import atomic_write_bytes
+    from drake_grasp.systems.controller import GraspController
 
     rec, scenario, scene = recorded_pile(path)
     name = rec["trial_id"].replace("/", "__")
@@ -64,10 +65,20 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     t0 = time.perf_counter()
     truth = find_grasps(scene, library, np.random.default_rng([int(rec["seed"]), 61]),
                         **{**DatasetConfig().grasp_search(), "num_samples": GRASP_SAMPLES})
-    ep = simulate_episode(scenario, library=library, scene=scene, record_depth=True,
-                          visualize=False, model=_model(scenario.controller.weights,
-                                                        scenario.controller.torch_threads))
-    steps = [s for s in ep.steps if s.distances is not None and len(s.distances)]
+    decided: dict = {}  # iteration -> StepRecord: every move the controller made
+
+    class Logged(GraspController):
+        def _ctr_step(self, context, s, t):
+            new = super()._ctr_step(context, s, t)
+            if new.last_step is not None and new.last_step is not s.last_step:
+                decided[new.last_step.iteration] = new.last_step
+            return new
+
+    with controller_class(Logged):
+        ep = simulate_episode(scenario, library=library, scene=scene, record_depth=False,
+                              visualize=False, model=_model(scenario.controller.weights,
+                                                            scenario.controller.torch_threads))
+    steps = [decided[i] for i in sorted(decided)]
     hand = np.array([s.hand for s in steps], float).reshape(-1, 4)
     actions = np.array([s.actions for s in steps], float)
     true = np.full(actions.shape[:2], np.nan)
@@ -82,7 +93,9 @@ def collect_attempt(path: str, out_dir: str) -> dict:
             "success": bool(r.success), "failure_class": r.details.get("failure_class"),
             "reproduced": (bool(r.success) == bool(rec["success"])
                            and r.details.get("failure_class") == rec["failure_class"]),
-            "decisions": len(steps), "true_grasps": int(len(truth.xy_theta)),
+            "decisions": len(steps),
+            "recorded_decisions": (rec.get("extra") or {}).get("decisions"),
+            "true_grasps": int(len(truth.xy_theta)),
             "objects": len(scene.objects), "wall_s": time.perf_counter() - t0}
     buf = io.BytesIO()
     np.savez_compressed(buf, depth=np.array([s.depth for s in steps], np.float32).reshape(
@@ -153,7 +166,8 @@ def score(folder: Path, scorers: dict) -> dict:
            "decisions": int(len(true)), "all": block(np.ones(len(true), bool)),
            "by_hand_height": split(d["hand"][:, 2], HEIGHT_EDGES_M),
            "by_best_true_distance": split(true.min(axis=1), BEST_EDGES_M),
-           "by_outcome": {"held": block(d["success"]), "failed": block(~d["success"])}}
+           "by_outcome": {k: block(m) for k, m in (("held", d["success"]),
+                                                   ("failed", ~d["success"])) if m.any()}}
     if "none" in preds:  # the recorded distances are the plain scorer's, if the weights match
         out["max_abs_recorded_minus_none_m"] = float(np.abs(preds["none"] - d["predicted"]).max())
     return out
