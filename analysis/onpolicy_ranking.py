@@ -53,11 +53,17 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     from drake_grasp.systems.controller import GraspController
 
     rec, scenario, scene = recorded_pile(path)
-    name = rec["trial_id"].replace("/", "__")
+    records = str(Path(path).parents[1])
+    # Results folders of other seeds hold the same trial ids: the folder is in the name.
+    name = f"{Path(records).name}__{rec['trial_id'].replace('/', '__')}"
     target = Path(out_dir) / f"{name}.npz"
     if target.is_file():
         with np.load(target) as f:
-            return json.loads(str(f["meta"]))
+            meta = json.loads(str(f["meta"]))
+        if (meta["trial_id"], Path(meta["records"]).name) != (rec["trial_id"], Path(records).name):
+            raise ValueError(f"{target}: holds {meta['records']} {meta['trial_id']}, "
+                             f"expected {records} {rec['trial_id']}")
+        return meta
     if rec.get("policy") != "ctr":
         raise ValueError(f"{path}: expected a CTR clutter attempt's record, got policy "
                          f"{rec.get('policy')!r}")
@@ -87,7 +93,7 @@ def collect_attempt(path: str, out_dir: str) -> dict:
             moved = apply_actions(hand[i, [0, 1, 3]][None], actions[i][None])[0]
             true[i] = distance_to_nearest_grasp(moved, truth.xy_theta)
     r = ep.result
-    meta = {"trial_id": rec["trial_id"], "records": str(Path(path).parents[1]),
+    meta = {"trial_id": rec["trial_id"], "records": records,
             "weights": scenario.controller.weights,
             "view_average": scenario.controller.view_average,
             "success": bool(r.success), "failure_class": r.details.get("failure_class"),

@@ -59,7 +59,7 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     meta = O.collect_attempt(str(RECORD), str(tmp_path))
     assert meta["reproduced"] and meta["success"] == rec["success"]
     assert meta["decisions"] == rec["extra"]["decisions"] and meta["true_grasps"] > 0
-    path = tmp_path / "clutter__ctr__0000__attempt04.npz"
+    path = tmp_path / "plain-clutter-seed30__clutter__ctr__0000__attempt04.npz"
     with np.load(path) as z:
         assert z["depth"].shape == (meta["decisions"], 64, 64)
         assert np.isfinite(z["true"]).all() and (z["true"] >= 0).all()
@@ -72,3 +72,11 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     stamp = path.stat().st_mtime_ns
     assert O.collect_attempt(str(RECORD), str(tmp_path)) == meta
     assert path.stat().st_mtime_ns == stamp
+    # Another seed's folder holds the same trial id: its file is its own, and a file that
+    # holds another attempt is refused by name.
+    other = ROOT / "analysis" / "results" / "cnn-view-average" / "plain-clutter-seed29" / \
+        "trials" / RECORD.name
+    wrong = tmp_path / f"plain-clutter-seed29__{path.name.split('__', 1)[1]}"
+    wrong.write_bytes(path.read_bytes())
+    with pytest.raises(ValueError, match="holds .*plain-clutter-seed30 clutter/ctr/0000/attempt04"):
+        O.collect_attempt(str(other), str(tmp_path))
