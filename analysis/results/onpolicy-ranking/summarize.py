@@ -14,17 +14,18 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+DEFAULT = "cnn-grid-bn12500-ep3"
 NETS = ["cnn-grid", "cnn-grid-bn", "cnn-grid-bn12", "cnn-grid-bn12-ep5", "cnn-grid-bn12500",
         "cnn-grid-bn12500-ep3", "cnn-grid-bn12500-ep3+d4", "cnn-grid-bn12500-ep3+mirror"]
-# (better, worse, what the closed loop measured): each pair run side by side on the same
-# fresh seeds (the models' READMEs; the last: ../cnn-view-average/).
+# (better, worse, what the closed loop measured, Fisher's two-sided p): each pair run side
+# by side on the same fresh seeds (the models' READMEs; the last: ../cnn-view-average/).
 CLOSED_LOOP_PAIRS = [
-    ("cnn-grid-bn", "cnn-grid", "clutter 136/160 vs 136/163 (models/cnn-grid-bn)"),
-    ("cnn-grid-bn12", "cnn-grid-bn", "clutter + shift 270/312 vs 246/294 (models/cnn-grid-bn12)"),
-    ("cnn-grid-bn12-ep5", "cnn-grid-bn12", "pooled 258/289 vs 251/292 (models/cnn-grid-bn12-ep5)"),
-    ("cnn-grid-bn12500", "cnn-grid-bn12-ep5", "pooled 257/282 vs 239/282 (models/cnn-grid-bn12500)"),
-    ("cnn-grid-bn12500-ep3", "cnn-grid-bn12500", "pooled 262/287 vs 241/278 (models/cnn-grid-bn12500-ep3)"),
-    ("cnn-grid-bn12500-ep3", "cnn-grid-bn12500-ep3+d4", "clutter 347/396 vs 335/410 (cnn-view-average)"),
+    ("cnn-grid-bn", "cnn-grid", "clutter 136/160 vs 136/163, p 0.76; models/cnn-grid-bn"),
+    ("cnn-grid-bn12", "cnn-grid-bn", "clutter + shift 270/312 vs 246/294, p 0.36; models/cnn-grid-bn12"),
+    ("cnn-grid-bn12-ep5", "cnn-grid-bn12", "clutter + shift 258/289 vs 251/292, p 0.26; models/cnn-grid-bn12-ep5"),
+    ("cnn-grid-bn12500", "cnn-grid-bn12-ep5", "clutter + shift 257/282 vs 239/282, p 0.027; models/cnn-grid-bn12500"),
+    ("cnn-grid-bn12500-ep3", "cnn-grid-bn12500", "clutter + shift 262/287 vs 241/278, p 0.11; models/cnn-grid-bn12500-ep3"),
+    ("cnn-grid-bn12500-ep3", "cnn-grid-bn12500-ep3+d4", "clutter 347/396 vs 335/410, p 0.024; ../cnn-view-average"),
 ]
 
 
@@ -32,8 +33,11 @@ def load() -> dict:
     rows = {}
     for net in NETS:
         dataset = json.loads((HERE / "dataset" / f"{net}.json").read_text())["ranking"]
-        onpolicy = json.loads((HERE / "onpolicy" / f"{net}.json").read_text())
-        name = "none" if "+" not in net else net.split("+")[1]
+        base, _, name = net.partition("+")
+        name = name or "none"
+        # the default's on-policy scores, with its views, are in one file
+        onpolicy = json.loads((HERE / ("plain_states_views.json" if base == DEFAULT
+                                       else f"onpolicy/{net}.json")).read_text())
         low = [b for b in onpolicy["by_hand_height"] if b["range_m"][1] <= 0.06]
         rows[net] = {
             "dataset_spearman": dataset["spearman_mean"],
@@ -73,7 +77,7 @@ def main() -> int:
             agree[k] += ok
             marks.append("yes" if ok else "**no**")
         print(f"| {better} > {worse} ({what}) | " + " | ".join(marks) + " |")
-    print(f"| agrees with the closed loop | " + " | ".join(
+    print("| agrees with the closed loop | " + " | ".join(
         f"{agree[k]} of {len(CLOSED_LOOP_PAIRS)}" for k, _, _ in cols) + " |")
     return 0
 
