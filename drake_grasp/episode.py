@@ -446,11 +446,13 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     from pydrake.systems.primitives import ConstantValueSource
 
     from drake_grasp.systems.controller import GraspController
-    from drake_grasp.systems.evaluator import (ActionSampler, DistanceEvaluator,
+    from drake_grasp.systems.evaluator import (ActionSampler, DistanceEvaluator, check_views,
                                                needs_camera_height, score_candidates)
 
     c = scenario.controller
     needs_cnn = scenario.policy in ("ctr", "cnn-only", "cnn-ctr")
+    if needs_cnn:
+        check_views(model, c.view_average, mirror=c.mirror_average)
     needs_height = needs_cnn and needs_camera_height(model)
     timer = DecisionTimer()
     score_fn = (timer.wrap(lambda d, actions, **kw: score_candidates(

@@ -748,6 +748,48 @@ def test_view_averaged_scores_interpolate_the_grid_averaged_over_the_turned_view
         score_candidates(paper, depth, actions, views="mirror")
 
 
+def test_an_episode_scores_with_the_views_and_refuses_a_net_without_a_grid(library):
+    """`controller.view_average: d4` in an episode's diagram: the evaluator's port is the
+    8-view score of the image and candidates it gets; with the tiled paper net the
+    diagram is refused when it is built (not at the first decision), naming the setting;
+    so is the DistanceEvaluator itself, and an ensemble with such a member."""
+    import numpy as np
+
+    from drake_grasp.assets import models_dir
+    from drake_grasp.episode import build_episode_diagram
+    from drake_grasp.scenario import load_scenario
+    from drake_grasp.scene import make_scene
+    from drake_grasp.systems.evaluator import (CnnEnsemble, DistanceEvaluator, check_views,
+                                               load_cnn, score_candidates)
+
+    text = ("{seed: 3, policy: ctr, controller: {profile: robot, view_average: d4%s},"
+            " scene: {object_ids: [can_000], pose: lying}}")
+    scenario = load_scenario(scenario_name="isolation", scenario_text=text % "")
+    ed = build_episode_diagram(scenario, make_scene(scenario.scene, 3, library), library)
+    evaluator = ed.diagram.GetSubsystemByName("distance_evaluator")
+    context = evaluator.GetMyContextFromRoot(ed.diagram.CreateDefaultContext())
+    depth = evaluator.GetInputPort("depth_image").Eval(context).data[:, :, 0]
+    actions = evaluator.GetInputPort("candidate_actions").Eval(context)
+    got = evaluator.GetOutputPort("predicted_distances").Eval(context)
+    net = load_cnn("")
+    assert len(got) == len(actions) > 0
+    np.testing.assert_allclose(got, score_candidates(net, depth, actions, views="d4"),
+                               rtol=0, atol=1e-6)
+    assert np.abs(got - score_candidates(net, depth, actions)).max() > 1e-5
+
+    paper = str(models_dir() / "cnn" / "weights.safetensors")
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text=text % (", weights: '%s'" % paper))
+    with pytest.raises(ValueError, match="view_average 'd4': needs a grid-head torch net"):
+        build_episode_diagram(scenario, make_scene(scenario.scene, 3, library), library)
+    with pytest.raises(ValueError, match="needs a grid-head torch net"):
+        DistanceEvaluator(load_cnn(paper), views="mirror")
+    with pytest.raises(ValueError, match="needs a grid-head torch net"):
+        check_views(CnnEnsemble([net, load_cnn(paper)]), "d4")
+    check_views(CnnEnsemble([net, net]), "d4")  # grid members only: accepted
+    check_views(load_cnn(paper), "none")
+
+
 def test_view_average_is_checked_by_the_scenario():
     """`controller.view_average`: one of none / mirror / d4, and not together with
     mirror_average; each refused naming the key."""

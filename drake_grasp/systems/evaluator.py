@@ -160,18 +160,29 @@ def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, F
         return model.score_actions(features[0], np.asarray(actions, np.float32)).numpy().astype(float)
 
 
-def _score_view_averaged(model, depth: np.ndarray, actions: np.ndarray, *, mirror: bool,
-                         views: str) -> np.ndarray:
-    """`score_candidates(..., views=views)` for one grid-head torch net."""
-    label = getattr(model, "path", "") or type(model).__name__
+def check_views(model, views: str, *, mirror: bool = False) -> None:
+    """Raises ValueError unless `score_candidates(model, ..., mirror=mirror, views=views)`
+    can score: views "none", or "mirror" / "d4" on grid-head torch nets (every member of an
+    ensemble) without `mirror`. An episode checks this when it is built, before the first
+    decision."""
+    if views == "none":
+        return
     if mirror:
         raise ValueError("controller.mirror_average and controller.view_average: choose one "
                          "(view_average: mirror averages over the mirror image about the "
                          "optical axis)")
-    if isinstance(model, OnnxDistanceModel) or needs_camera_height(model) or not getattr(
-            model, "grid", False):
-        raise ValueError(f"controller.view_average {views!r}: needs a grid-head torch net "
-                         f"(the whole distance grid turns with the view), got {label}")
+    for m in (model.members if isinstance(model, CnnEnsemble) else (model,)):
+        if isinstance(m, OnnxDistanceModel) or needs_camera_height(m) or not getattr(
+                m, "grid", False):
+            label = getattr(m, "path", "") or type(m).__name__
+            raise ValueError(f"controller.view_average {views!r}: needs a grid-head torch net "
+                             f"(the whole distance grid turns with the view), got {label}")
+
+
+def _score_view_averaged(model, depth: np.ndarray, actions: np.ndarray, *, mirror: bool,
+                         views: str) -> np.ndarray:
+    """`score_candidates(..., views=views)` for one grid-head torch net."""
+    check_views(model, views, mirror=mirror)
     import torch
 
     from drake_grasp.dense_training import view_averaged_grids
@@ -204,6 +215,8 @@ class DistanceEvaluator(LeafSystem):
         `score_candidates(model, ..., mirror=mirror, views=views)` (e.g. a timed wrapper
         of it)."""
         super().__init__()
+        if score_fn is None:
+            check_views(model, views, mirror=mirror)
         self._model = model
         self._needs_height = needs_camera_height(model)
         self._score_fn = score_fn or (lambda depth, actions, **kw: score_candidates(
