@@ -13,7 +13,8 @@ is checked and stored), keeps every decision's wrist image, believed hand pose,
 candidates and the CNN's distances as the controller saw them, and labels every
 candidate with its true distance to the pile's ground-truth grasps (`grasps.find_grasps`
 on the starting pile, 1,600 surface points as the pile datasets; objects pushed during
-the attempt are not followed). One `.npz` per attempt, written atomically: a killed run
+the attempt are not followed; the grasps (x, y, theta) are kept too, so any action on
+the kept images can be labelled later). One `.npz` per attempt, written atomically: a killed run
 resumes where it stopped. `score` ranks those candidates with other scorers (the views
 of `controller.view_average`, other weights) and reports, per scorer, the within-decision
 Spearman, regret and top-1 within 1 cm over all decisions and split by the hand's height,
@@ -106,7 +107,7 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     buf = io.BytesIO()
     np.savez_compressed(buf, depth=np.array([s.depth for s in steps], np.float32).reshape(
         -1, *np.shape(steps[0].depth)) if steps else np.zeros((0, 64, 64), np.float32),
-        hand=hand, actions=actions, true=true,
+        hand=hand, actions=actions, true=true, grasps=np.asarray(truth.xy_theta, float),
         predicted=np.array([s.distances for s in steps], float).reshape(actions.shape[:2]),
         meta=json.dumps(meta))
     atomic_write_bytes(target, buf.getvalue())

@@ -63,6 +63,11 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     with np.load(path) as z:
         assert z["depth"].shape == (meta["decisions"], 64, 64)
         assert np.isfinite(z["true"]).all() and (z["true"] >= 0).all()
+        from drake_grasp.actions import apply_actions
+        from drake_grasp.grasps import distance_to_nearest_grasp
+
+        moved = apply_actions(z["hand"][0, [0, 1, 3]][None], z["actions"][0][None])[0]
+        np.testing.assert_allclose(distance_to_nearest_grasp(moved, z["grasps"]), z["true"][0])
     from drake_grasp.systems.evaluator import load_cnn, score_candidates
 
     net = load_cnn("")
