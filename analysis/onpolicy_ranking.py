@@ -42,7 +42,7 @@ BEST_EDGES_M = (0.0, 0.01, 0.03, 0.06, 1.0)  # the best candidate's true distanc
 
 
 def collect_attempt(path: str, out_dir: str) -> dict:
-    """Replays one recorded CTR clutter attempt and writes `out_dir/<trial>.npz`
+    """Replays one recorded CTR clutter attempt and writes `out_dir/<folder>__<trial>.npz`
     (skipped when it exists). Returns the attempt's summary row."""
     from drake_grasp.actions import apply_actions
     from drake_grasp.dataset import DatasetConfig
