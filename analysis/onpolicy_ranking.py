@@ -141,9 +141,9 @@ def load_decisions(folder: Path) -> dict:
 
 
 def metrics(true: np.ndarray, pred: np.ndarray) -> dict:
-    from drake_grasp.cnn_metrics import spearman
+    from drake_grasp.cnn_metrics import regret_m, spearman
 
-    regret = true[np.arange(len(true)), pred.argmin(axis=1)] - true.min(axis=1)
+    regret = regret_m(pred, true)
     return {"decisions": int(len(true)),
             "spearman_mean": float(np.nanmean(spearman(pred, true))),
             "regret_mean_mm": 1e3 * float(regret.mean()),

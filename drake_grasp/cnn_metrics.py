@@ -62,6 +62,13 @@ def sample_image_indices(num_images: int, count: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng([seed, 7]).choice(num_images, count, replace=False))
 
 
+def regret_m(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Per image (row): the true distance [m] of the candidate ranked best by `pred` minus
+    the least true distance among its candidates (0: the ranking's top is the best)."""
+    pred, true = np.asarray(pred), np.asarray(true)
+    return true[np.arange(len(true)), pred.argmin(axis=1)] - true.min(axis=1)
+
+
 def ranking_metrics(model: DistanceCNN, data_dir: str | Path, *, images: int = 500,
                     candidates: int = 128, xy_m: float = 0.04, theta_deg: float = 45.0,
                     seed: int = 0, device: str | torch.device = "cpu") -> dict:
@@ -102,8 +109,7 @@ def ranking_metrics(model: DistanceCNN, data_dir: str | Path, *, images: int = 5
     rho = spearman(pred, true)
     rho_lab = spearman(np.array(pred_lab), np.array(true_lab))
     best = true.min(axis=1)
-    picked = true[np.arange(len(true)), pred.argmin(axis=1)]
-    regret = picked - best
+    regret = regret_m(pred, true)
     return {
         "images": len(pred), "candidates": int(candidates), "seed": int(seed),
         "spearman_mean": float(np.nanmean(rho)), "spearman_median": float(np.nanmedian(rho)),

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from drake_grasp.actions import apply_actions
-from drake_grasp.cnn_metrics import sample_image_indices, spearman
+from drake_grasp.cnn_metrics import regret_m, sample_image_indices, spearman
 from drake_grasp.dataset import DepthGraspDataset
 from drake_grasp.grasps import distance_to_nearest_grasp
 from drake_grasp.policies import sample_candidates
@@ -53,7 +53,7 @@ def per_image(test_data: str, images: int, seed: int = 0) -> dict:
 
 
 def metrics(true: np.ndarray, pred: np.ndarray) -> dict:
-    regret = true[np.arange(len(true)), pred.argmin(axis=1)] - true.min(axis=1)
+    regret = regret_m(pred, true)
     return {"images": len(true), "spearman_mean": float(np.nanmean(spearman(pred, true))),
             "regret_mean_mm": 1e3 * float(regret.mean()),
             "regret_median_mm": 1e3 * float(np.median(regret)),
