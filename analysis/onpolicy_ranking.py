@@ -18,12 +18,17 @@ the kept images can be labelled later). One `.npz` per attempt, written atomical
 resumes where it stopped. `score` ranks those candidates with other scorers (the views
 of `controller.view_average`, other weights) and reports, per scorer, the within-decision
 Spearman, regret and top-1 within 1 cm over all decisions and split by the hand's height,
-by the best candidate's true distance, and by the attempt's outcome.
+by the best candidate's true distance, and by the attempt's outcome. `labels` labels every
+grid node of the kept images against the kept grasps (`dense_training.label_grids`) into
+a folder `train-grid --labels` takes: training on the closed loop's own states.
+`--only` / `--exclude` select attempts by their results folder's name (a split by seed).
 
     python analysis/onpolicy_ranking.py collect analysis/results/cnn-view-average/plain-clutter-seed29 ... \
         --workers 2 --out data/onpolicy/plain
     python analysis/onpolicy_ranking.py score data/onpolicy/plain --views none,d4 \
         --out analysis/results/onpolicy-ranking/plain_states.json
+    python analysis/onpolicy_ranking.py labels data/onpolicy/train-grasps \
+        --exclude cnn-clutter-seed28 --out data/onpolicy/train_grid
 """
 from __future__ import annotations
 
@@ -114,13 +119,64 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     return meta
 
 
-def load_decisions(folder: Path) -> dict:
-    """Every decision of every attempt in a `collect` folder, stacked (attempts without a
-    true grasp, whose candidates have no true distance, are left out)."""
-    files = sorted(folder.glob("*.npz"))
+def attempt_files(folder: Path, only=(), exclude=()) -> list[Path]:
+    """The attempt files of a `collect` folder, those of the results folders named in
+    `only` (all when empty) and not in `exclude` (a file's name starts with its results
+    folder's name and `__`)."""
+    files = sorted(Path(folder).glob("*.npz"))
     if not files:
         raise FileNotFoundError(f"{folder}: no *.npz (expected the output of "
                                 "`onpolicy_ranking.py collect`)")
+    source = {f: f.name.split("__", 1)[0] for f in files}
+    for name in (*only, *exclude):
+        if name not in source.values():
+            raise ValueError(f"{folder}: no attempt of a results folder named {name!r} "
+                             f"(it holds {sorted(set(source.values()))})")
+    return [f for f in files if (not only or source[f] in only) and source[f] not in exclude]
+
+
+def build_labels(folder: Path, out: Path, *, only=(), exclude=()) -> dict:
+    """Dense labels of every kept decision image (`dense_training.label_grids` against the
+    attempt's starting pile's grasps), one `shard-<attempt>.npz` per attempt in `out`,
+    the format of `dense_training.build_labels` (`train-grid --labels out`). Attempts
+    not reproduced or without a true grasp are left out; files already written are
+    skipped."""
+    from drake_grasp.dense_training import GRID_CONFIG, label_grids
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(GRID_CONFIG.to_dict(), indent=1))
+    counts = {"attempts": 0, "labelled_attempts": 0, "images": 0, "left_out": {}}
+    for f in attempt_files(folder, only, exclude):
+        counts["attempts"] += 1
+        with np.load(f) as z:
+            meta = json.loads(str(z["meta"]))
+            why = ("not reproduced" if not meta["reproduced"] else
+                   "no decision" if not meta["decisions"] else
+                   "no true grasp" if not meta["true_grasps"] else None)
+            if why:
+                counts["left_out"][why] = counts["left_out"].get(why, 0) + 1
+                continue
+            if "grasps" not in z.files:
+                raise ValueError(f"{f}: holds no 'grasps' (collected before they were "
+                                 "kept); collect it again")
+            target = out / f"shard-{f.stem}.npz"
+            if not target.is_file():
+                part = {"depth": z["depth"].astype(np.float16),
+                        "grid": label_grids(z["hand"], z["grasps"], GRID_CONFIG),
+                        "hand_z": z["hand"][:, 2].astype(np.float32)}
+                tmp = out / f"shard-{f.stem}.tmp.npz"
+                np.savez(tmp, **part)
+                tmp.replace(target)
+            counts["labelled_attempts"] += 1
+            counts["images"] += int(meta["decisions"])
+    return counts
+
+
+def load_decisions(folder: Path, only=(), exclude=()) -> dict:
+    """Every decision of every attempt in a `collect` folder (or of the results folders
+    `only` / not `exclude`, `attempt_files`), stacked (attempts without a true grasp,
+    whose candidates have no true distance, are left out)."""
+    files = attempt_files(folder, only, exclude)
     keys = ("depth", "hand", "actions", "true", "predicted")
     out = {k: [] for k in keys}
     out["success"], out["attempt"], metas = [], [], []
@@ -151,10 +207,11 @@ def metrics(true: np.ndarray, pred: np.ndarray) -> dict:
             "top1_within_1cm": float(np.mean(regret <= 0.01))}
 
 
-def score(folder: Path, scorers: dict) -> dict:
+def score(folder: Path, scorers: dict, only=(), exclude=()) -> dict:
     """`scorers`: name -> fn(depth, actions) -> distances. The metrics over all decisions
-    and split by hand height, best true distance and outcome."""
-    loaded = load_decisions(folder)
+    (of the attempts `attempt_files` selects) and split by hand height, best true
+    distance and outcome."""
+    loaded = load_decisions(folder, only, exclude)
     d = loaded["data"]
     preds = {name: np.array([fn(d["depth"][i], d["actions"][i]) for i in range(len(d["true"]))])
              for name, fn in scorers.items()}
@@ -193,6 +250,15 @@ def main(argv=None) -> int:
     s.add_argument("--weights", default="", help="CNN weights (default: the shipped net)")
     s.add_argument("--threads", type=int, default=2)
     s.add_argument("--out", required=True, help="JSON file to write")
+    lab = sub.add_parser("labels", help="dense labels of a collect folder's images, for "
+                                        "train-grid --labels")
+    lab.add_argument("folder")
+    lab.add_argument("--out", required=True, help="label folder (one shard per attempt)")
+    for q in (s, lab):
+        q.add_argument("--only", default="", help="comma-separated results folder names: "
+                                                  "only their attempts")
+        q.add_argument("--exclude", default="", help="comma-separated results folder names: "
+                                                     "not their attempts")
     args = p.parse_args(argv)
     from drake_grasp.results import print_json
 
@@ -213,6 +279,16 @@ def main(argv=None) -> int:
                     "decisions": sum(r["decisions"] for r in rows),
                     "wall_s": time.perf_counter() - t0}, None)
         return 0
+    only = tuple(v for v in args.only.split(",") if v)
+    exclude = tuple(v for v in args.exclude.split(",") if v)
+    if args.cmd == "labels":
+        t0 = time.perf_counter()
+        try:
+            counts = build_labels(Path(args.folder), Path(args.out), only=only, exclude=exclude)
+        except (FileNotFoundError, ValueError) as e:
+            sys.exit(f"onpolicy_ranking: {e}")
+        print_json({**counts, "seconds": time.perf_counter() - t0}, None)
+        return 0
     import torch
 
     from drake_grasp.systems.evaluator import load_cnn, score_candidates
@@ -226,10 +302,11 @@ def main(argv=None) -> int:
                for v in views}
     t0 = time.perf_counter()
     try:
-        result = score(Path(args.folder), scorers)
+        result = score(Path(args.folder), scorers, only, exclude)
     except (FileNotFoundError, ValueError) as e:
         sys.exit(f"onpolicy_ranking: {e}")
-    result = {"folder": args.folder, "weights": args.weights or "(shipped)", **result,
+    result = {"folder": args.folder, "only": list(only), "exclude": list(exclude),
+              "weights": args.weights or "(shipped)", **result,
               "seconds": time.perf_counter() - t0}
     print_json(result, args.out)
     return 0

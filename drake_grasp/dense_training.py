@@ -208,23 +208,14 @@ def _label_shard(path: str, cfg_dict: dict) -> dict:
     """Dense labels of one shard's images (float16 grids), with what training needs."""
     import h5py
 
-    from drake_grasp.actions import apply_actions
-
-    from drake_grasp.station import gripper_frame_offsets
-
     cfg = NetworkConfig.from_dict(cfg_dict)
-    nodes = grid_node_actions(cfg)
-    camera_z = float(gripper_frame_offsets()[2].translation()[2])
     with h5py.File(path, "r") as f:
         depth = f["depth"][:]
         hand = f["hand_pose"][:]
         image_scene = f["image_scene"][:]
         grasp_scene = f["grasp_scene"][:]
         grasps = f["grasp_xy_theta"][:]
-    # Only the nodes in the image's view are labelled (the loss uses no others), NaN
-    # elsewhere; the view is taken a hair wider than the loss takes it.
     grids = np.full((len(depth), *cfg.grid_shape()), np.nan, np.float16)
-    in_view = view_masks(hand[:, 2], cfg, camera_z, slack_m=1e-6)
     keep = np.ones(len(depth), bool)
     for scene in np.unique(image_scene):
         rows = np.flatnonzero(image_scene == scene)
@@ -232,15 +223,36 @@ def _label_shard(path: str, cfg_dict: dict) -> dict:
         if len(g) == 0:
             keep[rows] = False
             continue
-        tree = nearest_grasp_tree(g)
-        for i in rows:
-            inside = in_view[i]
-            node_in = (inside[None, :, None] & inside[None, None, :]).repeat(
-                cfg.grid_shape()[0], axis=0).ravel()
-            moved = apply_actions(hand[i, [0, 1, 3]], nodes[node_in])
-            grids[i].reshape(-1)[node_in] = tree_distances(tree, moved)
+        grids[rows] = label_grids(hand[rows], g, cfg)
     return {"depth": depth[keep].astype(np.float16), "grid": grids[keep],
             "hand_z": hand[keep, 2].astype(np.float32)}
+
+
+def label_grids(hand: np.ndarray, grasps_xy_theta: np.ndarray,
+                cfg: NetworkConfig = GRID_CONFIG) -> np.ndarray:
+    """The dense labels of images taken at hand poses `hand` (N, 4) = (x, y, z, theta
+    [deg]) over one scene whose ground-truth grasps are `grasps_xy_theta` (G >= 1, 3):
+    (N, T, n, n) float16 grids, the distance from each node's moved hand pose to the
+    nearest grasp. Only the nodes in the image's view are labelled (the loss uses no
+    others), NaN elsewhere; the view is taken a hair wider than the loss takes it."""
+    from drake_grasp.actions import apply_actions
+    from drake_grasp.station import gripper_frame_offsets
+
+    hand = np.asarray(hand, float).reshape(-1, 4)
+    if len(grasps_xy_theta) == 0:
+        raise ValueError("label_grids: the scene has no ground-truth grasp to label against")
+    nodes = grid_node_actions(cfg)
+    camera_z = float(gripper_frame_offsets()[2].translation()[2])
+    grids = np.full((len(hand), *cfg.grid_shape()), np.nan, np.float16)
+    in_view = view_masks(hand[:, 2], cfg, camera_z, slack_m=1e-6)
+    tree = nearest_grasp_tree(grasps_xy_theta)
+    for i in range(len(hand)):
+        inside = in_view[i]
+        node_in = (inside[None, :, None] & inside[None, None, :]).repeat(
+            cfg.grid_shape()[0], axis=0).ravel()
+        moved = apply_actions(hand[i, [0, 1, 3]], nodes[node_in])
+        grids[i].reshape(-1)[node_in] = tree_distances(tree, moved)
+    return grids
 
 
 def build_labels(data_dir: str | Path, out: str | Path, *, cfg: NetworkConfig = GRID_CONFIG,

@@ -12,15 +12,18 @@ RECORD = (ROOT / "analysis" / "results" / "cnn-view-average" / "plain-clutter-se
           / "clutter__ctr__0000__attempt04.json")
 
 
-def _fake_attempt(folder, name, *, success, rng, decisions=4, k=16):
+def _fake_attempt(folder, name, *, success, rng, decisions=4, k=16, reproduced=True,
+                  grasps=True):
     true = rng.uniform(0.0, 0.1, (decisions, k))
-    meta = {"trial_id": name, "success": success, "reproduced": True, "decisions": decisions,
-            "true_grasps": 3, "failure_class": "none" if success else "missed"}
+    meta = {"trial_id": name, "success": success, "reproduced": reproduced,
+            "decisions": decisions, "true_grasps": 3,
+            "failure_class": "none" if success else "missed"}
     hand = np.column_stack([rng.uniform(-0.1, 0.1, (decisions, 2)),
-                            np.linspace(0.2, 0.05, decisions), np.zeros(decisions)])
+                            np.linspace(0.2, 0.05, decisions), rng.uniform(-90, 90, decisions)])
+    extra = {"grasps": rng.uniform([-0.1, -0.1, -90], [0.1, 0.1, 90], (3, 3))} if grasps else {}
     np.savez(folder / f"{name}.npz", depth=rng.uniform(0.2, 0.3, (decisions, 64, 64)),
              hand=hand, actions=rng.uniform(-0.04, 0.04, (decisions, k, 3)), true=true,
-             predicted=true + 0.01, meta=json.dumps(meta))
+             predicted=true + 0.01, meta=json.dumps(meta), **extra)
 
 
 def test_score_ranks_each_decision_by_its_true_distances(analysis_script, tmp_path):
@@ -85,3 +88,60 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     wrong.write_bytes(path.read_bytes())
     with pytest.raises(ValueError, match="holds .*plain-clutter-seed30 clutter/ctr/0000/attempt04"):
         O.collect_attempt(str(other), str(tmp_path))
+
+
+def test_labels_label_every_kept_image_as_the_dataset_and_train_grid_reads_them(
+        analysis_script, tmp_path):
+    """`labels`: one shard per reproduced attempt of the selected results folders, each
+    image's grid the dataset's label function at its hand pose against the attempt's
+    grasps (NaN beyond the view), in the format train-grid's label store reads; attempts
+    not reproduced are left out and counted; a file without grasps and an unknown
+    folder name are refused by name; a re-run skips what is written."""
+    O = analysis_script("onpolicy_ranking")
+    from drake_grasp.actions import apply_actions
+    from drake_grasp.dense_training import GRID_CONFIG, LabelStore, grid_node_actions
+    from drake_grasp.grasps import distance_to_nearest_grasp
+
+    rng = np.random.default_rng(5)
+    col = tmp_path / "collect"
+    col.mkdir()
+    _fake_attempt(col, "seed25__clutter__ctr__0000__attempt00", success=True, rng=rng)
+    _fake_attempt(col, "seed25__clutter__ctr__0000__attempt01", success=False, rng=rng,
+                  decisions=2)
+    _fake_attempt(col, "seed25__clutter__ctr__0001__attempt00", success=True, rng=rng,
+                  reproduced=False)
+    _fake_attempt(col, "seed28__clutter__ctr__0000__attempt00", success=True, rng=rng)
+    out = tmp_path / "grid"
+    counts = O.build_labels(col, out, exclude=("seed28",))
+    assert counts == {"attempts": 3, "labelled_attempts": 2, "images": 6,
+                      "left_out": {"not reproduced": 1}}
+    shards = sorted(p.name for p in out.glob("shard-*.npz"))
+    assert shards == ["shard-seed25__clutter__ctr__0000__attempt00.npz",
+                      "shard-seed25__clutter__ctr__0000__attempt01.npz"]
+    nodes = grid_node_actions(GRID_CONFIG)
+    with np.load(col / "seed25__clutter__ctr__0000__attempt00.npz") as z, \
+            np.load(out / shards[0]) as lab:
+        assert lab["grid"].shape == (4, *GRID_CONFIG.grid_shape())
+        np.testing.assert_array_equal(lab["hand_z"], z["hand"][:, 2].astype(np.float32))
+        seen = []
+        for i in range(4):  # the hand goes down from 20 to 5 cm
+            flat = lab["grid"][i].reshape(-1).astype(float)
+            labelled = np.isfinite(flat)
+            seen.append(labelled.sum())
+            want = distance_to_nearest_grasp(
+                apply_actions(z["hand"][i, [0, 1, 3]], nodes[labelled]), z["grasps"])
+            np.testing.assert_allclose(flat[labelled], want, atol=2e-4, rtol=1e-3)  # float16
+        assert 0 < seen[-1] < seen[0] == len(flat)  # a low hand sees part of the grid
+    store = LabelStore([out])
+    assert store.n_images == 6
+    assert store.take(np.arange(6))["grid"].shape == (6, *GRID_CONFIG.grid_shape())
+    stamp = (out / shards[0]).stat().st_mtime_ns
+    assert O.build_labels(col, out, only=("seed25",))["labelled_attempts"] == 2
+    assert (out / shards[0]).stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="named 'seed99'.*seed25"):
+        O.build_labels(col, out, only=("seed99",))
+    _fake_attempt(col, "seed30__clutter__ctr__0000__attempt00", success=True, rng=rng,
+                  grasps=False)
+    with pytest.raises(ValueError, match="seed30__clutter__ctr__0000__attempt00.npz: holds no 'grasps'"):
+        O.build_labels(col, tmp_path / "grid2", only=("seed30",))
+    assert O.score(col, {"truth": lambda d, a: a[:, 0]}, only=("seed28",))["decisions"] == 4

@@ -70,3 +70,22 @@ def test_part_of_the_runs_decides_nothing(analysis_script, tmp_path):
     assert not (tmp_path / "decision.json").exists()
     write_runs(tmp_path, {**stage1(95, 90), "d4-isolation-seed19": (119, 120)})
     assert "stage 2 not complete" in D.decide(tmp_path)["decision"]
+
+
+def test_another_candidate_and_other_seeds(analysis_script, tmp_path):
+    """The same rules for `../cnn-onpolicy-finetune/`: the candidate's folder prefix and
+    the seeds from the command line; the d4 folders are not read."""
+    D = analysis_script(SCRIPT)
+    write_runs(tmp_path, {**{f"onpolicy-clutter-seed{s}": (95, 100) for s in range(34, 39)},
+                          **{f"plain-clutter-seed{s}": (90, 100) for s in range(34, 39)}})
+    out_file = tmp_path / "decision.json"
+    assert D.main([str(tmp_path), "--candidate", "onpolicy", "--clutter-seeds",
+                   "34,35,36,37,38", "--out", str(out_file)]) == 0
+    out = json.loads(out_file.read_text())
+    assert out["rule1"]["passed"] and out["stage1_clutter"]["onpolicy"]["successes"] == 475
+    assert "stage 2 not complete" in out["decision"] and "onpolicy-isolation-seed19" in out["decision"]
+    write_runs(tmp_path, {**{f"onpolicy-clutter-seed{s}": (88, 100) for s in range(34, 39)}})
+    out = D.decide(tmp_path, "onpolicy", (34, 35, 36, 37, 38))
+    assert out["decision"] == "stage 1 failed: the shipped net stays the default"
+    with pytest.raises(FileNotFoundError, match="plain-clutter-seed29/summary.json: no such file"):
+        D.decide(tmp_path, "onpolicy")

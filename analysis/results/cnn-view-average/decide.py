@@ -11,6 +11,11 @@ pools CTR's grasped / attempts per arm (Wilson 95%), Fisher's exact test (two-si
 on the pooled counts, and CTR's CNN time per decision from the trial records. Refuses,
 naming the folder, to decide on part of a stage's runs; stage 2 is read only when all of
 its folders are there.
+
+The same rules decide other candidates against the default (`../cnn-onpolicy-finetune/`):
+
+    python analysis/results/cnn-view-average/decide.py analysis/results/cnn-onpolicy-finetune \
+        --candidate onpolicy --clutter-seeds 34,35,36,37,38 --out .../decision.json
 """
 from __future__ import annotations
 
@@ -69,27 +74,33 @@ def pool(root: Path, arm: str, folders: list[str]) -> dict:
     return {"runs": per, "successes": k, "attempts": n, "rate": k / n, "ci95": [lo, hi]}
 
 
-def compare(root: Path, folders: list[str]) -> dict:
+def compare(root: Path, folders: list[str], arms=ARMS) -> dict:
     from scipy.stats import fisher_exact
 
-    arms = {arm: pool(root, arm, folders) for arm in ARMS}
-    a, b = arms["d4"], arms["plain"]
+    base, cand = arms
+    arms = {arm: pool(root, arm, folders) for arm in arms}
+    a, b = arms[cand], arms[base]
     table = [[a["successes"], a["attempts"] - a["successes"]],
              [b["successes"], b["attempts"] - b["successes"]]]
     return {**arms, "gain": a["rate"] - b["rate"],
             "fisher_p_two_sided": float(fisher_exact(table, alternative="two-sided")[1])}
 
 
-def decide(root: Path) -> dict:
-    out = {"stage1_clutter": compare(root, [f"clutter-seed{s}" for s in CLUTTER_SEEDS])}
+def decide(root: Path, candidate: str = "d4", clutter_seeds=CLUTTER_SEEDS,
+           shift_seeds=SHIFT_SEEDS, isolation_seed: int = ISOLATION_SEED) -> dict:
+    """The rules of PLAN.md for `candidate` (the run folders' prefix) against `plain`."""
+    arms = ("plain", candidate)
+    what = ("view_average d4" if candidate == "d4" else candidate,
+            "the image as shown" if candidate == "d4" else "the shipped net")
+    out = {"stage1_clutter": compare(root, [f"clutter-seed{s}" for s in clutter_seeds], arms)}
     s1 = out["stage1_clutter"]
     passed = s1["gain"] >= MIN_GAIN and s1["fisher_p_two_sided"] < MAX_P
     out["rule1"] = {"min_gain": MIN_GAIN, "max_p": MAX_P, "passed": passed}
-    stage2 = ([f"{arm}-clutter-shift-seed{s}" for arm in ARMS for s in SHIFT_SEEDS]
-              + [f"{arm}-isolation-seed{ISOLATION_SEED}" for arm in ARMS])
+    stage2 = ([f"{arm}-clutter-shift-seed{s}" for arm in arms for s in shift_seeds]
+              + [f"{arm}-isolation-seed{isolation_seed}" for arm in arms])
     present = [f for f in stage2 if (root / f / "summary.json").is_file()]
     if not passed:
-        out["decision"] = "stage 1 failed: the image as shown stays the default"
+        out["decision"] = f"stage 1 failed: {what[1]} stays the default"
         if present:
             out["note"] = f"stage 2 folders present though stage 1 failed: {present}"
         return out
@@ -97,15 +108,15 @@ def decide(root: Path) -> dict:
         missing = sorted(set(stage2) - set(present))
         out["decision"] = f"stage 1 passed; stage 2 not complete (missing {missing})"
         return out
-    s2 = compare(root, [f"clutter-shift-seed{s}" for s in SHIFT_SEEDS])
-    iso = {arm: run_counts(root / f"{arm}-isolation-seed{ISOLATION_SEED}") for arm in ARMS}
-    shift_ok = s2["d4"]["rate"] >= s2["plain"]["rate"]
-    iso_ok = iso["d4"]["successes"] >= iso["plain"]["successes"] - ISOLATION_MARGIN
+    s2 = compare(root, [f"clutter-shift-seed{s}" for s in shift_seeds], arms)
+    iso = {arm: run_counts(root / f"{arm}-isolation-seed{isolation_seed}") for arm in arms}
+    shift_ok = s2[candidate]["rate"] >= s2["plain"]["rate"]
+    iso_ok = iso[candidate]["successes"] >= iso["plain"]["successes"] - ISOLATION_MARGIN
     out.update(stage2_clutter_shift=s2, stage2_isolation=iso,
                rule2={"clutter_shift_not_lower": shift_ok, "isolation_within_margin": iso_ok,
                       "isolation_margin": ISOLATION_MARGIN})
-    out["decision"] = ("view_average d4 becomes CTR's default" if shift_ok and iso_ok
-                       else "stage 2 failed: the image as shown stays the default")
+    out["decision"] = (f"{what[0]} becomes CTR's default" if shift_ok and iso_ok
+                       else f"stage 2 failed: {what[1]} stays the default")
     return out
 
 
@@ -115,9 +126,17 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the folder holding the runs")
     p.add_argument("--out", default=None, help="also write the decision as JSON here")
+    p.add_argument("--candidate", default="d4", help="the candidate arm's folder prefix")
+    p.add_argument("--clutter-seeds", default=",".join(map(str, CLUTTER_SEEDS)))
+    p.add_argument("--shift-seeds", default=",".join(map(str, SHIFT_SEEDS)))
+    p.add_argument("--isolation-seed", type=int, default=ISOLATION_SEED)
     args = p.parse_args(argv)
+
+    def seeds(text):
+        return tuple(int(v) for v in text.split(",") if v)
     try:
-        result = decide(Path(args.root))
+        result = decide(Path(args.root), args.candidate, seeds(args.clutter_seeds),
+                        seeds(args.shift_seeds), args.isolation_seed)
     except (FileNotFoundError, ValueError, KeyError) as e:
         sys.exit(f"decide: {e}")
     print_json(result, args.out)
