@@ -1,7 +1,7 @@
 """PLAN.md's choice and gate, from `onpolicy_ranking.py score` outputs.
 
-    python analysis/results/cnn-onpolicy-finetune/select.py choose analysis/results/cnn-onpolicy-finetune/validation
-    python analysis/results/cnn-onpolicy-finetune/select.py gate \
+    python analysis/results/cnn-onpolicy-finetune/choose_gate.py choose analysis/results/cnn-onpolicy-finetune/validation
+    python analysis/results/cnn-onpolicy-finetune/choose_gate.py gate \
         analysis/results/cnn-onpolicy-finetune/gate/default.json analysis/results/cnn-onpolicy-finetune/gate/candidate.json
 
 `choose`: the epoch file with the lowest median regret on the validation states (ties:
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         else:
             sys.exit(__doc__)
     except (FileNotFoundError, ValueError) as e:
-        sys.exit(f"select: {e}")
+        sys.exit(f"choose_gate: {e}")
     print(json.dumps(out, indent=1))
     return 0
 

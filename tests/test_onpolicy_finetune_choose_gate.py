@@ -1,11 +1,11 @@
-"""analysis/results/cnn-onpolicy-finetune/select.py: the plan's choice and gate on
+"""analysis/results/cnn-onpolicy-finetune/choose_gate.py: the plan's choice and gate on
 fabricated score files."""
 
 import json
 
 import pytest
 
-SCRIPT = "results/cnn-onpolicy-finetune/select"
+SCRIPT = "results/cnn-onpolicy-finetune/choose_gate"
 
 
 def write_score(path, regret_median_mm, spearman, decisions=100):
