@@ -291,7 +291,9 @@ def _label_parts(folders) -> list[Path]:
     folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
     parts = []
     for folder in folders:
-        found = sorted(Path(folder).glob("shard-*.npz"))
+        # A write killed midway leaves its temporary file (`*.tmp.npz`): not a part.
+        found = sorted(p for p in Path(folder).glob("shard-*.npz")
+                       if not p.name.endswith(".tmp.npz"))
         if not found:
             raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
         parts += found
