@@ -43,3 +43,32 @@ def test_gate(analysis_script, tmp_path, regret, spearman, passed):
     write_score(tmp_path / "other.json", regret, spearman, decisions=99)
     with pytest.raises(ValueError, match="99 decisions.*not the same states"):
         S.gate(tmp_path / "d.json", tmp_path / "other.json")
+
+
+def test_heldout_l1_is_the_training_loss_over_the_labelled_view(analysis_script, tmp_path):
+    """heldout_l1.py: the mean absolute error over every labelled in-view node of a
+    label folder, computed by hand from the net's grids for one fabricated attempt."""
+    import numpy as np
+    import torch
+
+    H = analysis_script("results/cnn-onpolicy-finetune/heldout_l1")
+    from drake_grasp.dense_training import GRID_CONFIG, label_grids
+    from drake_grasp.network import DistanceCNN, save_weights
+
+    rng = np.random.default_rng(2)
+    hand = np.column_stack([rng.uniform(-0.05, 0.05, (3, 2)), [0.2, 0.1, 0.05], [0, 30, -60]])
+    grasps = rng.uniform([-0.1, -0.1, -90], [0.1, 0.1, 90], (4, 3))
+    depth = rng.uniform(0.2, 0.3, (3, 64, 64)).astype(np.float16)
+    grid = label_grids(hand, grasps, GRID_CONFIG)
+    folder = tmp_path / "grid"
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps(GRID_CONFIG.to_dict()))
+    np.savez(folder / "shard-a.npz", depth=depth, grid=grid, hand_z=hand[:, 2].astype(np.float32))
+    net = DistanceCNN(GRID_CONFIG, generator=torch.Generator().manual_seed(0))
+    save_weights(net, tmp_path / "w.safetensors", metadata={})
+    with torch.no_grad():
+        pred = net.eval().image_features(net.preprocess(depth.astype(np.float32))).numpy()
+    labelled = np.isfinite(grid.astype(float))
+    want = np.abs(pred - grid.astype(np.float32))[labelled].mean()
+    assert H.heldout_l1(str(folder), str(tmp_path / "w.safetensors"), batch=2) == pytest.approx(
+        float(want), rel=1e-5)
