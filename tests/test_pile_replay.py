@@ -14,15 +14,30 @@ RECORD = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-
 @pytest.mark.slow
 def test_a_pile_replays_as_recorded_with_its_weights_and_runs_with_others(analysis_script):
     """Run 0's second attempt (a hammer that slipped in the lift with the shipped CNN):
-    its own weights reproduce it; the FCN runs the same pile to a judged outcome."""
+    its own weights reproduce it; the FCN runs the same pile to a judged outcome.
+
+    Reproduced means what DESIGN.md promises: the recorded outcome, failure class and
+    number of control steps on any machine, and the same trial bit for bit on one machine
+    (two replays here). The final distance is not compared with the record's across
+    machines: on an AMD EPYC of CPU family 26 the replay ends 0.15773 m from a true grasp
+    against the record's 0.15921 m (outcome and steps as recorded), the same with numpy's
+    AVX-512 kernels, OpenBLAS's core type, oneDNN's ISA and llvmpipe's vector width
+    changed; the machines before it reproduced the record's to 1e-6."""
+    import json
+
     R = analysis_script("pile_replay")
     row = R.run_attempt(str(RECORD), str(models_dir() / "fcn-heightmap" / "weights.safetensors"),
                         True)
+    recorded = json.loads(RECORD.read_text())
     assert row["recorded"] == {"success": False, "failure_class": "slipped-during-lift",
-                               "final_distance_m": pytest.approx(row["recorded"]["final_distance_m"])}
+                               "final_distance_m": recorded["final_distance_m"]}
     own = row["recorded_weights_replay"]
     assert (own["success"], own["failure_class"]) == (False, "slipped-during-lift")
-    assert own["final_distance_m"] == pytest.approx(row["recorded"]["final_distance_m"], abs=1e-6)
+    assert own["control_steps"] == recorded["control_steps"] == 24
+    again = R.replay(str(RECORD), "")
+    assert again["final_distance_m"] == own["final_distance_m"]  # bit for bit on one machine
+    assert (again["success"], again["failure_class"], again["control_steps"]) == (
+        own["success"], own["failure_class"], own["control_steps"])
     assert row["replay"]["failure_class"] in {"none", "missed", "pushed-away", "collision",
                                               "slipped-during-lift", "slipped-during-hold"}
     assert row["replay"]["control_steps"] > 0
