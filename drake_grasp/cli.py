@@ -128,6 +128,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not (value >= 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -239,7 +249,8 @@ def _cmd_train_grid(args) -> int:
                          batch=args.batch, lr=args.lr, lr_decay=args.lr_decay, seed=args.seed,
                          threads=args.threads, checkpoint_minutes=args.checkpoint_minutes,
                          trunk=args.trunk, batch_norm=args.batch_norm, device=args.device,
-                         stream_shards=args.stream_shards, augment=args.augment)
+                         stream_shards=args.stream_shards, augment=args.augment,
+                         rank_weight=args.rank_weight, rank_scale_m=args.rank_scale_m)
     last = metrics["epochs"][-1] if metrics["epochs"] else {}
     print(json.dumps({"out": str(args.out), "epochs": len(metrics["epochs"]),
                       **{k: last[k] for k in ("train_l1_m", "test_l1_m") if k in last}}))
@@ -677,6 +688,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "the wrist camera: mirror (flipped left-right or not) or d4 (also "
                         "turned 0, 90, 180 or 270 degrees about the optical axis); "
                         "default none")
+    p.add_argument("--rank-weight", type=_non_negative_float, default=0.0, metavar="W",
+                   help="add W times a pairwise ranking loss to the L1: 1,024 pairs of "
+                        "nearby grid nodes per image (within 4 cm and 40 degrees), the "
+                        "logistic loss of ordering each pair as its labels do "
+                        "(dense_training.pairwise_rank_loss); default 0 (L1 only)")
+    p.add_argument("--rank-scale-m", type=_positive_float, default=0.01, metavar="S",
+                   help="with --rank-weight: the distance difference [m] the logistic "
+                        "loss counts as one unit (default 0.01)")
     p.set_defaults(func=_cmd_train_grid)
 
     p = sub.add_parser("checkpoint-weights", help="write the weights of a training run's "

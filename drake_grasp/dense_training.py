@@ -537,7 +537,8 @@ def _fingerprint(folder) -> str:
 
 
 def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
-              seed, batch_norm=False, stream_shards=None, augment="none") -> dict:
+              seed, batch_norm=False, stream_shards=None, augment="none",
+              rank=None) -> dict:
     from drake_grasp.network import tensors_sha256
 
     init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
@@ -548,7 +549,8 @@ def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr
             **({"batch_norm": True} if batch_norm else {}),
             # streaming takes the images in another order: another run
             **({"stream_shards": int(stream_shards)} if stream_shards is not None else {}),
-            **({"augment": augment} if augment != "none" else {})}
+            **({"augment": augment} if augment != "none" else {}),
+            **({"rank": rank} if rank is not None else {})}
 
 
 def _trunk(cfg: NetworkConfig) -> tuple[int, int, int]:
@@ -604,6 +606,59 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     return metadata
 
 
+# The controller picks the lowest-scored of candidates near the hand (within 4 cm and 45
+# degrees: `ControllerConfig.sample_xy_m`, `sample_theta_deg`), so what it needs of the net
+# is the order of nearby nodes. `rank_pairs` draws pairs of grid nodes that near each other
+# (4 cells = 4 cm in x and y, 4 bins = 40 degrees in theta, theta wrapping over 180).
+RANK_REACH_CELLS = 4
+
+
+def rank_pairs(grid_shape: tuple[int, int, int], images: int, pairs: int,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`pairs` pairs of nearby grid nodes per image, as flat node indices (images, pairs)
+    into a (theta, y, x) grid of `grid_shape`: an anchor anywhere on the grid and a
+    partner at most `RANK_REACH_CELLS` away along each axis (theta wrapping over 180
+    degrees), never the anchor itself. Partners off the grid in x or y get index -1."""
+    t_bins, n, _ = grid_shape
+    r = RANK_REACH_CELLS
+    anchor = np.stack([rng.integers(0, t_bins, (images, pairs)),
+                       rng.integers(0, n, (images, pairs)),
+                       rng.integers(0, n, (images, pairs))])
+    step = rng.integers(-r, r + 1, (3, images, pairs))
+    still = (step == 0).all(axis=0)
+    step[2][still] = rng.choice([-1, 1], int(still.sum()))  # never the anchor itself
+    t = np.mod(anchor[0] + step[0], t_bins)
+    y, x = anchor[1] + step[1], anchor[2] + step[2]
+    first = (anchor[0] * n + anchor[1]) * n + anchor[2]
+    second = np.where((y >= 0) & (y < n) & (x >= 0) & (x < n), (t * n + y) * n + x, -1)
+    return first, second
+
+
+def pairwise_rank_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+                       first: np.ndarray, second: np.ndarray, *, scale_m: float,
+                       margin_m: float) -> torch.Tensor:
+    """The mean logistic loss of ordering pairs of grid nodes of each image as their
+    labels do: for nodes i, j of one image with labels t_i < t_j - `margin_m`, both counted
+    by `mask`, softplus(-(p_j - p_i) / `scale_m`) (RankNet's loss on the predicted
+    distances p). `first`, `second`: (images, pairs) flat node indices (`rank_pairs`; -1
+    = no partner). 0 when no pair counts. Added to the L1 by `train(rank_weight=...)`:
+    the L1 asks every node for its distance, this asks only that nearby nodes come in the
+    order of their distances, which is all the controller's choice uses."""
+    b = pred.shape[0]
+    p, t, m = pred.reshape(b, -1), target.reshape(b, -1), mask.reshape(b, -1)
+    i = torch.from_numpy(first).to(pred.device)
+    j_raw = torch.from_numpy(second).to(pred.device)
+    j = j_raw.clamp(min=0)
+    ti, tj = t.gather(1, i), t.gather(1, j)
+    gap = tj - ti
+    valid = m.gather(1, i) & m.gather(1, j) & (j_raw >= 0) & (gap.abs() > margin_m)
+    if not bool(valid.any()):
+        return pred.sum() * 0.0
+    sign = torch.sign(gap)
+    z = sign * (p.gather(1, j) - p.gather(1, i)) / scale_m
+    return F.softplus(-z)[valid].mean()
+
+
 def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device):
     """A batch of `LabelStore.take` on `device`: the normalized images, the label grids,
     and the mask of the nodes the loss counts (in the camera's view at the image's
@@ -622,6 +677,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           checkpoint_minutes: float = 5.0, progress: bool = True,
           trunk: tuple[int, int, int] | None = None, batch_norm: bool = False,
           device: str = "cpu", stream_shards: int | None = None, augment: str = "none",
+          rank_weight: float = 0.0, rank_pairs_per_image: int = 1024,
+          rank_scale_m: float = 0.01, rank_margin_m: float = 0.002,
           _stop_after_batches: int | None = None) -> dict:
     """Adam on the masked L1 over every in-view grid node, the learning rate times
     `lr_decay` after every epoch; `out`/epochN.safetensors after every epoch, and
@@ -643,7 +700,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     (`LabelStore`) instead of every label in memory. `augment`: "none", "mirror" (each
     image flipped left-right or not) or "d4" (also turned by 0, 90, 180 or 270 degrees),
     with its label grid (`augment_batch`); the draws are seeded by (seed, epoch, batch),
-    so a resumed run takes the ones an unbroken run would.
+    so a resumed run takes the ones an unbroken run would. `rank_weight` > 0 adds that
+    times `pairwise_rank_loss` (over `rank_pairs_per_image` pairs of nearby nodes per
+    image, `rank_pairs`, with `rank_scale_m` and `rank_margin_m`) to the L1, the pairs
+    drawn from (seed, epoch, batch) as the augmentation's are.
     """
     from tqdm import tqdm
 
@@ -653,6 +713,16 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
 
     if augment not in AUGMENTATIONS:
         raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
+    if not (rank_weight >= 0.0 and math.isfinite(rank_weight)):
+        raise ValueError(f"rank_weight: expected a finite number >= 0, got {rank_weight!r}")
+    if rank_weight > 0 and not (rank_pairs_per_image >= 1 and rank_scale_m > 0
+                                and rank_margin_m >= 0):
+        raise ValueError("rank loss: expected rank_pairs_per_image >= 1, rank_scale_m > 0 "
+                         f"and rank_margin_m >= 0, got {rank_pairs_per_image!r}, "
+                         f"{rank_scale_m!r}, {rank_margin_m!r}")
+    rank = ({"weight": float(rank_weight), "pairs_per_image": int(rank_pairs_per_image),
+             "scale_m": float(rank_scale_m), "margin_m": float(rank_margin_m),
+             "reach_cells": RANK_REACH_CELLS} if rank_weight > 0 else None)
     torch.set_num_threads(threads)
     device = _device(device)
     out = Path(out)
@@ -682,11 +752,11 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     n_images = store.n_images
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
                          seed=seed, batch_norm=batch_norm, stream_shards=stream_shards,
-                         augment=augment)
+                         augment=augment, rank=rank)
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt_path = out / "checkpoint.pt"
-    epoch, batch_index, total, count = 0, 0, 0.0, 0
+    epoch, batch_index, total, count, rank_total = 0, 0, 0.0, 0, 0.0
     metrics = {"identity": identity, "epochs": []}
     ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
     if ckpt is not None:
@@ -698,6 +768,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         model.load_state_dict(ckpt["model"])
         epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
         total, count = ckpt["total"], ckpt["count"]
+        rank_total = ckpt.get("rank_total", 0.0)
         metrics = json.loads(ckpt["metrics"])
     elif init_net is not None:
         if init_net.config == cfg:  # a grid net: go on training it
@@ -723,7 +794,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     def checkpoint():
         _save_checkpoint(ckpt_path, {
             "identity": identity, "epoch": epoch, "batch_index": batch_index,
-            "total": total, "count": count, "metrics": json.dumps(metrics),
+            "total": total, "count": count, "rank_total": rank_total,
+            "metrics": json.dumps(metrics),
             "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict()})
 
     starts = list(range(0, n_images, batch))
@@ -742,9 +814,18 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                 data = augment_batch(data, augment,
                                      np.random.default_rng([seed, 3, epoch, batch_index]))
             images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
-            loss = (model.image_features(images) - target).abs()[mask].mean()
+            pred = model.image_features(images)
+            loss = (pred - target).abs()[mask].mean()
+            objective = loss
+            if rank is not None:
+                first, second = rank_pairs(cfg.grid_shape(), len(idx), rank_pairs_per_image,
+                                           np.random.default_rng([seed, 4, epoch, batch_index]))
+                rank_loss = pairwise_rank_loss(pred, target, mask, first, second,
+                                               scale_m=rank_scale_m, margin_m=rank_margin_m)
+                objective = loss + rank_weight * rank_loss
+                rank_total += float(rank_loss.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            objective.backward()
             opt.step()
             total += float(loss.detach()) * len(idx)
             count += len(idx)
@@ -767,7 +848,8 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                                     category=UserWarning)
             sched.step()
         row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
-               "lr": lr * lr_decay ** epoch}
+               "lr": lr * lr_decay ** epoch,
+               **({"train_rank_loss": rank_total / max(count, 1)} if rank is not None else {})}
         trained = _plain_net(model).cpu()
         save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
                      metadata={"trainer": "dense_training", "epoch": epoch + 1,
@@ -775,7 +857,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         if test_data:
             row.update(evaluate(trained, test_data))
         metrics["epochs"].append(row)
-        epoch, batch_index, total, count = epoch + 1, 0, 0.0, 0
+        epoch, batch_index, total, count, rank_total = epoch + 1, 0, 0.0, 0, 0.0
         checkpoint()
         last_ckpt = time.perf_counter()
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))

@@ -657,3 +657,98 @@ def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
                  "--augment", "mirror"]) == 0
     saved = json.loads((tmp_path / "cli" / "metrics.json").read_text())
     assert saved["identity"]["augment"] == "mirror"
+
+
+def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
+    from drake_grasp.dense_training import RANK_REACH_CELLS, rank_pairs
+
+    shape = GRID_CONFIG.grid_shape()
+    t_bins, n, _ = shape
+    first, second = rank_pairs(shape, 7, 5000, np.random.default_rng(3))
+    assert first.shape == second.shape == (7, 5000)
+    assert first.min() >= 0 and first.max() < t_bins * n * n
+    on = second >= 0
+    assert 0.5 < on.mean() < 1.0  # anchors at the grid's edge lose some partners
+    a = np.stack(np.unravel_index(first[on], shape))
+    b = np.stack(np.unravel_index(second[on], shape))
+    dt = np.abs(a[0] - b[0])
+    dt = np.minimum(dt, t_bins - dt)  # theta wraps over 180 degrees
+    assert dt.max() == RANK_REACH_CELLS
+    assert np.abs(a[1:] - b[1:]).max() == RANK_REACH_CELLS
+    assert (first[on] != second[on]).all()
+    assert (np.mod(a[0] + (b[0] - a[0]), t_bins) == b[0]).all()
+    assert ((a[0] == 0) & (b[0] == t_bins - 1)).any()  # pairs across the wrap exist
+    again = rank_pairs(shape, 7, 5000, np.random.default_rng(3))
+    np.testing.assert_array_equal(again[0], first)
+    np.testing.assert_array_equal(again[1], second)
+
+
+def test_pairwise_rank_loss_is_the_logistic_loss_of_the_counted_pairs():
+    from drake_grasp.dense_training import pairwise_rank_loss
+
+    rng = np.random.default_rng(0)
+    shape = (2, 3, 3, 3)
+    target = torch.from_numpy(rng.uniform(0, 0.1, shape))
+    pred = torch.from_numpy(rng.uniform(0, 0.1, shape))
+    mask = torch.from_numpy(rng.uniform(size=shape) > 0.2)
+    first = rng.integers(0, 27, (2, 40))
+    second = rng.integers(0, 27, (2, 40))
+    second[:, :5] = -1
+    target.reshape(2, -1)[0, second[0, 10]] = target.reshape(2, -1)[0, first[0, 10]] + 0.001
+    got = pairwise_rank_loss(pred, target, mask, first, second, scale_m=0.01, margin_m=0.002)
+    terms = []
+    p, t, m = pred.reshape(2, -1).numpy(), target.reshape(2, -1).numpy(), mask.reshape(2, -1).numpy()
+    for b in range(2):
+        for i, j in zip(first[b], second[b]):
+            if j < 0 or not (m[b, i] and m[b, j]) or abs(t[b, j] - t[b, i]) <= 0.002:
+                continue
+            z = np.sign(t[b, j] - t[b, i]) * (p[b, j] - p[b, i]) / 0.01
+            terms.append(np.log1p(np.exp(-z)))
+    assert 20 < len(terms) < 80
+    np.testing.assert_allclose(float(got), np.mean(terms), rtol=1e-10)
+    # predictions in the labels' order cost less than the reverse; no pair counts -> 0
+    ordered = pairwise_rank_loss(target, target, mask, first, second, scale_m=0.01, margin_m=0.0)
+    reverse = pairwise_rank_loss(-target, target, mask, first, second, scale_m=0.01, margin_m=0.0)
+    assert float(ordered) < np.log(2.0) < float(reverse)
+    none = pairwise_rank_loss(pred, target, torch.zeros_like(mask), first, second,
+                              scale_m=0.01, margin_m=0.0)
+    assert float(none) == 0.0
+
+
+def test_a_rank_loss_run_resumes_and_is_its_own_run(tmp_path):
+    """`train(rank_weight=...)`: the pairs are drawn from (seed, epoch, batch), so a killed
+    run resumes to the unbroken run's weights; the rank settings are part of the run's
+    identity (absent without them) and change what is learnt."""
+    from drake_grasp.cli import main
+
+    _shard(tmp_path / "data", scenes=2, images=6)
+    build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
+    kw = dict(test_data=None, init=None, epochs=2, batch=4, lr=1e-3, threads=1, progress=False,
+              rank_weight=0.05)
+    m = train(tmp_path / "grid", tmp_path / "whole", **kw)
+    assert m["identity"]["rank"]["weight"] == 0.05
+    assert all(row["train_rank_loss"] > 0 for row in m["epochs"])
+    train(tmp_path / "grid", tmp_path / "broken", _stop_after_batches=2, **kw)
+    train(tmp_path / "grid", tmp_path / "broken", **kw)
+    _assert_same_weights(tmp_path / "whole" / "epoch2.safetensors",
+                         tmp_path / "broken" / "epoch2.safetensors")
+    broken = json.loads((tmp_path / "broken" / "metrics.json").read_text())
+    assert broken["epochs"] == m["epochs"]
+    plain = train(tmp_path / "grid", tmp_path / "plain", **{**kw, "rank_weight": 0.0})
+    assert "rank" not in plain["identity"] and "train_rank_loss" not in plain["epochs"][0]
+    assert plain["epochs"][-1]["train_l1_m"] != m["epochs"][-1]["train_l1_m"]
+    with pytest.raises(ValueError, match="another training run.*rank"):
+        train(tmp_path / "grid", tmp_path / "whole", **{**kw, "rank_weight": 0.1})
+    with pytest.raises(ValueError, match="rank_weight: expected a finite number >= 0"):
+        train(tmp_path / "grid", tmp_path / "x", **{**kw, "rank_weight": -1.0})
+    with pytest.raises(ValueError, match="rank_scale_m > 0"):
+        train(tmp_path / "grid", tmp_path / "x", **{**kw, "rank_scale_m": 0.0})
+    assert main(["train-grid", "--labels", str(tmp_path / "grid"), "--out", str(tmp_path / "cli"),
+                 "--epochs", "1", "--batch", "4", "--threads", "1", "--device", "cpu",
+                 "--rank-weight", "0.02", "--rank-scale-m", "0.005"]) == 0
+    saved = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    assert saved["identity"]["rank"] == {"weight": 0.02, "pairs_per_image": 1024,
+                                         "scale_m": 0.005, "margin_m": 0.002, "reach_cells": 4}
+    with pytest.raises(SystemExit):
+        main(["train-grid", "--labels", str(tmp_path / "grid"), "--out", str(tmp_path / "y"),
+              "--rank-weight", "-0.1"])
