@@ -362,7 +362,14 @@ def _cmd_report(args) -> int:
 def _cmd_replay(args) -> int:
     from drake_grasp.montecarlo import replay_trial
 
+    from drake_grasp.montecarlo import machine_note
+    from drake_grasp.results import RUN_INFO_FILE, read_run_info
+
     result, out = replay_trial(args.results, trial_id=args.trial, out=args.out)
+    run_json = Path(args.results) / RUN_INFO_FILE
+    note = machine_note(read_run_info(args.results)) if run_json.is_file() else None
+    if note:
+        print(f"drake-grasp replay: note: {note}", file=sys.stderr)
     print(json.dumps({"success": result.success, "failure_reason": result.failure_reason,
                       "out": str(out)}))
     return 0

@@ -36,7 +36,7 @@ import numpy as np
 from drake_grasp.experiments import (CNN_POLICIES, EXTRA_POLICIES, Condition, Experiment,
                                      condition_scenario, get_experiment, plugin_condition,
                                      trial_scenario, trial_seed)
-from drake_grasp.provenance import code_tree, code_version, file_sha256
+from drake_grasp.provenance import code_tree, code_version, file_sha256, machine
 
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
@@ -873,7 +873,10 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
                 # Trial files that parse, as `done_trial_ids` counts them: a corrupt
                 # file left by a killed run is re-run, not an error here.
                 "records_added": len(done_trial_ids(out)) - len(done_ids),
-                "completed": completed})
+                "completed": completed,
+                # Where these records were computed (`provenance.machine`): a replay on
+                # another kind of machine reproduces outcomes, not every last bit.
+                "machine": machine()})
             write_run_info(out, info)
     result = {"out": str(out), "new_folder_because": replaced,
               "records": len(load_records(out)), "ran": len(todo),
@@ -1089,6 +1092,27 @@ def recorded_pile(path: str | Path) -> tuple:
         scenario = recorded_weights(scenario, read_run_info(run_json.parent), rec["condition"],
                                     source=str(run_json))
     return rec, scenario, SceneSpec.from_dict(rec["extra"]["scene"])
+
+
+def machine_note(run_info: dict) -> str | None:
+    """What a replay on this machine can promise for a run folder's records: None when one
+    of its evaluate sessions ran on a machine like this one (`provenance.machine`: the same
+    CPU and package versions), else a one-line note naming the recorded machines (or
+    saying that none was recorded: folders written before sessions carried one)."""
+    here = machine()
+    seen = [s["machine"] for s in run_info.get("sessions") or []
+            if isinstance(s, dict) and isinstance(s.get("machine"), dict)]
+    key = ("cpu", "packages")
+    if any(all(m.get(k) == here[k] for k in key) for m in seen):
+        return None
+    if not seen:
+        return ("the run folder does not say which machine made its records (written before "
+                "run.json's sessions carried one): expect the recorded outcome, not "
+                "necessarily every recorded figure to the last digit")
+    named = "; ".join(sorted({f"{m.get('cpu')} with {m.get('packages')}" for m in seen}))
+    return (f"recorded on {named}; this machine is {here['cpu']} with {here['packages']}: "
+            "expect the recorded outcome, not necessarily every recorded figure to the last "
+            "digit")
 
 
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):

@@ -64,6 +64,30 @@ def test_rerun_skips_finished_trials(reference):
     assert info["sessions"][0]["wall_s"] > 0
     assert info["created_utc"] <= info["sessions"][0]["started_utc"]
     assert "Elapsed: " in (out / "report.md").read_text()
+    # each session names the machine its records were computed on
+    from drake_grasp.montecarlo import machine_note
+    from drake_grasp.provenance import MACHINE_PACKAGES, machine
+
+    assert info["sessions"][0]["machine"] == machine()
+    assert set(machine()["packages"]) == set(MACHINE_PACKAGES)
+    assert machine()["packages"]["drake"] and machine()["cpu"]
+    assert machine_note(info) is None
+
+
+def test_a_replay_says_when_its_records_came_from_another_machine():
+    from drake_grasp.montecarlo import machine_note
+    from drake_grasp.provenance import machine
+
+    here = machine()
+    other = {**here, "cpu": "Some CPU (family 25, model 17, stepping 1)"}
+    newer = {**here, "packages": {**here["packages"], "numpy": "9.9.9"}}
+    assert machine_note({"sessions": [{"machine": other}, {"machine": here}]}) is None
+    note = machine_note({"sessions": [{"machine": other}, {"machine": newer}]})
+    assert "Some CPU (family 25, model 17, stepping 1)" in note and "9.9.9" in note
+    assert here["cpu"] in note and "expect the recorded outcome" in note
+    old = machine_note({"sessions": [{"records_added": 4}]})
+    assert "does not say which machine" in old
+    assert "does not say which machine" in machine_note({})
 
 
 def test_same_on_a_dask_local_cluster(reference, tmp_path):
@@ -732,3 +756,25 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
                 other)
     with pytest.raises(ValueError, match=r"plugin_conditions.cnn-only.scenario.controller.weights"):
         m.evaluate(conditions=["cnn-only"], weights=str(other), **kw)
+
+
+def test_the_replay_command_notes_a_record_from_another_machine(reference, tmp_path, capsys):
+    import shutil
+
+    from drake_grasp.cli import main
+    from drake_grasp.results import RUN_INFO_FILE, write_run_info
+
+    out, _ = reference
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    trial = next(r.trial_id for r in load_records(copy) if r.condition == "init")
+    assert main(["replay", str(copy), "--trial", trial, "--out", str(tmp_path / "a")]) == 0
+    assert "note:" not in capsys.readouterr().err  # recorded on this machine
+    info = read_run_info(copy)
+    for s in info["sessions"]:
+        s["machine"] = {**s["machine"], "cpu": "Another CPU (family 25, model 17, stepping 1)"}
+    write_run_info(copy, info)
+    assert (copy / RUN_INFO_FILE).is_file()
+    assert main(["replay", str(copy), "--trial", trial, "--out", str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert "drake-grasp replay: note: recorded on Another CPU (family 25" in err
