@@ -644,19 +644,27 @@ def pairwise_rank_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Ten
     = no partner). 0 when no pair counts. Added to the L1 by `train(rank_weight=...)`:
     the L1 asks every node for its distance, this asks only that nearby nodes come in the
     order of their distances, which is all the controller's choice uses."""
+    pred_gap, label_gap, valid = rank_pair_gaps(pred, target, mask, first, second,
+                                                margin_m=margin_m)
+    if not bool(valid.any()):
+        return pred.sum() * 0.0
+    z = torch.sign(label_gap) * pred_gap / scale_m
+    return F.softplus(-z)[valid].mean()
+
+
+def rank_pair_gaps(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+                   first: np.ndarray, second: np.ndarray, *, margin_m: float) -> tuple:
+    """For the pairs (`first`, `second`) of `rank_pairs`: the predicted gaps p_j - p_i,
+    the label gaps t_j - t_i, and which pairs count (both nodes counted by `mask`, a
+    partner on the grid, labels more than `margin_m` apart); each (images, pairs)."""
     b = pred.shape[0]
     p, t, m = pred.reshape(b, -1), target.reshape(b, -1), mask.reshape(b, -1)
     i = torch.from_numpy(first).to(pred.device)
     j_raw = torch.from_numpy(second).to(pred.device)
     j = j_raw.clamp(min=0)
-    ti, tj = t.gather(1, i), t.gather(1, j)
-    gap = tj - ti
-    valid = m.gather(1, i) & m.gather(1, j) & (j_raw >= 0) & (gap.abs() > margin_m)
-    if not bool(valid.any()):
-        return pred.sum() * 0.0
-    sign = torch.sign(gap)
-    z = sign * (p.gather(1, j) - p.gather(1, i)) / scale_m
-    return F.softplus(-z)[valid].mean()
+    label_gap = t.gather(1, j) - t.gather(1, i)
+    valid = m.gather(1, i) & m.gather(1, j) & (j_raw >= 0) & (label_gap.abs() > margin_m)
+    return p.gather(1, j) - p.gather(1, i), label_gap, valid
 
 
 def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device):

@@ -19,7 +19,8 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.dense_training import LabelStore, batch_tensors, pairwise_rank_loss, rank_pairs
+from drake_grasp.dense_training import (LabelStore, batch_tensors, pairwise_rank_loss,
+                                        rank_pair_gaps, rank_pairs)
 from drake_grasp.network import load_weights
 from drake_grasp.station import gripper_frame_offsets
 
@@ -39,14 +40,9 @@ def score(net, folder: str, *, images: int = 2000, batch: int = 50, seed: int = 
             pred = net.image_features(images_t)
             first, second = rank_pairs(net.config.grid_shape(), len(part), 1024,
                                        np.random.default_rng([seed, 1, k]))
-            b = len(part)
-            p, t, m = pred.reshape(b, -1), target.reshape(b, -1), mask.reshape(b, -1)
-            i = torch.from_numpy(first)
-            j = torch.from_numpy(second).clamp(min=0)
-            gap = t.gather(1, j) - t.gather(1, i)
-            valid = (m.gather(1, i) & m.gather(1, j) & (torch.from_numpy(second) >= 0)
-                     & (gap.abs() > 0.002))
-            order = torch.sign(p.gather(1, j) - p.gather(1, i)) == torch.sign(gap)
+            pred_gap, label_gap, valid = rank_pair_gaps(pred, target, mask, first, second,
+                                                        margin_m=0.002)
+            order = torch.sign(pred_gap) == torch.sign(label_gap)
             n = int(valid.sum())
             agree += int((order & valid).sum())
             counted += n
