@@ -1094,6 +1094,12 @@ def recorded_pile(path: str | Path) -> tuple:
     return rec, scenario, SceneSpec.from_dict(rec["extra"]["scene"])
 
 
+# Measured in analysis/results/machine-repro/ (README *Reproducibility*).
+_ACROSS_MACHINES = ("a replay is bit for bit only on a machine like the recording one; across "
+                    "machines isolation trials kept every outcome, clutter attempts did not "
+                    "(their poured piles settle apart)")
+
+
 def machine_note(run_info: dict) -> str | None:
     """What a replay on this machine can promise for a run folder's records: None when one
     of its evaluate sessions ran on a machine like this one (`provenance.machine`: the same
@@ -1107,12 +1113,10 @@ def machine_note(run_info: dict) -> str | None:
         return None
     if not seen:
         return ("the run folder does not say which machine made its records (written before "
-                "run.json's sessions carried one): expect the recorded outcome, not "
-                "necessarily every recorded figure to the last digit")
+                f"run.json's sessions carried one): {_ACROSS_MACHINES}")
     named = "; ".join(sorted({f"{m.get('cpu')} with {m.get('packages')}" for m in seen}))
     return (f"recorded on {named}; this machine is {here['cpu']} with {here['packages']}: "
-            "expect the recorded outcome, not necessarily every recorded figure to the last "
-            "digit")
+            f"{_ACROSS_MACHINES}")
 
 
 def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | None = None):

@@ -157,11 +157,11 @@ def machine() -> dict:
     with family/model/stepping where /proc/cpuinfo has them), "cores", "packages" (the
     installed versions of `MACHINE_PACKAGES`, None when absent)}.
 
-    A trial replays with its recorded outcome on any machine, but bit for bit only on the
-    same kind of machine with the same builds: a different CPU generation can take other
-    floating-point paths (measured: a recorded clutter attempt's final distance replays
-    0.15773 m on an AMD EPYC of CPU family 26 against the record's 0.15921 m, outcome and
-    steps as recorded). Informational, never part of a run's identity.
+    A trial replays bit for bit only on the same kind of machine with the same builds: a
+    different CPU generation can take other floating-point paths (measured on an AMD EPYC
+    of CPU family 26: isolation trials kept every recorded outcome, clutter runs' poured
+    piles settled up to 0.73 mm apart and later attempts changed; README
+    *Reproducibility*). Informational, never part of a run's identity.
     """
     import platform
     from importlib import metadata

@@ -84,7 +84,7 @@ def test_a_replay_says_when_its_records_came_from_another_machine():
     assert machine_note({"sessions": [{"machine": other}, {"machine": here}]}) is None
     note = machine_note({"sessions": [{"machine": other}, {"machine": newer}]})
     assert "Some CPU (family 25, model 17, stepping 1)" in note and "9.9.9" in note
-    assert here["cpu"] in note and "expect the recorded outcome" in note
+    assert here["cpu"] in note and "bit for bit only on a machine like the recording" in note
     old = machine_note({"sessions": [{"records_added": 4}]})
     assert "does not say which machine" in old
     assert "does not say which machine" in machine_note({})

@@ -16,10 +16,11 @@ def test_a_pile_replays_as_recorded_with_its_weights_and_runs_with_others(analys
     """Run 0's second attempt (a hammer that slipped in the lift with the shipped CNN):
     its own weights reproduce it; the FCN runs the same pile to a judged outcome.
 
-    Reproduced means what DESIGN.md promises: the recorded outcome, failure class and
-    number of control steps on any machine, and the same trial bit for bit on one machine
-    (two replays here). The final distance is not compared with the record's across
-    machines: on an AMD EPYC of CPU family 26 the replay ends 0.15773 m from a true grasp
+    Reproduced means the recorded outcome, failure class and number of control steps
+    (this attempt keeps them on both kinds of machine seen; other clutter attempts do not
+    across machines: analysis/results/machine-repro/), and the same trial bit for bit on
+    one machine (DESIGN.md's promise; two replays here). The final distance is not
+    compared with the record's across machines: on an AMD EPYC of CPU family 26 the replay ends 0.15773 m from a true grasp
     against the record's 0.15921 m (outcome and steps as recorded), the same with numpy's
     AVX-512 kernels, OpenBLAS's core type, oneDNN's ISA and llvmpipe's vector width
     changed; the machines before it reproduced the record's to 1e-6."""
