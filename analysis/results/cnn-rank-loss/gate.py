@@ -62,11 +62,9 @@ def main(argv=None) -> int:
         result = gate(read(args.folder))
     except FileNotFoundError as e:
         sys.exit(f"gate.py: {e.filename}: not found (score every arm with cnn_eval.py first)")
-    text = json.dumps(result, indent=1)
-    if args.out:
-        from drake_grasp.results import atomic_write_text
-        atomic_write_text(args.out, text + "\n")
-    print(text)
+    from drake_grasp.results import print_json
+
+    print_json(result, args.out)
     return 0
 
 

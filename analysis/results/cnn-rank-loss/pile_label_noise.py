@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.policies import sample_candidates
-    from drake_grasp.results import atomic_write_text
+    from drake_grasp.results import print_json
     from drake_grasp.scene import SceneSpec
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -88,9 +88,7 @@ def main(argv=None) -> int:
            "regret_median_m": float(np.median(regret)), "regret_mean_m": float(regret.mean()),
            "top1_within_1cm": float(np.mean(regret <= 0.01)),
            "regret_median_m_reversed": float(np.median(regret_rev))}
-    text = json.dumps(out, indent=1)
-    atomic_write_text(args.out, text + "\n")
-    print(text)
+    print_json(out, args.out)
     return 0
 
 
