@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.results import load_records, wilson_interval
+from drake_grasp.evaluation.records import load_records, wilson_interval
 
 STILL_M = 0.01  # a pile whose objects all moved less than this is "the same pile"
 

@@ -15,7 +15,7 @@ Three commands:
     # where the objects of one pile are while it settles (distance from the centre, speed)
     python analysis/clutter_pour.py trace --seed 0
 
-`settle` and `trace` build the scene world as `drake_grasp.scene.settle_scene` does (the
+`settle` and `trace` build the scene world as `drake_grasp.world.scene.settle_scene` does (the
 `clutter` scenario with 10 objects in a +-6 cm region, as the `clutter` experiment), with
 the modes' additions; they measure, they do not change what the experiments use.
 """
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 # The clutter run end rule's "in view": within +-15 cm of the pile's centre.
-from drake_grasp.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M
+from drake_grasp.evaluation.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M
 
 
 def out_of_view(objects: list[dict], center) -> list[str]:
@@ -47,7 +47,7 @@ def footprint_cm2(objects: list[dict]) -> float:
     from scipy.spatial import ConvexHull
 
     from drake_grasp.objects import load_library, visual_mesh
-    from drake_grasp.scene import ObjectPlacement
+    from drake_grasp.world.scene import ObjectPlacement
 
     library = load_library(None)
     total = 0.0
@@ -98,7 +98,7 @@ def results(folder: str) -> dict:
 
 def _scenario_and_library():
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.config.scenario import load_scenario
 
     scenario = load_scenario(scenario_name="clutter")
     config = dataclasses.replace(scenario.scene, clutter_objects=10, region_half_extent_m=0.06)
@@ -130,7 +130,7 @@ def _world(spec, library, physics, *, walls_half_m: float = 0.0):
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
 
-    from drake_grasp import scene as S
+    from drake_grasp.world import scene as S
 
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(S.default_scene_plant_config(), builder)
@@ -148,7 +148,7 @@ def _world(spec, library, physics, *, walls_half_m: float = 0.0):
 
 
 def settle(mode: str, seeds: list[int], *, box_half_m: float) -> list[dict]:
-    from drake_grasp import scene as S
+    from drake_grasp.world import scene as S
 
     scenario, config, library = _scenario_and_library()
     rows = []
@@ -174,7 +174,7 @@ def settle(mode: str, seeds: list[int], *, box_half_m: float) -> list[dict]:
 
 
 def trace(seed: int, times=(0.25, 0.5, 1.0, 2.0, 4.0)) -> None:
-    from drake_grasp import scene as S
+    from drake_grasp.world import scene as S
 
     scenario, config, library = _scenario_and_library()
     spec = S.sample_scene(config, seed, library)

@@ -25,9 +25,9 @@ import numpy as np
 
 def replay(path: str) -> dict:
     """One recorded CTR clutter attempt replayed with the CNN, its decisions logged."""
-    from drake_grasp.episode import controller_class
-    from drake_grasp.montecarlo import _simulate, recorded_pile
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.evaluation.episode import controller_class
+    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
+    from drake_grasp.policies.controller import GraspController
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)
@@ -84,8 +84,8 @@ def summarize(rows: list[dict]) -> dict:
 
 
 def main(argv=None) -> int:
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.provenance import code_version
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.provenance import code_version
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("records", nargs="+", help="clutter results folders (their trials/)")

@@ -32,13 +32,13 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation") -> dict:
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.episode import simulate_episode
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import scenario_scene
-    from drake_grasp.systems.evaluator import load_cnn
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import scenario_scene
+    from drake_grasp.policies.evaluator import load_cnn
 
     library = load_library(None)
     base = load_scenario(scenario_name=scenario_name)
@@ -82,7 +82,7 @@ def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation"
 def summarize(runs: list[dict]) -> dict:
     """Per-run first/last predicted best and true distance, and their correlation over
     all steps (Spearman: does a lower prediction mean a closer grasp?)."""
-    from drake_grasp.cnn_metrics import spearman
+    from drake_grasp.learning.cnn_metrics import spearman
 
     # A scene without a ground-truth grasp (e.g. an upright object too wide for the
     # 2F-85) has no true distance: its run is left out of the distance statistics.

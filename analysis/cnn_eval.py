@@ -1,6 +1,6 @@
 """Scores distance-CNN weights on a labelled test set: the test L1 over every labelled
 offset (and per bin of the true distance), and the within-image ranking metrics
-(`drake_grasp.cnn_metrics`), as `train` reports them after each epoch. Puts weights
+(`drake_grasp.learning.cnn_metrics`), as `train` reports them after each epoch. Puts weights
 trained on different sets on one test set.
 
     git show a027dc1:models/cnn/weights.safetensors > w400.safetensors   # the 400-scene weights
@@ -21,9 +21,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from drake_grasp.cnn_metrics import l1_by_label, ranking_metrics
-from drake_grasp.network import MirrorAveragedCNN, load_weights
-from drake_grasp.training import ChunkCache, ShardSet
+from drake_grasp.learning.cnn_metrics import l1_by_label, ranking_metrics
+from drake_grasp.cnn.network import MirrorAveragedCNN, load_weights
+from drake_grasp.learning.common import ChunkCache, ShardSet
 
 
 class MeanCNN(nn.Module):
@@ -69,7 +69,7 @@ def view_averaged(net, views: str):
     import copy
     import types
 
-    from drake_grasp.dense_training import AUGMENTATIONS, view_averaged_grids
+    from drake_grasp.cnn.views import AUGMENTATIONS, view_averaged_grids
 
     if views not in AUGMENTATIONS:
         raise SystemExit(f"--views: expected one of {sorted(AUGMENTATIONS)}, got {views!r}")

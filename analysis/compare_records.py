@@ -16,7 +16,7 @@ import json
 
 
 def compare(a_dir: str, b_dir: str, condition: str) -> dict:
-    from drake_grasp.results import load_records, wilson_interval
+    from drake_grasp.evaluation.records import load_records, wilson_interval
 
     a = {r.trial_id: r for r in load_records(a_dir) if r.condition == condition}
     b = {r.trial_id: r for r in load_records(b_dir) if r.condition == condition}
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     p.add_argument("--condition", default="ctr")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     print_json(compare(args.a, args.b, args.condition), args.out)
     return 0

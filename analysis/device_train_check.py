@@ -20,7 +20,7 @@ all through `dense_training.train` itself, the code `drake-grasp train-grid` run
 3. **The step alone**: forward, backward and Adam on one batch already on the device,
    repeated: what the GPU could do if gathering the batch on the CPU cost nothing.
 
-`train` runs in full float32 (`training.full_float32`: no TF32); `--no-tf32` does the same
+`train` runs in full float32 (`common.full_float32`: no TF32); `--no-tf32` does the same
 for the step alone, which is outside `train`. Results on an H200:
 `analysis/results/device-train-check/`.
 
@@ -53,7 +53,7 @@ CAMERA_Z_G_M = -0.115  # gripper_frame_offsets()[2].translation()[2]; checked wh
 
 
 def stand_in_for_drake(camera_z: float) -> bool:
-    """Without pydrake, put a `drake_grasp.station` holding only `gripper_frame_offsets`
+    """Without pydrake, put a `drake_grasp.world.station` holding only `gripper_frame_offsets`
     (the camera's pose in the gripper frame: its height `camera_z`) in sys.modules.
     Returns whether it did; with Drake, checks `camera_z` against the gripper model."""
     if importlib.util.find_spec("pydrake") is None:
@@ -61,11 +61,11 @@ def stand_in_for_drake(camera_z: float) -> bool:
             def translation(self):
                 return np.array([0.0, 0.0, camera_z])
 
-        mod = types.ModuleType("drake_grasp.station")
+        mod = types.ModuleType("drake_grasp.world.station")
         mod.gripper_frame_offsets = lambda: (None, None, _Pose())
-        sys.modules["drake_grasp.station"] = mod
+        sys.modules["drake_grasp.world.station"] = mod
         return True
-    from drake_grasp.station import gripper_frame_offsets
+    from drake_grasp.world.station import gripper_frame_offsets
 
     have = float(gripper_frame_offsets()[2].translation()[2])
     if abs(have - camera_z) > 1e-12:
@@ -84,7 +84,7 @@ def small_copy(labels: Path, out: Path, n: int) -> Path:
 
 
 def weight_diff(a_path: Path, b_path: Path) -> dict:
-    from drake_grasp.network import load_weights
+    from drake_grasp.cnn.network import load_weights
 
     a, _ = load_weights(a_path)
     b, _ = load_weights(b_path)
@@ -103,7 +103,7 @@ def weight_diff(a_path: Path, b_path: Path) -> dict:
 
 def resume_check(folders, work: Path, *, batch: int, lr: float, gpu: str,
                  threads: int) -> dict:
-    from drake_grasp.dense_training import train
+    from drake_grasp.learning.dense_training import train
 
     kw = dict(test_data=None, init=None, epochs=2, batch=batch, lr=lr, threads=threads,
               progress=False)
@@ -116,7 +116,7 @@ def resume_check(folders, work: Path, *, batch: int, lr: float, gpu: str,
 
 def throughput(folders, work: Path, *, device: str, batch: int, threads: int,
                n_images: int) -> dict:
-    from drake_grasp.dense_training import train
+    from drake_grasp.learning.dense_training import train
 
     kw = dict(test_data=None, init=None, batch=batch, lr=2e-4, threads=threads,
               batch_norm=True, device=device, progress=False, checkpoint_minutes=1e9)
@@ -139,9 +139,9 @@ def throughput(folders, work: Path, *, device: str, batch: int, threads: int,
 
 def step_alone(folder: Path, *, device: str, batch: int, steps: int) -> dict:
     """Forward, backward and Adam on one resident batch, `steps` times after 5 warm-ups."""
-    from drake_grasp.dense_training import BatchNormTrunk, LabelStore, batch_tensors
-    from drake_grasp.network import DistanceCNN, NetworkConfig
-    from drake_grasp.station import gripper_frame_offsets
+    from drake_grasp.learning.dense_training import BatchNormTrunk, LabelStore, batch_tensors
+    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.world.station import gripper_frame_offsets
 
     cfg = NetworkConfig.from_dict(json.loads((folder / "config.json").read_text()))
     store = LabelStore([folder])
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
            "drake_stand_in": stand_in_for_drake(args.camera_z), "camera_z_G_m": args.camera_z,
            "cudnn_allow_tf32": torch.backends.cudnn.allow_tf32,
            "matmul_allow_tf32": torch.backends.cuda.matmul.allow_tf32}
-    from drake_grasp.dense_training import LabelStore
+    from drake_grasp.learning.dense_training import LabelStore
 
     n_images = LabelStore([labels]).n_images
     out["label_images"] = n_images

@@ -50,7 +50,7 @@ def ctr_counts(folder: Path) -> dict:
 def decide(root: Path, *, clutter_shift_seeds=CLUTTER_SHIFT_SEEDS,
            clutter_seeds=CLUTTER_SEEDS, isolation_seed=ISOLATION_SEED,
            candidate=CANDIDATE) -> dict:
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.records import wilson_interval
 
     if not candidate or candidate == INCUMBENT or "/" in candidate:
         raise ValueError(f"candidate {candidate!r}: expected a run-folder prefix other "
@@ -82,7 +82,7 @@ def decide(root: Path, *, clutter_shift_seeds=CLUTTER_SHIFT_SEEDS,
 
 
 def main(argv=None) -> int:
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the folder holding the ten runs")

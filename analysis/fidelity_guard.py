@@ -36,11 +36,11 @@ def _scene_task(args) -> dict:
     record_file, profile, out_file, force_mode, close = args
     import numpy as np
 
-    from drake_grasp.lab import LabConfig, check_grasp
+    from drake_grasp.evaluation.lab import LabConfig, check_grasp
     from drake_grasp.objects import load_library
-    from drake_grasp.results import atomic_write_text
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import SceneSpec
+    from drake_grasp.core.files import atomic_write_text
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import SceneSpec
 
     record = json.loads(Path(record_file).read_text())
     name, step, approximation = _parse_profile(profile)
@@ -72,7 +72,7 @@ def _scene_task(args) -> dict:
 def summarize(results: dict[str, list[dict]]) -> dict:
     """Hold rates per profile (`labelcheck.summarize`, the label-check's own definition)
     and verdict agreement between profiles (same checks)."""
-    from drake_grasp.labelcheck import summarize as label_summary
+    from drake_grasp.evaluation.labelcheck import summarize as label_summary
 
     summary = {}
     for profile, scenes in results.items():
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
                    help="comma-separated physics profiles, each optionally with another plant "
                         "step and discrete contact approximation as NAME[@SECONDS][:APPROX], "
                         "e.g. fast@0.01 or fast@0.01:sap (default: reference,fast)")
-    from drake_grasp.scenario import GRIP_FORCE_MODES
+    from drake_grasp.config.scenario import GRIP_FORCE_MODES
 
     p.add_argument("--force-mode", choices=GRIP_FORCE_MODES, default=None,
                    help="gripper.force_mode for every profile (default: the scenario's; "
@@ -124,9 +124,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="results folder (re-running resumes)")
     args = p.parse_args(argv)
 
-    from drake_grasp.labelcheck import record_path
-    from drake_grasp.results import atomic_write_text
-    from drake_grasp.scenario import PHYSICS_PROFILES
+    from drake_grasp.evaluation.labelcheck import record_path
+    from drake_grasp.core.files import atomic_write_text
+    from drake_grasp.config.scenario import PHYSICS_PROFILES
 
     profiles = [x for x in args.profiles.split(",") if x]
     unknown = [x for x in profiles if _parse_profile(x)[0] not in PHYSICS_PROFILES]

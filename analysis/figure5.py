@@ -14,13 +14,13 @@ import argparse
 import sys
 from typing import Sequence
 
-from drake_grasp.report import BIN_M, HIST_MAX_M, write_figure5
+from drake_grasp.evaluation.report import BIN_M, HIST_MAX_M, write_figure5
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description="Figure 5 (final distance to the closest true grasp, histograms) from "
-                    "Monte Carlo results dirs (see drake_grasp.results for their layout).")
+                    "Monte Carlo results dirs (see drake_grasp.evaluation.records for their layout).")
     parser.add_argument("results_dirs", nargs="+",
                         help="results dirs holding the Figure 5 conditions: init, ctr, ctr_noise, "
                              "gpd, gpd_noise (left panel) and cnn-only, cnn-ctr (right panel); "

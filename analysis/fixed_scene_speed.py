@@ -34,7 +34,7 @@ SETTLE_SCENES = (1, 2, 13, 11, 21, 24, 0, 28)
 
 
 def _episode_rtf(scenario, library, scene, repeats: int) -> dict:
-    from drake_grasp.episode import simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
 
     rtf = []
     for _ in range(repeats):
@@ -55,11 +55,11 @@ def main(argv=None) -> None:
                         help="settle and write the scene files, then stop")
     args = parser.parse_args(argv)
 
-    from drake_grasp.dataset import sample_dataset_scene
+    from drake_grasp.learning.dataset import sample_dataset_scene
     from drake_grasp.objects import load_library
-    from drake_grasp.provenance import code_version
-    from drake_grasp.scenario import load_scenario, replace
-    from drake_grasp.scene import SceneSpec, build_scene_world, scenario_scene, settle_world
+    from drake_grasp.core.provenance import code_version
+    from drake_grasp.config.scenario import load_scenario, replace
+    from drake_grasp.world.scene import SceneSpec, build_scene_world, scenario_scene, settle_world
 
     library = load_library(None)
     version = code_version()

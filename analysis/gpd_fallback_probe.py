@@ -19,16 +19,16 @@ import sys
 import time
 from pathlib import Path
 
-from drake_grasp.results import load_records
+from drake_grasp.evaluation.records import load_records
 
 NO_DETECTION = "missed: no grasp detected"
 
 
 def probe(folder: Path) -> list[dict]:
-    from drake_grasp.episode import simulate_episode
-    from drake_grasp.montecarlo import recorded_scenario
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.evaluation.montecarlo import recorded_scenario
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import SceneSpec
+    from drake_grasp.world.scene import SceneSpec
 
     library = load_library(None)
     out = []

@@ -5,7 +5,7 @@ whose precision `drake-grasp label-check` measured on top-down grasps. GPD's can
 also approach up to 30 degrees off vertical. This script regenerates held-out scenes of a
 `drake-grasp gpd-generate` folder (same seeds, same settling), takes up to `--per-scene`
 of their positive candidates (half near-vertical, half tilted where there are), executes
-each in the grasp lab (`drake_grasp.lab`, the neighbouring objects present) and reports
+each in the grasp lab (`drake_grasp.evaluation.lab`, the neighbouring objects present) and reports
 the hold rate by tilt, with Wilson 95% intervals.
 
     python analysis/gpd_label_check.py data/gpd_test --scenes 40 --out analysis/results/gpd-label-check.json
@@ -35,11 +35,11 @@ def _wilson(k: int, n: int) -> list:
 def run(folder: str, num_scenes: int, per_scene: int) -> dict:
     from tqdm import tqdm
 
-    from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes, load_data
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.learning.gpd_training import GpdDataConfig, ground_truth_passes, load_data
+    from drake_grasp.evaluation.lab import check_grasp
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import Scenario
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+    from drake_grasp.config.scenario import Scenario
+    from drake_grasp.world.scene import build_scene_world, sample_scene, settle_world
 
     data = load_data(folder)
     cfg = GpdDataConfig()

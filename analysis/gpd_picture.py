@@ -22,10 +22,10 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from drake_grasp import gpd
-    from drake_grasp.gpd_training import experiment_view
+    from drake_grasp.policies import gpd
+    from drake_grasp.learning.gpd_training import experiment_view
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.config.scenario import load_scenario
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed", type=int, default=3)

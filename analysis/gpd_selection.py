@@ -73,7 +73,7 @@ def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None,
              arms: np.ndarray | None = None) -> dict:
     """Index of the top-1 candidate of each variant (None: nothing accepted). `arms`:
     each candidate's lever arm (`gpd.lever_arms`) for the balance variants."""
-    from drake_grasp.gpd import Selection, cluster_scores, cluster_support, select
+    from drake_grasp.policies.gpd import Selection, cluster_scores, cluster_support, select
 
     out = {}
 
@@ -107,12 +107,12 @@ def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None,
 
 
 def scene_row(i: int, seed: int, weights_b: str) -> dict:
-    from drake_grasp import gpd
-    from drake_grasp.dataset import scene_seed
-    from drake_grasp.experiments import EXPERIMENTS
-    from drake_grasp.gpd_training import GpdDataConfig, experiment_view, ground_truth_passes
+    from drake_grasp.policies import gpd
+    from drake_grasp.learning.dataset import scene_seed
+    from drake_grasp.evaluation.experiments import EXPERIMENTS
+    from drake_grasp.learning.gpd_training import GpdDataConfig, experiment_view, ground_truth_passes
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.config.scenario import load_scenario
 
     library = load_library(None)
     exp = EXPERIMENTS["clutter"]
@@ -152,7 +152,7 @@ def scene_row(i: int, seed: int, weights_b: str) -> dict:
 
 
 def summarize(rows: list[dict]) -> dict:
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.records import wilson_interval
 
     names = list(dict.fromkeys(n for r in rows for n in r["picks"]))
     out = {}

@@ -2,9 +2,9 @@
 
 For seeded held-out scenes (test object instances; isolation, 1-5 objects, poured piles),
 settled as the experiments settle them, the GPD sensor's image at the experiments'
-viewpoint goes through the whole detector (`drake_grasp.gpd`, shipped or given weights);
+viewpoint goes through the whole detector (`drake_grasp.policies.gpd`, shipped or given weights);
 its selected grasp is checked with the ground truth (`grasps.check_grasp_poses`, the
-dataset's friction and torque limits) and executed in the grasp lab (`drake_grasp.lab`,
+dataset's friction and torque limits) and executed in the grasp lab (`drake_grasp.evaluation.lab`,
 neighbours present). Reports the share of scenes with a detection and
 the share of detections that are true grasps, per scene kind, with the detection time.
 
@@ -22,12 +22,12 @@ import numpy as np
 
 
 def run(num_scenes: int, seed: int, weights: str = "", selection=None, physics: bool = True) -> dict:
-    from drake_grasp import gpd
-    from drake_grasp.dataset import scene_seed
-    from drake_grasp.gpd_training import GpdDataConfig, experiment_view, ground_truth_passes
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.policies import gpd
+    from drake_grasp.learning.dataset import scene_seed
+    from drake_grasp.learning.gpd_training import GpdDataConfig, experiment_view, ground_truth_passes
+    from drake_grasp.evaluation.lab import check_grasp
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.config.scenario import load_scenario
 
     library = load_library(None)
     data_cfg = GpdDataConfig()

@@ -18,10 +18,10 @@ PyTorch's default initialisation) and `deep` (Conv1 32@5x5, pool, Conv 64@3x3, C
 """
 import argparse, glob, json, time, math
 import numpy as np, torch, torch.nn as nn, torch.nn.functional as F
-from drake_grasp.network import DistanceCNN, load_weights, normalize_depth
-from drake_grasp.dense_training import view_masks, GRID_CONFIG
-from drake_grasp.station import gripper_frame_offsets
-from drake_grasp.cnn_metrics import spearman
+from drake_grasp.cnn.network import DistanceCNN, load_weights, normalize_depth
+from drake_grasp.learning.dense_training import view_masks, GRID_CONFIG
+from drake_grasp.world.station import gripper_frame_offsets
+from drake_grasp.learning.cnn_metrics import spearman
 
 CFG = GRID_CONFIG
 T, N, _ = CFG.grid_shape()
@@ -117,7 +117,7 @@ def main():
     te = {k: v[pick] for k, v in te_all.items()}; del te_all
     if args.arch == "paper": model = Paper(0, load_weights(args.init)[0] if args.init else None)
     elif args.arch == "pkgbn":
-        from drake_grasp.dense_training import BatchNormTrunk
+        from drake_grasp.learning.dense_training import BatchNormTrunk
         net = load_weights(args.init)[0] if args.init else DistanceCNN(CFG, generator=torch.Generator().manual_seed(0))
         bt = BatchNormTrunk(net)
         if args.init:

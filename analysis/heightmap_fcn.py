@@ -51,10 +51,10 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drake_grasp.dense_training import (  # noqa: E402
+from drake_grasp.learning.dense_training import (  # noqa: E402
     GRID_CONFIG, grid_node_actions, load_labels, view_masks)
 
-from drake_grasp import fcn  # noqa: E402
+from drake_grasp.cnn import fcn  # noqa: E402
 
 _LATTICE = fcn.FcnConfig()  # the lattice every net here uses: 5 mm cells, +-18 cm
 CELL_M = _LATTICE.cell_m
@@ -72,7 +72,7 @@ GRASP_POS_WEIGHT = 10.0  # grasp nodes are 0.7% of the in-view nodes
 @functools.lru_cache(maxsize=None)
 def camera_z_G() -> float:
     """The camera's height in the gripper frame (read once; `_masks` needs it per batch)."""
-    from drake_grasp.station import gripper_frame_offsets
+    from drake_grasp.world.station import gripper_frame_offsets
     return float(gripper_frame_offsets()[2].translation()[2])
 
 
@@ -218,7 +218,7 @@ def metrics(pred: np.ndarray, data: dict, *, seed: int = 0, images: int = 2000) 
     """Dense L1 over the in-view nodes, by label bin, and within-image Spearman over the
     nodes the controller's candidates cover (|x|, |y| <= 4 cm from the hand, |theta| <= 45
     degrees, in view)."""
-    from drake_grasp.cnn_metrics import spearman
+    from drake_grasp.learning.cnn_metrics import spearman
 
     grid = data["grid"].astype(np.float32)
     mask = _masks(data["hand_z"]).expand(grid.shape).numpy() & np.isfinite(grid)
@@ -312,7 +312,7 @@ def compare_grasp_head(fcn: str, test: dict, val: dict) -> dict:
 
 
 def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarray:
-    from drake_grasp.network import load_weights
+    from drake_grasp.cnn.network import load_weights
 
     net = load_weights(weights)[0].eval()
     out = []

@@ -42,9 +42,9 @@ def _lean_deg(check) -> np.ndarray:
 
 
 def run_scene(index: int, seed: int, per_scene: int) -> dict:
-    import drake_grasp.grasps as G
-    from drake_grasp.lab import check_grasp
-    from drake_grasp.scene import SHEET_THICKNESS_M
+    import drake_grasp.geometry.grasps as G
+    from drake_grasp.evaluation.lab import check_grasp
+    from drake_grasp.world.scene import SHEET_THICKNESS_M
     from label_load_case import _grasps, gravity_only, isolation_scene
 
     t0 = time.perf_counter()
@@ -117,8 +117,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.trials < 1 or args.per_scene < 1:
         p.error("--trials and --per-scene: expected >= 1")
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.provenance import code_version
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.provenance import code_version
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

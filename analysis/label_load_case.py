@@ -28,7 +28,7 @@ import numpy as np
 @contextlib.contextmanager
 def gravity_only():
     """Within the block, the torque test's load cases are gravity alone (no shake)."""
-    import drake_grasp.grasps as G
+    import drake_grasp.geometry.grasps as G
 
     original = G._gravity_torque_ratio
     G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
@@ -39,7 +39,7 @@ def gravity_only():
 
 
 def _grasps(scene, library, seed: int, *, shake: bool):
-    import drake_grasp.grasps as G
+    import drake_grasp.geometry.grasps as G
 
     with contextlib.nullcontext() if shake else gravity_only():
         return G.find_grasps(scene, library, np.random.default_rng([seed, 61]))
@@ -47,9 +47,9 @@ def _grasps(scene, library, seed: int, *, shake: bool):
 
 def isolation_scene(index: int, seed: int):
     """(scenario, settled scene, library) of the `isolation` experiment's trial `index`."""
-    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
+    from drake_grasp.evaluation.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import scenario_scene
+    from drake_grasp.world.scene import scenario_scene
 
     library = load_library(None)
     exp = EXPERIMENTS["isolation"]
@@ -58,7 +58,7 @@ def isolation_scene(index: int, seed: int):
 
 
 def run_scene(index: int, seed: int, per_scene: int) -> dict:
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.evaluation.lab import check_grasp
 
     t0 = time.perf_counter()
     scenario, scene, library = isolation_scene(index, seed)
@@ -92,9 +92,9 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.provenance import code_version
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.provenance import code_version
+    from drake_grasp.evaluation.records import wilson_interval
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -38,13 +38,13 @@ DENSE_FACTOR = 10
 
 
 def _scene_task(index, seed, split, num_samples, candidates=128):
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.policies import sample_candidates
-    from drake_grasp.dataset import DatasetConfig, SceneSamples, generate_scene
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.policies.decisions import sample_candidates
+    from drake_grasp.learning.dataset import DatasetConfig, SceneSamples, generate_scene
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import SceneSpec
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import SceneSpec
 
     scenario = load_scenario(scenario_name="random")
     config = DatasetConfig()
@@ -107,8 +107,8 @@ def main(argv=None) -> int:
     if args.candidates < 2:
         raise SystemExit(f"--candidates: expected >= 2 (a ranking), got {args.candidates}")
 
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.results import atomic_write_text
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.files import atomic_write_text
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -137,7 +137,7 @@ def main(argv=None) -> int:
                           "l1_dataset_a_mm": _l1_mm(d[ok], a[ok]),
                           "labels_without_grasp": int((~ok).sum())})
     pairs = [("dataset", "a"), ("a", "b"), ("dataset", "dense"), ("a", "dense")]
-    from drake_grasp.cnn_metrics import spearman
+    from drake_grasp.learning.cnn_metrics import spearman
 
     C = {k: np.concatenate([r["candidates"][k] for r in rows]) for k in rows[0]["candidates"]}
     rows_ok = np.all([np.isfinite(v).all(axis=1) for v in C.values()], axis=0)

@@ -24,11 +24,11 @@ import h5py
 import numpy as np
 import torch
 
-from drake_grasp.actions import apply_actions, hand_axes, view_half_extent_m
-from drake_grasp.grasps import grasp_distance
-from drake_grasp.network import load_weights
-from drake_grasp.scenario import Scenario
-from drake_grasp.station import gripper_frame_offsets
+from drake_grasp.geometry.actions import apply_actions, hand_axes, view_half_extent_m
+from drake_grasp.geometry.grasps import grasp_distance
+from drake_grasp.cnn.network import load_weights
+from drake_grasp.config.scenario import Scenario
+from drake_grasp.world.station import gripper_frame_offsets
 
 BINS_MM = (0, 30, 60, 100, 150, float("inf"))
 

@@ -29,9 +29,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from drake_grasp.onnx_export import export_onnx
-    from drake_grasp.onnx_runtime import OnnxDistanceModel, random_check_inputs
-    from drake_grasp.systems.evaluator import load_cnn
+    from drake_grasp.cnn.onnx_export import export_onnx
+    from drake_grasp.cnn.onnx_runtime import OnnxDistanceModel, random_check_inputs
+    from drake_grasp.policies.evaluator import load_cnn
 
     torch_model = load_cnn(args.weights)
     rows = {}

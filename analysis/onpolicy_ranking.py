@@ -49,14 +49,14 @@ BEST_EDGES_M = (0.0, 0.01, 0.03, 0.06, 1.0)  # the best candidate's true distanc
 def collect_attempt(path: str, out_dir: str) -> dict:
     """Replays one recorded CTR clutter attempt and writes `out_dir/<folder>__<trial>.npz`
     (skipped when it exists). Returns the attempt's summary row."""
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.dataset import DatasetConfig
-    from drake_grasp.episode import controller_class, simulate_episode
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
-    from drake_grasp.montecarlo import _model, recorded_pile
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.learning.dataset import DatasetConfig
+    from drake_grasp.evaluation.episode import controller_class, simulate_episode
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.evaluation.montecarlo import _model, recorded_pile
     from drake_grasp.objects import load_library
-    from drake_grasp.results import atomic_write_bytes
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.core.files import atomic_write_bytes
+    from drake_grasp.policies.controller import GraspController
 
     rec, scenario, scene = recorded_pile(path)
     records = str(Path(path).parents[1])
@@ -141,7 +141,7 @@ def build_labels(folder: Path, out: Path, *, only=(), exclude=()) -> dict:
     the format of `dense_training.build_labels` (`train-grid --labels out`). Attempts
     not reproduced or without a true grasp are left out; files already written are
     skipped."""
-    from drake_grasp.dense_training import GRID_CONFIG, label_grids
+    from drake_grasp.learning.dense_training import GRID_CONFIG, label_grids
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(GRID_CONFIG.to_dict(), indent=1))
@@ -197,7 +197,7 @@ def load_decisions(folder: Path, only=(), exclude=()) -> dict:
 
 
 def metrics(true: np.ndarray, pred: np.ndarray) -> dict:
-    from drake_grasp.cnn_metrics import regret_m, spearman
+    from drake_grasp.learning.cnn_metrics import regret_m, spearman
 
     regret = regret_m(pred, true)
     return {"decisions": int(len(true)),
@@ -260,10 +260,10 @@ def main(argv=None) -> int:
         q.add_argument("--exclude", default="", help="comma-separated results folder names: "
                                                      "not their attempts")
     args = p.parse_args(argv)
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     if args.cmd == "collect":
-        from drake_grasp.montecarlo import parallel_map
+        from drake_grasp.evaluation.montecarlo import parallel_map
 
         paths = []
         for folder in args.records:
@@ -291,7 +291,7 @@ def main(argv=None) -> int:
         return 0
     import torch
 
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
     torch.set_num_threads(max(1, args.threads))
     if not Path(args.folder).is_dir():

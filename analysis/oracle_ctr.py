@@ -47,9 +47,9 @@ def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
     """A GraspController subclass whose candidates are scored by the true distance: at
     every decision (`phase` "all"), only in the descent ("descent": before the stop
     rule has fired) or only at the stop height ("stop": the decisions after it fired)."""
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.grasps import distance_to_nearest_grasp
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+    from drake_grasp.policies.controller import GraspController
 
     class OracleController(GraspController):
         oracle_steps = 0  # decisions scored by the truth (a check that it was used)
@@ -80,11 +80,11 @@ def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
 
 
 def run_trial(index: int, seed: int, phase: str = "all") -> dict:
-    from drake_grasp.episode import controller_class, simulate_episode
-    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
-    from drake_grasp.grasps import find_grasps
+    from drake_grasp.evaluation.episode import controller_class, simulate_episode
+    from drake_grasp.evaluation.experiments import EXPERIMENTS, trial_scenario
+    from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.objects import load_library
-    from drake_grasp.scene import scenario_scene
+    from drake_grasp.world.scene import scenario_scene
 
     library = load_library(None)
     exp = EXPERIMENTS["isolation"]
@@ -110,9 +110,9 @@ def run_attempt(path: str, arms=("cnn", "oracle"), phase: str = "all") -> dict:
     (`arms`; the oracle scoring the decisions of `phase`)."""
     import contextlib
 
-    from drake_grasp.episode import controller_class
-    from drake_grasp.grasps import find_grasps
-    from drake_grasp.montecarlo import _simulate, recorded_pile
+    from drake_grasp.evaluation.episode import controller_class
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)
@@ -140,9 +140,9 @@ def run_attempt(path: str, arms=("cnn", "oracle"), phase: str = "all") -> dict:
 
 
 def clutter_main(args) -> int:
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.provenance import code_version
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.provenance import code_version
+    from drake_grasp.evaluation.records import wilson_interval
 
     paths = sorted(str(p) for p in Path(args.records, "trials").glob(f"*__{args.condition}__*.json"))
     if args.trials:
@@ -202,8 +202,8 @@ def main(argv=None) -> int:
     args.trials = 40 if args.trials is None else args.trials
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.evaluation.records import wilson_interval
 
     trials = parallel_map(run_trial, [(i, args.seed, args.oracle_phase) for i in range(args.trials)],
                           workers=args.workers, desc="oracle ctr")
@@ -212,7 +212,7 @@ def main(argv=None) -> int:
     classes: dict = {}
     for t in trials:
         classes[t["failure_class"]] = classes.get(t["failure_class"], 0) + 1
-    from drake_grasp.provenance import code_version
+    from drake_grasp.core.provenance import code_version
 
     covered = [t for t in trials if t["num_true_grasps"] > 0]
     k_cov = sum(t["success"] for t in covered)

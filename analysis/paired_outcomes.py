@@ -21,7 +21,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from drake_grasp.results import load_records, mcnemar_exact_p, print_json
+from drake_grasp.evaluation.records import load_records, mcnemar_exact_p
+
+from drake_grasp.core.files import print_json
 
 
 def paired(run_a: Path, run_b: Path, condition: str | None = None) -> dict:

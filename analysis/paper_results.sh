@@ -20,4 +20,4 @@ $DG evaluate --experiment perception --workers $W --seed 0 --out $R/perception
 $DG evaluate --experiment sweep-noise --workers $W --seed 0 --out $R/sweep-noise
 python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
 python analysis/figure5.py $R/sim-distance $R/perception --out $R/figure5.png
-python -c "from drake_grasp.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/perception', '$R/clutter', '$R/clutter-shift', '$R/sweep-noise'], '$R')"
+python -c "from drake_grasp.evaluation.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/perception', '$R/clutter', '$R/clutter-shift', '$R/sweep-noise'], '$R')"

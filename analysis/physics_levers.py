@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     p.add_argument("--objects", type=int, default=5, help="objects in the pile (default 5)")
     args = p.parse_args(argv)
 
-    from drake_grasp.bench import BENCH_SEED, _machine, episode_rtf
+    from drake_grasp.cli.bench import BENCH_SEED, _machine, episode_rtf
 
     rows = []
     for name, text in LEVERS:
@@ -56,7 +56,7 @@ def main(argv=None) -> int:
         row["rtf_ratio"] = round(row["rtf"] / rows[0]["rtf"], 2)
         row["episode_speedup"] = round(rows[0]["episode_wall_s"] / row["episode_wall_s"], 2)
     if args.out:
-        from drake_grasp.results import atomic_write_text
+        from drake_grasp.core.files import atomic_write_text
 
         atomic_write_text(args.out, json.dumps({"episode": f"scripted, clutter, {args.objects} "
                                                            f"objects, seed {BENCH_SEED}",

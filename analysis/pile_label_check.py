@@ -26,9 +26,9 @@ def check(record_path: str | Path, object_id: str, grasps: int) -> dict:
     """{"objects", "true_grasps", "on_object", "checks": [{"grasp", "neighbours",
     "alone"}], "held_with_neighbours", "held_alone"}; ValueError for a record without a
     pile or an object not in it."""
-    from drake_grasp.grasps import find_grasps
-    from drake_grasp.lab import check_grasp
-    from drake_grasp.montecarlo import recorded_pile
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.evaluation.lab import check_grasp
+    from drake_grasp.evaluation.montecarlo import recorded_pile
     from drake_grasp.objects import load_library
 
     _, scenario, scene = recorded_pile(record_path)
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
         print(f"pile_label_check: error: {e}", file=sys.stderr)
         return 2
     result["wall_s"] = round(time.perf_counter() - t0, 1)
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     print_json(result, args.out)
     return 0

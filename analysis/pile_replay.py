@@ -31,7 +31,7 @@ from pathlib import Path
 def replay(path: str, weights: str) -> dict:
     """One recorded CTR clutter attempt's pile, simulated by CTR with `weights` ("": the
     record's own)."""
-    from drake_grasp.montecarlo import _simulate, recorded_pile
+    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)
@@ -61,7 +61,7 @@ def run_attempt(path: str, weights: str, also_recorded: bool) -> dict:
 
 
 def summarize(rows: list[dict]) -> dict:
-    from drake_grasp.results import mcnemar_exact_p, wilson_interval
+    from drake_grasp.evaluation.records import mcnemar_exact_p, wilson_interval
 
     out = {"attempts": len(rows)}
     for name in ("recorded", "replay", "recorded_weights_replay"):
@@ -101,9 +101,9 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", required=True, help="JSON file to write")
     args = p.parse_args(argv)
-    from drake_grasp.montecarlo import parallel_map
-    from drake_grasp.provenance import code_version
-    from drake_grasp.results import atomic_write_text
+    from drake_grasp.evaluation.montecarlo import parallel_map
+    from drake_grasp.core.provenance import code_version
+    from drake_grasp.core.files import atomic_write_text
 
     for f in args.weights.split(","):
         if not Path(f).is_file():

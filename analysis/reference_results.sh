@@ -19,4 +19,4 @@ for e in sweep-latency sweep-control-period sweep-dropped-frames sweep-camera-tr
 done
 python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
 python analysis/figure5.py $R/sim-distance --out $R/figure5.png
-python -c "from drake_grasp.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$R')"
+python -c "from drake_grasp.evaluation.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$R')"

@@ -37,8 +37,8 @@ def main(argv=None) -> int:
     from pydrake.common.yaml import yaml_load_typed
 
     from drake_grasp.api import load_library, simulate_episode
-    from drake_grasp.scenario import Scenario
-    from drake_grasp.systems.evaluator import load_cnn
+    from drake_grasp.config.scenario import Scenario
+    from drake_grasp.policies.evaluator import load_cnn
 
     pattern = f"*__{args.condition}__*.json"
     files = sorted((Path(args.results_dir) / "trials").glob(pattern))

@@ -45,8 +45,8 @@ MODES = ("speed", "verified")
 
 
 def check_scene(index: int, seed: int, mode: str, scenario, library, settings: dict) -> dict:
-    from drake_grasp.dataset import DatasetConfig, scene_seed
-    from drake_grasp.scene import _on_table, build_scene_world, sample_scene, settle_world
+    from drake_grasp.learning.dataset import DatasetConfig, scene_seed
+    from drake_grasp.world.scene import _on_table, build_scene_world, sample_scene, settle_world
 
     cfg = dataclasses.replace(scenario.scene, kind="random", split="train", object_ids=[])
     spec = sample_scene(cfg, scene_seed(seed, index, 0), library)
@@ -148,8 +148,8 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from drake_grasp.objects import load_library
-    from drake_grasp.results import atomic_write_text
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.core.files import atomic_write_text
+    from drake_grasp.config.scenario import load_scenario
 
     scenario, library = load_scenario(scenario_name="random"), load_library(None)
     settings = SETTINGS["episode" if args.episode_settings else "dataset"]

@@ -27,8 +27,8 @@ import numpy as np
 
 
 def settle_once(index: int, seed: int, step_s: float, scenario, library) -> dict:
-    from drake_grasp.dataset import DatasetConfig, sample_dataset_scene
-    from drake_grasp.scene import build_scene_world, settle_world
+    from drake_grasp.learning.dataset import DatasetConfig, sample_dataset_scene
+    from drake_grasp.world.scene import build_scene_world, settle_world
 
     cfg = DatasetConfig()
     spec = sample_dataset_scene(scenario, split="train", seed=seed, scene_index=index,
@@ -52,7 +52,7 @@ def settle_once(index: int, seed: int, step_s: float, scenario, library) -> dict
 def drift_in_episode_physics(spec, scenario, library, seconds: float = 1.0) -> list[float]:
     """How far each object of a settled spec moves in `seconds` of the scenario's own
     plant (its time step, no damping), placed at the spec's poses [mm]."""
-    from drake_grasp.scene import build_scene_world
+    from drake_grasp.world.scene import build_scene_world
 
     world = build_scene_world(spec, library, plant_config=copy.deepcopy(scenario.plant),
                               physics=scenario.physics)
@@ -102,8 +102,8 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from drake_grasp.objects import load_library
-    from drake_grasp.results import atomic_write_text
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.core.files import atomic_write_text
+    from drake_grasp.config.scenario import load_scenario
 
     scenario, library = load_scenario(scenario_name="random"), load_library(None)
     # Alternate the steps scene by scene: both see the same machine load.

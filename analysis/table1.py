@@ -13,7 +13,7 @@ import argparse
 import sys
 from typing import Sequence
 
-from drake_grasp.report import write_table1
+from drake_grasp.evaluation.report import write_table1
 
 
 def main(argv: Sequence[str] | None = None) -> int:

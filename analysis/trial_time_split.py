@@ -45,8 +45,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from drake_grasp.api import load_library, load_scenario, simulate_episode
-    from drake_grasp.scenario import apply_physics_profile
-    from drake_grasp.systems.evaluator import load_cnn
+    from drake_grasp.config.scenario import apply_physics_profile
+    from drake_grasp.policies.evaluator import load_cnn
 
     seeds = [int(s) for s in args.seeds.split(",")]
     profiles = args.profiles.split(",")

@@ -26,7 +26,7 @@ The usual path, lowest level first:
 5. `evaluate` runs one of the paper's `EXPERIMENTS` (Monte Carlo, resumable) and writes
    its report.
 6. Your own policy: `make_policy_system("module:factory", scenario)` builds and checks it
-   against the port contract of `drake_grasp.plugins`; pass the same string as
+   against the port contract of `drake_grasp.policies.plugins`; pass the same string as
    `Scenario.policy` or as an `evaluate` condition.
 7. The distance CNN: `load_cnn` (the shipped weights by default) -> `DistanceCNN`;
    `score_candidates(model, depth, actions)` scores candidate moves on one image. The
@@ -37,7 +37,7 @@ The usual path, lowest level first:
 
 from __future__ import annotations
 
-from drake_grasp.episode import (
+from drake_grasp.evaluation.episode import (
     EpisodeDiagram,
     EpisodeResult,
     EpisodeRun,
@@ -45,16 +45,16 @@ from drake_grasp.episode import (
     run_episode,
     simulate_episode,
 )
-from drake_grasp.experiments import EXPERIMENTS, Condition, Experiment
-from drake_grasp.fcn import FcnDistanceModel
-from drake_grasp.montecarlo import evaluate
-from drake_grasp.network import DistanceCNN
+from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.cnn.fcn import FcnDistanceModel
+from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.cnn.network import DistanceCNN
 from drake_grasp.objects import ObjectLibrary, load_library
-from drake_grasp.plugins import make_policy_system
-from drake_grasp.scenario import Scenario, dump_scenario, load_scenario
-from drake_grasp.scene import SceneSpec, make_scene, scenario_scene
-from drake_grasp.station import GraspStation, MakeGraspStation
-from drake_grasp.systems.evaluator import load_cnn, score_candidates
+from drake_grasp.policies.plugins import make_policy_system
+from drake_grasp.config.scenario import Scenario, dump_scenario, load_scenario
+from drake_grasp.world.scene import SceneSpec, make_scene, scenario_scene
+from drake_grasp.world.station import GraspStation, MakeGraspStation
+from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
 __all__ = [
     "load_scenario", "dump_scenario", "Scenario",

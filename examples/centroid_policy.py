@@ -1,6 +1,6 @@
 """A depth-centroid visual servo: a template for bringing your own policy.
 
-Run it from this folder (`drake_grasp.plugins` has the port contract):
+Run it from this folder (`drake_grasp.policies.plugins` has the port contract):
 
     drake-grasp demo --policy centroid_policy:make_policy --scenario isolation --seed 3 --out /tmp/centroid
     drake-grasp evaluate --experiment isolation --trials 4 --conditions ctr,centroid_policy:make_policy --out /tmp/byop
@@ -25,7 +25,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.grasps import topdown_rotation
+from drake_grasp.geometry.grasps import topdown_rotation
 from drake_grasp.systems.supervisor import MOTION_PHASES
 
 LIFT = MOTION_PHASES.index("lift")
@@ -58,7 +58,7 @@ class ServoState:
 class CentroidServo(LeafSystem):
     """The depth-centroid visual servo (see the module docstring).
 
-    Input ports: depth_image, motion_status, X_WG_start, X_GC (`drake_grasp.plugins`).
+    Input ports: depth_image, motion_status, X_WG_start, X_GC (`drake_grasp.policies.plugins`).
     Output ports: X_WG_desired, gripper_command, descending.
 
     Args:

@@ -29,12 +29,12 @@ def test_the_api_reference_page_builds_with_pdoc(tmp_path):
 
     import drake_grasp.api as api
 
-    pdoc.pdoc("drake_grasp.api", "drake_grasp.plugins", output_directory=tmp_path)
+    pdoc.pdoc("drake_grasp.api", "drake_grasp.policies.plugins", output_directory=tmp_path)
     page = (tmp_path / "drake_grasp" / "api.html").read_text()
     for name in api.__all__:
         assert name in page, name
     assert "MakeGraspStation" in page and "X_WG_desired" in page
-    assert (tmp_path / "drake_grasp" / "plugins.html").is_file()
+    assert (tmp_path / "drake_grasp" / "policies" / "plugins.html").is_file()
 
 
 def _python_usage_block() -> str:

@@ -21,10 +21,10 @@ import yaml
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from drake_grasp.cli import main
+from drake_grasp.cli.main import main
 from drake_grasp.objects import ObjectLibrary, import_mesh
 from drake_grasp.objects import importer
-from drake_grasp.scenario import Scenario, dump_scenario, load_scenario
+from drake_grasp.config.scenario import Scenario, dump_scenario, load_scenario
 
 CLEAR = (ValueError, KeyError, FileNotFoundError)
 
@@ -218,8 +218,8 @@ def _weights_variants(src: bytes) -> dict[str, bytes]:
 
 @pytest.mark.parametrize("variant", ["truncated", "flipped byte", "wrong metadata"])
 def test_corrupt_or_tampered_weights_file(tmp_path, capsys, variant):
-    from drake_grasp.assets import models_dir
-    from drake_grasp.network import load_weights
+    from drake_grasp.core.assets import models_dir
+    from drake_grasp.cnn.network import load_weights
 
     data, expected = _weights_variants((models_dir() / "cnn" / "weights.safetensors").read_bytes())[variant]
     path = tmp_path / "weights.safetensors"
@@ -238,7 +238,7 @@ def test_corrupt_or_tampered_weights_file(tmp_path, capsys, variant):
 
 
 def _tiny_dataset(out: Path) -> Path:
-    from drake_grasp.dataset import SceneSamples, config_hash, shard_name, write_manifest, write_shard
+    from drake_grasp.learning.dataset import SceneSamples, config_hash, shard_name, write_manifest, write_shard
 
     rng = np.random.default_rng(0)
     n, m = 8, 10
@@ -255,7 +255,7 @@ def _tiny_dataset(out: Path) -> Path:
 
 
 def test_truncated_hdf5_shard(tmp_path, capsys):
-    from drake_grasp.dataset import DepthGraspDataset, read_shard_counts
+    from drake_grasp.learning.dataset import DepthGraspDataset, read_shard_counts
 
     shard = _tiny_dataset(tmp_path / "data")
     assert len(DepthGraspDataset(tmp_path / "data")) == 16
@@ -274,9 +274,9 @@ def test_truncated_hdf5_shard(tmp_path, capsys):
 
 
 def test_results_folder_of_another_experiment(tmp_path, capsys):
-    from drake_grasp.experiments import get_experiment
-    from drake_grasp.montecarlo import evaluate, run_identity
-    from drake_grasp.results import write_run_info
+    from drake_grasp.evaluation.experiments import get_experiment
+    from drake_grasp.evaluation.montecarlo import evaluate, run_identity
+    from drake_grasp.evaluation.records import write_run_info
 
     out = tmp_path / "results"
     write_run_info(out, run_identity(get_experiment("isolation"), seed=0))  # what evaluate writes
@@ -299,10 +299,8 @@ def _enospc(*args, **kwargs):
 
 
 def test_full_disk_during_a_write(tmp_path, monkeypatch):
-    from drake_grasp.dataset import shard_name
-    from drake_grasp.results import atomic_write_bytes
-
-    # Results: the old file stays, no temporary file is left, the error names the path.
+    from drake_grasp.learning.dataset import shard_name
+    from drake_grasp.core.files import atomic_write_bytes
     path = tmp_path / "results" / "run.json"
     atomic_write_bytes(path, b"old")
     with monkeypatch.context() as m:

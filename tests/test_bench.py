@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from drake_grasp import bench
-from drake_grasp.cli import main
+from drake_grasp.cli import bench
+from drake_grasp.cli.main import main
 
 
 def test_every_printed_key_names_its_group():

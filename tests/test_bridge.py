@@ -1,4 +1,4 @@
-"""The controller and the station in two processes (drake_grasp.bridge): the same episode
+"""The controller and the station in two processes (drake_grasp.evaluation.bridge): the same episode
 as in process, driver messages that survive the wire, clear errors for a bad peer."""
 
 import socket
@@ -9,14 +9,14 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from drake_grasp import bridge
-from drake_grasp.bridge import BridgeError, BridgeLink
-from drake_grasp.scenario import load_scenario
+from drake_grasp.evaluation import bridge
+from drake_grasp.evaluation.bridge import BridgeError, BridgeLink
+from drake_grasp.config.scenario import load_scenario
 
 
 @pytest.fixture(scope="module")
 def ctr_episode(library):
-    from drake_grasp.scene import make_scene
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 0, policy: ctr}")
     scene = make_scene(scenario.scene, scenario.seed, library, scenario.plant,
@@ -25,7 +25,7 @@ def ctr_episode(library):
 
 
 def test_split_episode_equals_the_in_process_episode(ctr_episode, library):
-    from drake_grasp.episode import simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
 
     scenario, scene = ctr_episode
     t0 = time.perf_counter()
@@ -176,7 +176,7 @@ def test_policies_that_cannot_cross_are_refused_before_anything_starts():
 
 
 def test_station_refuses_an_unknown_arm_input():
-    from drake_grasp.station import MakeGraspStation
+    from drake_grasp.world.station import MakeGraspStation
 
     scenario = load_scenario(scenario_name="isolation")
     with pytest.raises(ValueError, match="arm_input: expected 'X_WG_desired' or "

@@ -4,7 +4,7 @@ import json
 
 import trimesh
 
-from drake_grasp.cli import main
+from drake_grasp.cli.main import main
 
 
 def test_diagram_writes_svg_or_dot(tmp_path, capsys):
@@ -51,7 +51,7 @@ def test_gpd_generate_refuses_unknown_scene_kinds(tmp_path, capsys):
 def test_gpd_generate_passes_its_settling_limit_and_scene_kinds(tmp_path, monkeypatch, capsys):
     """gpd-generate --settle-max-time S --scene-kinds K: the data config gets both (they are
     part of a data folder's identity); a limit <= 0 is refused before anything runs."""
-    from drake_grasp import gpd_training
+    from drake_grasp.learning import gpd_training
 
     seen = {}
 

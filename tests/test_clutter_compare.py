@@ -2,7 +2,7 @@
 left, and agreement up to the first failure, from two folders of clutter records."""
 
 
-from drake_grasp.results import write_record
+from drake_grasp.evaluation.records import write_record
 from test_results import make_record
 
 

@@ -10,12 +10,12 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from drake_grasp.actions import apply_actions
-from drake_grasp.policies import displacement_norm, gaussian_noisy_displacement
-from drake_grasp.scenario import load_scenario
-from drake_grasp.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.systems.controller import GraspController, Phase, hand_to_pose
-from drake_grasp.systems.evaluator import ActionSampler
+from drake_grasp.geometry.actions import apply_actions
+from drake_grasp.policies.decisions import displacement_norm, gaussian_noisy_displacement
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
+from drake_grasp.policies.controller import GraspController, Phase, hand_to_pose
+from drake_grasp.policies.evaluator import ActionSampler
 
 GOAL = np.array([0.53, -0.02, 20.0])  # world [x, y, yaw_deg] the stand-in CNN points at
 
@@ -31,7 +31,7 @@ class StandInEvaluator(LeafSystem):
                                        self._Calc)
 
     def _Calc(self, context, output):
-        from drake_grasp.grasps import grasp_distance
+        from drake_grasp.geometry.grasps import grasp_distance
 
         actions = self.get_input_port(0).Eval(context)
         X = self.get_input_port(1).Eval(context)
@@ -265,8 +265,8 @@ def test_offset_model_shifts_the_commanded_pose(scenario):
 
 @pytest.mark.parametrize("step,shifted", [(2, False), (3, True)])
 def test_shift_after_the_third_iteration_moves_objects_with_the_sheet(library, step, shifted):
-    from drake_grasp.scene import make_scene
-    from drake_grasp.station import MakeGraspStation
+    from drake_grasp.world.scene import make_scene
+    from drake_grasp.world.station import MakeGraspStation
     from drake_grasp.systems.disturbance import SheetDisturbance
 
     scenario = load_scenario(scenario_name="clutter_shift", scenario_text=(
@@ -352,7 +352,7 @@ def test_oracle_analysis_scores_every_step_with_the_true_distance(analysis_scrip
     """analysis/oracle_ctr.py (CTR with the true distance function, a diagnostic): every
     control decision of the trial went through the oracle, the controller class is put
     back afterwards, and with perfect scores the hand ends on a true grasp."""
-    import drake_grasp.systems.controller as controller_module
+    import drake_grasp.policies.controller as controller_module
 
     oracle = analysis_script("oracle_ctr")
     trial = oracle.run_trial(0, 0)  # isolation trial 0: a lying apple

@@ -17,10 +17,10 @@ import h5py
 import numpy as np
 import pytest
 
-from drake_grasp import dataset as dataset_module
-from drake_grasp.dataset import (DatasetConfig, DepthGraspDataset, SceneSamples,
+from drake_grasp.learning import dataset as dataset_module
+from drake_grasp.learning.dataset import (DatasetConfig, DepthGraspDataset, SceneSamples,
                                  generate_dataset, scene_seed)
-from drake_grasp.scenario import load_scenario
+from drake_grasp.config.scenario import load_scenario
 
 TINY = dict(images_per_scene=3, offsets_per_image=5, scenes_per_shard=2)
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +98,7 @@ def test_near_grasp_images_look_near_a_true_grasp_and_leave_the_others_unchanged
     true grasps (within the configured range, so their zero-offset label is at most
     the range's reach); the scenes, the other images and their labels are those of the
     plain dataset; the plain config's identity (and so its folders' hash) is unchanged."""
-    from drake_grasp.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 
     out, _ = reference
     cfg = DatasetConfig(**TINY, near_grasp_fraction=0.34)  # 1 of 3 images per scene
@@ -127,7 +127,7 @@ def test_clutter_scene_kind_pours_the_scenarios_pile(tmp_path):
     scene.clutter_objects objects stacked in a column (poured when settled), drawn from
     the scene's own seed; the kind enters the config's identity (the random default
     leaves it unchanged); an unknown kind is refused by name."""
-    from drake_grasp.dataset import sample_dataset_scene
+    from drake_grasp.learning.dataset import sample_dataset_scene
     from drake_grasp.objects import load_library
 
     library = load_library(None)
@@ -155,7 +155,7 @@ def test_clutter_scene_kind_pours_the_scenarios_pile(tmp_path):
         DatasetConfig(scene_kind="pile").validate()
     with pytest.raises(ValueError, match="settle_max_time_s: expected > 0, got 0.0"):
         DatasetConfig(settle_max_time_s=0.0).validate()
-    from drake_grasp.cli import build_parser
+    from drake_grasp.cli.main import build_parser
 
     args = build_parser().parse_args(["generate", "--scenes", "1", "--split", "train", "--out",
                                       "x", "--scene-kind", "clutter", "--settle-max-time", "6"])
@@ -181,8 +181,8 @@ def test_killed_run_resumes_to_the_same_counts(reference, tmp_path, capfd):
     _, manifest = reference
     out = tmp_path / "killed"
     code = (
-        "from drake_grasp.dataset import DatasetConfig, generate_dataset\n"
-        "from drake_grasp.scenario import load_scenario\n"
+        "from drake_grasp.learning.dataset import DatasetConfig, generate_dataset\n"
+        "from drake_grasp.config.scenario import load_scenario\n"
         f"generate_dataset(out={str(out)!r}, num_scenes=3, split='train', seed=5,\n"
         "  scenario=load_scenario(scenario_name='random', scenario_text='{seed: 5}'),\n"
         f"  config=DatasetConfig(**{TINY!r}), workers=1, progress=False)\n"
@@ -228,7 +228,7 @@ def test_settling_that_hits_the_time_cap_is_not_labelled_settled(library):
     """Two scenes of the dataset's seed sequence under the dataset's settling (5 ms steps,
     verified rest, 3 s cap, 0.01 m/s): scene_seed(0, 4) is still moving at the cap,
     scene_seed(0, 0) comes to rest (analysis/results/settle-check)."""
-    from drake_grasp.scene import build_scene_world, sample_scene, settle_world
+    from drake_grasp.world.scene import build_scene_world, sample_scene, settle_world
 
     scenario = load_scenario(scenario_name="random")
     cfg = DatasetConfig()
@@ -246,7 +246,7 @@ def test_settling_that_hits_the_time_cap_is_not_labelled_settled(library):
 
 
 def test_object_counts_are_uniform_and_kept_by_replacements():
-    from drake_grasp.dataset import scene_object_count
+    from drake_grasp.learning.dataset import scene_object_count
 
     counts = [scene_object_count(0, i, 1, 5) for i in range(5000)]
     assert counts == [scene_object_count(0, i, 1, 5) for i in range(5000)]
@@ -262,13 +262,13 @@ def test_unsettled_and_graspless_scenes_are_replaced_by_the_next_seed_of_their_s
     """The seed the reference kept for scene 0 is forced to end unsettled, and the one
     it kept for scene 2 to have no grasp: each is replaced by a later seed of its own
     sequence, counted in the manifest, and scene 1 is the reference's scene 1."""
-    import drake_grasp.grasps
-    import drake_grasp.scene
+    import drake_grasp.geometry.grasps
+    import drake_grasp.world.scene
 
     ref_out, ref = reference
     ref_scenes = _stored_scenes(ref_out)
     unsettled_seed, graspless_seed = ref_scenes[0][1]["seed"], ref_scenes[2][1]["seed"]
-    real_settle, real_find = drake_grasp.scene.settle_world, drake_grasp.grasps.find_grasps
+    real_settle, real_find = drake_grasp.world.scene.settle_world, drake_grasp.geometry.grasps.find_grasps
 
     def settle(world, spec, **kw):
         result = real_settle(world, spec, **kw)
@@ -282,8 +282,8 @@ def test_unsettled_and_graspless_scenes_are_replaced_by_the_next_seed_of_their_s
                                    widths=np.zeros(0))
         return real_find(spec, library, rng, **kw)
 
-    monkeypatch.setattr(drake_grasp.scene, "settle_world", settle)
-    monkeypatch.setattr(drake_grasp.grasps, "find_grasps", find)
+    monkeypatch.setattr(drake_grasp.world.scene, "settle_world", settle)
+    monkeypatch.setattr(drake_grasp.geometry.grasps, "find_grasps", find)
     manifest = _generate(tmp_path / "replaced")
     assert manifest["num_scenes"] == 3
     assert manifest["num_scenes_unsettled_resampled"] >= 1
@@ -348,7 +348,7 @@ def test_scenes_gives_exactly_n_when_n_is_not_a_multiple_of_the_shard_size(tmp_p
 _HOLD_LOCK = """
 import sys
 from pathlib import Path
-from drake_grasp.dataset import GenerateLock
+from drake_grasp.learning.dataset import GenerateLock
 lock = GenerateLock(sys.argv[1]).acquire()
 Path(sys.argv[1], f"shard-00000.h5.{lock.token}.{sys.argv[2]}.tmp").write_bytes(b"in progress")
 print("ready", flush=True)
@@ -437,8 +437,8 @@ def test_same_dataset_on_a_dask_local_cluster(reference, tmp_path):
 def test_the_ranking_metrics_true_distances_are_the_datasets_own_labels(reference):
     """cnn_metrics labels new candidates with the shard's grasps and the dataset's label
     function: on the stored offsets that gives the stored labels back."""
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 
     out, manifest = reference
     data = DepthGraspDataset(out)
@@ -454,8 +454,8 @@ def test_the_ranking_metrics_true_distances_are_the_datasets_own_labels(referenc
 def test_ranking_metrics_on_a_generated_set(reference):
     import torch
 
-    from drake_grasp.cnn_metrics import ranking_metrics
-    from drake_grasp.network import DistanceCNN, NetworkConfig
+    from drake_grasp.learning.cnn_metrics import ranking_metrics
+    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
 
     model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(0))
     out, _ = reference
@@ -473,9 +473,10 @@ def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path, 
     computes it) and the ranking metrics, written to JSON."""
     import torch
 
-    from drake_grasp.cnn_metrics import ranking_metrics
-    from drake_grasp.network import load_weights
-    from drake_grasp.training import ChunkCache, ShardSet, evaluate_l1
+    from drake_grasp.learning.cnn_metrics import ranking_metrics
+    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.learning.training import evaluate_l1
+    from drake_grasp.learning.common import ChunkCache, ShardSet
 
     out, _ = reference
     script = analysis_script("cnn_eval")
@@ -495,8 +496,8 @@ def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_pat
     `controller.weights: A,B` scores in an episode); an empty item is refused."""
     import torch
 
-    from drake_grasp.network import load_weights
-    from drake_grasp.training import ChunkCache, ShardSet
+    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.learning.common import ChunkCache, ShardSet
 
     out, _ = reference
     script = analysis_script("cnn_eval")
@@ -516,7 +517,7 @@ def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_pat
     assert errors[0] != pytest.approx(errors[1], rel=1e-3)  # two different nets
     assert result["ranking"]["images"] == 3
     # the episode's ensemble (`load_cnn("A,B")`, `score_candidates`) scores alike
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
     mean = script.MeanCNN(nets)
     actions = np.array([[0.0, 0.0, 0.0], [0.02, -0.01, 30.0], [-0.03, 0.01, -60.0]], np.float32)
@@ -526,7 +527,7 @@ def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_pat
     np.testing.assert_allclose(ours.double().numpy(), episode, atol=1e-6)
     from dataclasses import replace
 
-    from drake_grasp.network import DistanceCNN
+    from drake_grasp.cnn.network import DistanceCNN
 
     other = DistanceCNN(replace(nets[0].config, depth_offset_m=0.4))
     with pytest.raises(ValueError, match="member 1 has depth_offset_m = 0.4"):
@@ -542,9 +543,9 @@ def test_cnn_eval_views_average_the_grid_over_the_turned_views(reference, tmp_pa
     --views are refused."""
     import torch
 
-    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
-    from drake_grasp.network import load_weights
-    from drake_grasp.training import ChunkCache, ShardSet
+    from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
+    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.learning.common import ChunkCache, ShardSet
 
     out, _ = reference
     script = analysis_script("cnn_eval")
@@ -582,7 +583,7 @@ def test_cnn_eval_views_average_the_grid_over_the_turned_views(reference, tmp_pa
 def test_spearman_matches_scipy_and_is_nan_without_an_order():
     from scipy.stats import spearmanr
 
-    from drake_grasp.cnn_metrics import spearman
+    from drake_grasp.learning.cnn_metrics import spearman
 
     rng = np.random.default_rng(0)
     a, b = rng.random((5, 20)), rng.random((5, 20))

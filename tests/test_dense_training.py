@@ -7,25 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from drake_grasp.actions import apply_actions
-from drake_grasp.dataset import SceneSamples, shard_name, write_shard
-from drake_grasp.dense_training import (
-    AUGMENTATIONS,
-    GRID_CONFIG,
-    augment_batch,
-    build_labels,
-    grid_node_actions,
-    load_labels,
-    nearest_grasp_tree,
-    optical_axis_px,
-    train,
-    tree_distances,
-    turn_grids,
-    turn_images,
-    view_masks,
-)
-from drake_grasp.grasps import distance_to_nearest_grasp
-from drake_grasp.station import gripper_frame_offsets
+from drake_grasp.geometry.actions import apply_actions
+from drake_grasp.learning.dataset import SceneSamples, shard_name, write_shard
+from drake_grasp.learning.dense_training import (GRID_CONFIG, augment_batch, build_labels,
+    grid_node_actions, load_labels, nearest_grasp_tree, train, tree_distances, view_masks)
+from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images
+from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.world.station import gripper_frame_offsets
 
 CAMERA_Z = float(gripper_frame_offsets()[2].translation()[2])
 
@@ -111,9 +99,9 @@ def test_a_grid_net_with_another_trunk_trains_saves_and_scores(tmp_path, capsys)
     another run, and init weights of another trunk are refused."""
     import numpy as np
 
-    from drake_grasp.cli import main
-    from drake_grasp.network import load_weights
-    from drake_grasp.systems.evaluator import score_candidates
+    from drake_grasp.cli.main import main
+    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.policies.evaluator import score_candidates
 
     _shard(tmp_path / "data", scenes=2, images=4)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -159,8 +147,8 @@ def test_training_runs_in_full_float32_and_restores_the_flags(tmp_path, monkeypa
     """TF32 convolutions (PyTorch's default for cuDNN) would change a run's arithmetic
     when it resumes on a GPU (measured: analysis/results/device-train-check/); the
     trainer turns them off for its duration only."""
-    import drake_grasp.dense_training as dt
-    from drake_grasp.training import full_float32
+    import drake_grasp.learning.dense_training as dt
+    from drake_grasp.learning.common import full_float32
 
     flags = lambda: (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32)
     saved = flags()
@@ -195,7 +183,7 @@ def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
     """`device`: the checkpoint moves between devices; the GPU's float32 arithmetic
     differs from the CPU's in the last bits, so the weights agree to a tolerance (with
     TF32 convolutions they did not: 1.1e-4 apart on an H200; 1.7e-6 in full float32)."""
-    from drake_grasp.network import load_weights
+    from drake_grasp.cnn.network import load_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -210,7 +198,7 @@ def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
 
 
 def test_cli_refuses_a_folder_that_holds_no_labels(tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     assert main(["train-grid", "--labels", str(tmp_path), "--out", str(tmp_path / "run")]) == 2
     assert "not a dense-labels folder" in capsys.readouterr().err
@@ -229,7 +217,7 @@ def test_a_moved_label_folder_resumes_its_run(tmp_path):
 def _labels_and_a_grid_net(tmp_path):
     """Dense labels of a small dataset in tmp_path/grid, and a random grid net to start
     from (its weights file, returned)."""
-    from drake_grasp.network import DistanceCNN, save_weights
+    from drake_grasp.cnn.network import DistanceCNN, save_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -244,9 +232,9 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
     Conv1, Conv2 and IP1 exactly (the folded plain net equals the module in eval mode);
     from trained weights they start as the identity (the folded net at step 0 is the
     init net); a killed run resumes to the unbroken one's weights; it is another run."""
-    from drake_grasp.cli import main
-    from drake_grasp.dense_training import BatchNormTrunk
-    from drake_grasp.network import DistanceCNN, load_weights
+    from drake_grasp.cli.main import main
+    from drake_grasp.learning.dense_training import BatchNormTrunk
+    from drake_grasp.cnn.network import DistanceCNN, load_weights
 
     gen = torch.Generator().manual_seed(3)
     net = DistanceCNN(GRID_CONFIG, generator=gen).double()
@@ -341,9 +329,9 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
     """`drake-grasp checkpoint-weights` on a `train-grid` run (no train_config.json): a
     BatchNorm run's checkpoint comes out folded, equal to the epoch file at an epoch's
     end; within an epoch it says how far the run got."""
-    from drake_grasp.cli import main
-    from drake_grasp.dense_training import export_checkpoint_weights
-    from drake_grasp.network import load_weights
+    from drake_grasp.cli.main import main
+    from drake_grasp.learning.dense_training import export_checkpoint_weights
+    from drake_grasp.cnn.network import load_weights
 
     init = _labels_and_a_grid_net(tmp_path)
     kw = dict(test_data=None, init=str(init), epochs=1, batch=4, lr=1e-3, threads=1,
@@ -378,7 +366,7 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
 
 
 def _assert_same_weights(path_a, path_b):
-    from drake_grasp.network import load_weights
+    from drake_grasp.cnn.network import load_weights
 
     a, _ = load_weights(path_a)
     b, _ = load_weights(path_b)
@@ -401,7 +389,7 @@ def test_streamed_epochs_take_every_image_once_and_hold_at_most_two_groups(tmp_p
     each group of G parts contiguous in it; what a batch takes equals the in-memory
     labels at those indices; while the batches go through the epoch no more than the
     parts of two groups are held."""
-    from drake_grasp.dense_training import LabelStore
+    from drake_grasp.learning.dense_training import LabelStore
 
     folders = _label_folders(tmp_path, n=5, images=3)  # 5 parts of 6 images
     whole = load_labels(folders)
@@ -435,7 +423,7 @@ def test_a_killed_streamed_run_resumes_to_the_uninterrupted_weights(tmp_path, ca
     """`train-grid --stream-shards G`: a streamed run killed mid-epoch resumes to the
     unbroken run's weights; its identity names the grouping, so an in-memory run's folder
     refuses it; a misshapen part is named when its group is reached."""
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     folders = _label_folders(tmp_path, n=3, images=4)  # 3 parts of 8 images
     kw = dict(test_data=None, init=None, epochs=2, batch=5, lr=1e-3, threads=1,
@@ -495,7 +483,7 @@ X_GC_XY = gripper_frame_offsets()[2].translation()[:2]
 
 
 def _camera_centre(hand):
-    from drake_grasp.actions import hand_axes
+    from drake_grasp.geometry.actions import hand_axes
 
     ex, ey = hand_axes(hand[3])
     return hand[:2] + X_GC_XY[0] * ex + X_GC_XY[1] * ey
@@ -504,7 +492,7 @@ def _camera_centre(hand):
 def _hand_turned_about_the_camera(hand, dyaw_deg):
     """The hand turned by `dyaw_deg` about the camera's (vertical) axis: same camera
     centre and height, yaw + dyaw."""
-    from drake_grasp.actions import hand_axes
+    from drake_grasp.geometry.actions import hand_axes
 
     centre = _camera_centre(hand)
     yaw = hand[3] + dyaw_deg
@@ -529,7 +517,7 @@ def test_turned_label_grids_are_the_labels_of_the_turned_hand_and_the_mirrored_s
     degrees about the camera's axis, and the labels of the scene reflected in the camera's
     y-z plane, are the original grid under the symmetry `turn_images` applies to the
     image."""
-    from drake_grasp.actions import hand_axes
+    from drake_grasp.geometry.actions import hand_axes
 
     rng = np.random.default_rng(3)
     hand = np.array([0.52, 0.03, 0.25, 37.0])
@@ -567,9 +555,9 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
     turned about the image's centre (31.5, 31.5), which `CameraInfo` documents as its
     principal point, it is a pixel off."""
     pytest.importorskip("pydrake")
-    from drake_grasp.dataset import SceneRenderer
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import build_scene_world, make_scene
+    from drake_grasp.learning.dataset import SceneRenderer
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import build_scene_world, make_scene
 
     scenario = load_scenario(scenario_name="isolation",
                              scenario_text="{scene: {object_ids: [tetra_pak_000], pose: lying}}")
@@ -632,7 +620,7 @@ def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
     """`train(augment="d4")`: the draws are seeded by (seed, epoch, batch), so a killed run
     resumes to the unbroken run's weights; the augmentation is part of the run's identity,
     and it changes what is learnt."""
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -660,7 +648,7 @@ def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
 
 
 def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
-    from drake_grasp.dense_training import RANK_REACH_CELLS, rank_pairs
+    from drake_grasp.learning.dense_training import RANK_REACH_CELLS, rank_pairs
 
     shape = GRID_CONFIG.grid_shape()
     t_bins, n, _ = shape
@@ -684,7 +672,7 @@ def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
 
 
 def test_pairwise_rank_loss_is_the_logistic_loss_of_the_counted_pairs():
-    from drake_grasp.dense_training import pairwise_rank_loss
+    from drake_grasp.learning.dense_training import pairwise_rank_loss
 
     rng = np.random.default_rng(0)
     shape = (2, 3, 3, 3)
@@ -719,7 +707,7 @@ def test_a_rank_loss_run_resumes_and_is_its_own_run(tmp_path):
     """`train(rank_weight=...)`: the pairs are drawn from (seed, epoch, batch), so a killed
     run resumes to the unbroken run's weights; the rank settings are part of the run's
     identity (absent without them) and change what is learnt."""
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)

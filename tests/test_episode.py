@@ -6,9 +6,9 @@ import shutil
 import numpy as np
 import pytest
 
-from drake_grasp import episode as episode_module
-from drake_grasp.episode import run_episode, simulate_episode
-from drake_grasp.scenario import load_scenario
+from drake_grasp.evaluation import episode as episode_module
+from drake_grasp.evaluation.episode import run_episode, simulate_episode
+from drake_grasp.config.scenario import load_scenario
 
 
 def _isolated(object_id: str, pose: str, seed: int = 0, extra: str = ""):
@@ -66,7 +66,7 @@ def test_failed_episode_leaves_nothing_in_out(tmp_path, library, monkeypatch):
 
 
 def test_demo_into_an_earlier_episode_leaves_no_stale_file(tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     out = tmp_path / "demo"
     out.mkdir()
@@ -86,7 +86,7 @@ def test_demo_into_an_earlier_episode_leaves_no_stale_file(tmp_path, capsys):
 
 
 def test_demo_refuses_a_folder_that_is_not_an_episode(tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     out = tmp_path / "home"
     out.mkdir()
@@ -163,8 +163,8 @@ def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeyp
     """The gpd policy with a stand-in detector that returns the scripted (ground-truth)
     grasp tilted 20 degrees about y_G: one GPD image at the viewpoint, then the
     tilted approach, close and lift hold the can."""
-    from drake_grasp.episode import plan_scripted_grasp
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import plan_scripted_grasp
+    from drake_grasp.world.scene import make_scene
 
     counts = _count_depth_postprocessing(monkeypatch)
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
@@ -207,10 +207,10 @@ def test_detection_check_reports_the_ground_truth_verdict_and_the_object(library
     seeded by the trial's seed) for the detected pose and the object between its pads:
     ground-truth grasps of the settled can pass on both samplings or on one, and the
     same poses 15 cm aside, over the bare sheet, on none and on no object."""
-    from drake_grasp.episode import detection_check
-    from drake_grasp.gpd_training import GpdDataConfig, ground_truth_passes
-    from drake_grasp.grasps import find_grasps
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import detection_check
+    from drake_grasp.learning.gpd_training import GpdDataConfig, ground_truth_passes
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 1, policy: gpd, scene: {object_ids: [can_000], pose: lying}}"))
@@ -260,7 +260,7 @@ def test_ctr_episode_never_renders_the_gpd_sensor(library, monkeypatch):
 def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
     import dataclasses
 
-    from drake_grasp.scene import make_scene
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="random",
                              scenario_text="{seed: 4, policy: ctr, max_sim_time_s: 1.0}")
@@ -277,9 +277,9 @@ def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
 
 
 def test_controller_class_swaps_the_policys_controller_for_the_block_only(library):
-    from drake_grasp.episode import build_episode_diagram, controller_class
-    from drake_grasp.scene import make_scene
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.evaluation.episode import build_episode_diagram, controller_class
+    from drake_grasp.world.scene import make_scene
+    from drake_grasp.policies.controller import GraspController
 
     class Marked(GraspController):
         pass

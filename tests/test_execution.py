@@ -8,11 +8,11 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from drake_grasp.grasps import FINGERTIP_Z_M
-from drake_grasp.policies import grasp_axis_pixel, grasp_height
-from drake_grasp.scenario import load_scenario
-from drake_grasp.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.systems.controller import GraspController, Phase
+from drake_grasp.geometry.grasps import FINGERTIP_Z_M
+from drake_grasp.policies.decisions import grasp_axis_pixel, grasp_height
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
+from drake_grasp.policies.controller import GraspController, Phase
 
 START_CAMERA_HEIGHT_M = 0.3
 
@@ -67,7 +67,7 @@ def test_grasp_height_goes_down_to_the_widest_section_seen_between_the_pads():
     widest section along the closing direction is at the axis, 47 mm up, below the
     default 2.5 cm under its 92 mm top; the pads go there. A box's walls are not seen
     from above, so its widest section reads as its top and the default depth stays."""
-    from drake_grasp.policies import widest_section_height
+    from drake_grasp.policies.decisions import widest_section_height
 
     kw = dict(depth_below_top_m=0.025, fingertip_below_centre_m=0.019, support_margin_m=0.004)
     R, sheet = 0.045, 0.002
@@ -92,7 +92,7 @@ def test_widest_section_is_not_read_off_a_standing_objects_side_wall():
     camera. The wall's lower points are not a widest section (the palm would come down
     on the top): no widest section, the pads go 2.5 cm under the top. A lying cylinder
     of the same width keeps its widest section."""
-    from drake_grasp.policies import widest_section_height
+    from drake_grasp.policies.decisions import widest_section_height
 
     kw = dict(depth_below_top_m=0.025, fingertip_below_centre_m=0.019, support_margin_m=0.004)
     R, sheet, top = 0.018, 0.002, 0.186

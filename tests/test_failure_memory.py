@@ -8,13 +8,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-import drake_grasp.montecarlo as m
-from drake_grasp.gpd import Detections
-from drake_grasp.montecarlo import evaluate
-from drake_grasp.policies import memory_penalty
-from drake_grasp.results import load_records
-from drake_grasp.scenario import load_scenario
-from drake_grasp.systems.controller import Phase, hand_to_pose
+import drake_grasp.evaluation.montecarlo as m
+from drake_grasp.policies.gpd import Detections
+from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.policies.decisions import memory_penalty
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.policies.controller import Phase, hand_to_pose
 from test_hand_check import ctr_first_step
 from test_montecarlo import _pile, _scripted_simulate
 
@@ -66,7 +66,7 @@ def test_ctr_leaves_a_candidate_that_leads_onto_a_remembered_grasp():
 
 
 def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, monkeypatch):
-    import drake_grasp.scene as scene_module
+    import drake_grasp.world.scene as scene_module
 
     # attempt 0 closes and fails, 1 detects nothing (never closes), 2 raises, 3 grasps,
     # 4-6 close and fail: the run ends after three failed grasps in a row.
@@ -113,8 +113,8 @@ def test_the_options_reach_their_conditions_and_the_runs_identity():
     """--failure-memory reaches every condition, --no-gpd-fallback the gpd conditions
     only (the fallback is the scenario's default); both change the identity of what they
     reach."""
-    from drake_grasp.experiments import EXPERIMENTS, trial_scenario
-    from drake_grasp.scenario import GpdConfig
+    from drake_grasp.evaluation.experiments import EXPERIMENTS, trial_scenario
+    from drake_grasp.config.scenario import GpdConfig
 
     assert GpdConfig().fallback_best is True
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
@@ -139,7 +139,7 @@ def test_the_options_reach_their_conditions_and_the_runs_identity():
 def test_the_cli_fallback_flag_is_three_way():
     """evaluate's --gpd-fallback / --no-gpd-fallback set the option; neither keeps the
     scenario's (None, the fallback on)."""
-    from drake_grasp.cli import build_parser
+    from drake_grasp.cli.main import build_parser
 
     parse = lambda *a: build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "r", *a])
     assert parse().gpd_fallback is None

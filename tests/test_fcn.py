@@ -1,4 +1,4 @@
-"""drake_grasp/fcn.py: the height-map FCN as a distance function - its weights file, its
+"""drake_grasp/cnn/fcn.py: the height-map FCN as a distance function - its weights file, its
 scores at the grid's nodes, its grasp map, the shipped file's provenance, and the FCN in
 an episode's Diagram, where the controller gives it the camera's height."""
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from drake_grasp import fcn
-from drake_grasp.assets import models_dir
-from drake_grasp.dense_training import GRID_CONFIG, grid_node_actions
-from drake_grasp.scenario import load_scenario
-from drake_grasp.systems.evaluator import (FCN_WEIGHTS, load_cnn, needs_camera_height,
+from drake_grasp.cnn import fcn
+from drake_grasp.core.assets import models_dir
+from drake_grasp.learning.dense_training import GRID_CONFIG, grid_node_actions
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.policies.evaluator import (FCN_WEIGHTS, load_cnn, needs_camera_height,
                                            score_candidates)
 
 SHIPPED = models_dir() / FCN_WEIGHTS
@@ -132,8 +132,8 @@ def test_the_shipped_fcns_are_the_committed_nets_with_their_validation_threshold
 
 
 def test_the_evaluator_gets_the_controllers_camera_height_in_the_episode(library):
-    from drake_grasp.episode import build_episode_diagram
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 3, policy: ctr, controller: {profile: robot, weights: '%s'},"
@@ -158,7 +158,7 @@ def test_the_evaluator_gets_the_controllers_camera_height_in_the_episode(library
 
 
 def test_ctr_with_the_fcn_grasps_an_isolated_can(library):
-    from drake_grasp.episode import simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 1, policy: ctr, controller: {profile: robot, weights: '%s'},"
@@ -171,7 +171,7 @@ def test_ctr_with_the_fcn_grasps_an_isolated_can(library):
 
 
 def test_an_ensemble_with_the_fcn_passes_the_height_to_it_and_means_the_scores():
-    from drake_grasp.systems.evaluator import DEFAULT_WEIGHTS
+    from drake_grasp.policies.evaluator import DEFAULT_WEIGHTS
 
     cnn_file = str(models_dir() / DEFAULT_WEIGHTS)
     ensemble = load_cnn(f"{SHIPPED},{cnn_file}")
@@ -196,8 +196,8 @@ def test_cnn_only_scores_its_global_candidates_with_the_start_camera_height():
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-    from drake_grasp.station import gripper_frame_offsets, topdown_pose
-    from drake_grasp.systems.controller import GraspController, Phase
+    from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
+    from drake_grasp.policies.controller import GraspController, Phase
 
     scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
     _, _, X_GC = gripper_frame_offsets()

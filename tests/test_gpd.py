@@ -1,12 +1,12 @@
-"""The learned GPD baseline's pipeline (drake_grasp.gpd), without Drake."""
+"""The learned GPD baseline's pipeline (drake_grasp.policies.gpd), without Drake."""
 
 import numpy as np
 import pytest
 import torch
 import trimesh
 
-from drake_grasp import gpd
-from drake_grasp.grasps import TABLE_TOP_Z_M, topdown_rotation
+from drake_grasp.policies import gpd
+from drake_grasp.geometry.grasps import TABLE_TOP_Z_M, topdown_rotation
 
 
 def _view(height=0.6, xy=(0.5, 0.0)):
@@ -170,7 +170,7 @@ def test_classifier_weights_round_trip_and_bad_files(tmp_path):
 def test_ensemble_averages_its_members_and_round_trips(tmp_path, capsys):
     """`gpd-combine` writes one file whose probabilities are the mean of its sources'; a
     combined file can be combined again (flattened), and bad inputs are refused."""
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     x = np.random.default_rng(1).random((6, gpd.CHANNELS, gpd.IMAGE_SIZE, gpd.IMAGE_SIZE)).astype(np.float32)
     paths, probs = [], []
@@ -206,7 +206,7 @@ def test_ensemble_averages_its_members_and_round_trips(tmp_path, capsys):
 
     bad = tmp_path / "bad.safetensors"
     safetensors.torch.save_file({k: v.contiguous() for k, v in loaded.state_dict().items()}, str(bad),
-                                metadata={"format": "drake_grasp.gpd.GraspClassifier", "members": "1"})
+                                metadata={"format": "drake_grasp.policies.gpd.GraspClassifier", "members": "1"})
     with pytest.raises(ValueError, match="'members' is '1'"):
         gpd.load_classifier(bad)
 

@@ -2,7 +2,7 @@
 
 Most tests ray-cast synthetic depth images in numpy with the wrist camera's pinhole
 model (no Drake); one renders a real scene with Drake and checks the best detection
-against the ground-truth grasp tests of `drake_grasp.grasps`.
+against the ground-truth grasp tests of `drake_grasp.geometry.grasps`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from drake_grasp.gpd_geometric import (
+from drake_grasp.policies.gpd_geometric import (
     DetectedGrasps,
     ScoreWeights,
     best_grasp,
@@ -20,7 +20,7 @@ from drake_grasp.gpd_geometric import (
     detect_grasps,
     remove_table,
 )
-from drake_grasp.grasps import (
+from drake_grasp.geometry.grasps import (
     TABLE_TOP_Z_M,
     angle_difference_deg,
     check_grasp_poses,
@@ -318,12 +318,12 @@ def test_bad_arguments_are_named():
 
 def test_rendered_tetra_pak_best_detection_is_a_true_grasp(library):
     pytest.importorskip("pydrake")
-    from drake_grasp.dataset import SceneRenderer
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps, scene_meshes
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import build_scene_world, make_scene
-    from drake_grasp.sensing import postprocess_depth
-    from drake_grasp.station import gripper_frame_offsets, topdown_pose
+    from drake_grasp.learning.dataset import SceneRenderer
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps, scene_meshes
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import build_scene_world, make_scene
+    from drake_grasp.geometry.sensing import postprocess_depth
+    from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
 
     np.testing.assert_allclose(gripper_frame_offsets()[2].GetAsMatrix4(), X_GC, atol=1e-9)
     scenario = load_scenario(scenario_name="isolation",

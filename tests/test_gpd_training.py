@@ -5,9 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from drake_grasp import gpd, gpd_training
+from drake_grasp.policies import gpd
+
+from drake_grasp.learning import gpd_training
 from drake_grasp.objects.categories import NO_SINGLE_OBJECT
-from drake_grasp.scenario import Scenario
+from drake_grasp.config.scenario import Scenario
 
 TINY = gpd_training.GpdDataConfig(scene_kinds=("isolation",), candidates_per_scene=16,
                                   scenes_per_shard=1, noisy_fraction=0.0)
@@ -112,7 +114,7 @@ def test_held_out_metrics_split_by_category():
 
 
 def test_gpd_eval_scores_a_classifier_per_category(tiny_data, tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     out, summary = tiny_data
     assert main(["gpd-eval", "--data", str(out), "--out", str(tmp_path / "eval.json"),

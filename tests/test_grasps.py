@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from drake_grasp.grasps import (
+from drake_grasp.geometry.grasps import (
     FINGERTIP_Z_M,
     PAD_HALF_WIDTH_M,
     TABLE_TOP_Z_M,
@@ -375,8 +375,8 @@ def test_distance_to_nearest_grasp():
 
 
 def test_lying_can_in_a_settled_scene(library):
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import make_scene
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation",
                              scenario_text="{scene: {object_ids: [can_000], pose: lying}}")

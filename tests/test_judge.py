@@ -7,10 +7,10 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.plant import ContactResults
 from pydrake.systems.analysis import Simulator
 
-from drake_grasp import episode as episode_module
-from drake_grasp.episode import simulate_episode
-from drake_grasp.results import GRASP_FAILURES
-from drake_grasp.scenario import JudgeConfig, load_scenario
+from drake_grasp.evaluation import episode as episode_module
+from drake_grasp.evaluation.episode import simulate_episode
+from drake_grasp.evaluation.records import GRASP_FAILURES
+from drake_grasp.config.scenario import JudgeConfig, load_scenario
 from drake_grasp.systems.judge import GraspJudge
 from drake_grasp.systems.supervisor import motion_phase_code
 
@@ -115,8 +115,8 @@ def test_scripted_grasp_of_a_can_is_judged_a_success(library):
 def test_pad_contacts_and_the_judge_agree_while_the_can_is_held(library):
     """`pad_contacts` (for code holding the plant, e.g. the grasp lab) reads the same
     contacts as the judge's ports: both pads on the can once the closing has ended."""
-    from drake_grasp.episode import build_episode_diagram
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.world.scene import make_scene
     from drake_grasp.systems.judge import pad_contacts
 
     scenario = _can()
@@ -195,8 +195,8 @@ def _systems_reading(diagram, names=PRIVILEGED) -> set[str]:
 
 @pytest.mark.parametrize("policy", ["ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init"])
 def test_no_controller_policy_has_privileged_ports(policy):
-    from drake_grasp.station import gripper_frame_offsets, topdown_pose
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
+    from drake_grasp.policies.controller import GraspController
 
     _, _, X_GC = gripper_frame_offsets()
     scenario = load_scenario(scenario_name="isolation", scenario_text=f"{{policy: {policy}}}")
@@ -208,8 +208,8 @@ def test_no_controller_policy_has_privileged_ports(policy):
 
 
 def test_only_the_judge_reads_privileged_ports_in_the_episode_diagram(library):
-    from drake_grasp.episode import build_episode_diagram
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 0, policy: gpd, scene: {object_ids: [can_000], pose: lying}}"))

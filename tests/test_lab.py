@@ -7,13 +7,13 @@ import pytest
 
 @pytest.fixture(scope="module")
 def can_scene(library):
-    from drake_grasp.lab import isolated_scene
+    from drake_grasp.evaluation.lab import isolated_scene
 
     return isolated_scene("can_000", library, lying=True)
 
 
 def test_centred_grasp_across_lying_can_holds(can_scene, library, across_can):
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.evaluation.lab import check_grasp
 
     result = check_grasp(None, across_can(can_scene, library), scene=can_scene, library=library)
     assert result.held, result.details
@@ -23,7 +23,7 @@ def test_centred_grasp_across_lying_can_holds(can_scene, library, across_can):
 
 
 def test_grasp_beside_the_can_is_missed(can_scene, library, across_can):
-    from drake_grasp.lab import check_grasp
+    from drake_grasp.evaluation.lab import check_grasp
 
     X = across_can(can_scene, library, offset_m=0.06)  # 6 cm beyond the can's side
     result = check_grasp(None, X, scene=can_scene, library=library)
@@ -32,7 +32,7 @@ def test_grasp_beside_the_can_is_missed(can_scene, library, across_can):
 
 
 def test_weak_grip_does_not_hold(can_scene, library, across_can):
-    from drake_grasp.lab import FAILURES, check_grasp
+    from drake_grasp.evaluation.lab import FAILURES, check_grasp
 
     result = check_grasp(None, across_can(can_scene, library), scene=can_scene,
                          library=library, grip_force_n=0.2)
@@ -41,7 +41,7 @@ def test_weak_grip_does_not_hold(can_scene, library, across_can):
 
 
 def test_check_grasps_takes_grasp_set_poses(can_scene, library, across_can):
-    from drake_grasp.lab import check_grasps
+    from drake_grasp.evaluation.lab import check_grasps
 
     X = across_can(can_scene, library).GetAsMatrix4()
     seen = []
@@ -53,7 +53,7 @@ def test_check_grasps_takes_grasp_set_poses(can_scene, library, across_can):
 def test_grasp_check_cli_writes_summary(tmp_path, capsys):
     import json
 
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     out = tmp_path / "checks"
     assert main(["grasp-check", "--object", "can_000", "--grasps", "2", "--seed", "0",
@@ -69,7 +69,7 @@ def test_grasp_check_cli_writes_summary(tmp_path, capsys):
 
 
 def test_grasp_check_cli_unknown_object_is_a_clean_error(tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     assert main(["grasp-check", "--object", "no_such_thing", "--grasps", "1",
                  "--out", str(tmp_path)]) == 2
@@ -81,8 +81,8 @@ def test_pads_press_with_the_commanded_grip_force(can_scene, library, across_can
     """The 2F-85's force control: once the fingers stop on the can, each pad presses with
     the commanded grip force ("constant"); "limit" only caps it, and the PD's spring
     then presses with kp (q - q_goal) / 2 per pad, a width-dependent force below it."""
-    from drake_grasp.lab import check_grasp
-    from drake_grasp.scenario import Scenario
+    from drake_grasp.evaluation.lab import check_grasp
+    from drake_grasp.config.scenario import Scenario
 
     scenario = Scenario()
     scenario.gripper.force_mode = force_mode
@@ -107,7 +107,7 @@ def test_closing_ends_once_the_grasp_has_settled(can_scene, library, across_can)
     """The closing phase ends when the pads have stopped on the can and their squeeze has
     levelled off (well before the fixed closing time, 1.2 s after the descent); the
     lift then follows the same schedule, and the pads still press with the grip force."""
-    from drake_grasp.lab import LabConfig, check_grasp
+    from drake_grasp.evaluation.lab import LabConfig, check_grasp
 
     X = across_can(can_scene, library)
     fixed = check_grasp(None, X, scene=can_scene, library=library,

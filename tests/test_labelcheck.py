@@ -9,7 +9,7 @@ import pytest
 
 
 def _record(index, checks):
-    from drake_grasp.labelcheck import FORMAT
+    from drake_grasp.evaluation.labelcheck import FORMAT
 
     return {"format": FORMAT, "scene_index": index, "seed": index, "replaced_attempts": [],
             "scene": {}, "num_accepted": 5, "num_rejected": 1, "checks": checks, "wall_s": 1.0}
@@ -20,7 +20,7 @@ def _check(kind, category, held, failure=""):
 
 
 def test_summary_counts_precision_per_category_and_leaves_out_simulation_errors():
-    from drake_grasp.labelcheck import summarize
+    from drake_grasp.evaluation.labelcheck import summarize
 
     records = [
         _record(0, [_check("accepted", "can", True), _check("accepted", "can", False, "missed"),
@@ -51,7 +51,7 @@ def test_gravity_torque_ratio_of_an_off_centre_grasp():
     high) and the centre of mass (22 mm high)."""
     import trimesh
 
-    from drake_grasp.grasps import (
+    from drake_grasp.geometry.grasps import (
         GRAVITY_M_S2, SHAKE_ACCELERATION_M_S2, ObjectMasses, check_grasp_poses,
         sample_scene_points, topdown_rotation)
 
@@ -83,8 +83,8 @@ def test_gravity_torque_ratio_of_an_off_centre_grasp():
 
 @pytest.mark.slow
 def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
-    from drake_grasp.labelcheck import LabelCheckConfig, run_label_check
-    from drake_grasp.scenario import Scenario
+    from drake_grasp.evaluation.labelcheck import LabelCheckConfig, run_label_check
+    from drake_grasp.config.scenario import Scenario
 
     out = tmp_path / "lc"
     config = LabelCheckConfig(grasps_per_scene=1, rejected_per_scene=0)
@@ -107,8 +107,8 @@ def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
 
 
 def test_displaced_pose_has_the_asked_metric_distance():
-    from drake_grasp.grasps import grasp_distance, topdown_rotation
-    from drake_grasp.tolerance import displaced_pose, random_offset
+    from drake_grasp.geometry.grasps import grasp_distance, topdown_rotation
+    from drake_grasp.evaluation.tolerance import displaced_pose, random_offset
 
     X = np.eye(4)
     X[:3, :3] = topdown_rotation(np.deg2rad(30.0))
@@ -127,8 +127,8 @@ def test_displaced_pose_has_the_asked_metric_distance():
 @pytest.mark.slow
 def test_grasp_tolerance_runs_and_an_undisplaced_grasp_holds(tmp_path, library):
     """The 0 mm offset repeats the verified grasp: the lab is deterministic, so it holds."""
-    from drake_grasp.scenario import Scenario
-    from drake_grasp.tolerance import run_grasp_tolerance
+    from drake_grasp.config.scenario import Scenario
+    from drake_grasp.evaluation.tolerance import run_grasp_tolerance
 
     summary = run_grasp_tolerance(num_scenes=1, seed=1, out=tmp_path / "tol", scenario=Scenario(),
                                   library=library, offsets_mm=[0.0, 40.0], show_progress=False)
@@ -155,10 +155,10 @@ def test_label_load_case_script_finds_the_static_grasps_the_shake_rejects(analys
 def test_label_check_samples_scenes_as_the_dataset_does(monkeypatch, library):
     """label-check draws each scene through `dataset.sample_dataset_scene`, the sampler of
     `generate` (same object count per scene, same seeds)."""
-    import drake_grasp.dataset as dataset_module
-    from drake_grasp.dataset import sample_dataset_scene, scene_object_count
-    from drake_grasp.labelcheck import LabelCheckConfig, check_scene
-    from drake_grasp.scenario import load_scenario
+    import drake_grasp.learning.dataset as dataset_module
+    from drake_grasp.learning.dataset import sample_dataset_scene, scene_object_count
+    from drake_grasp.evaluation.labelcheck import LabelCheckConfig, check_scene
+    from drake_grasp.config.scenario import load_scenario
 
     scenario = load_scenario(scenario_name="isolation")
     specs = [sample_dataset_scene(scenario, split="train", seed=4, scene_index=7, attempt=a,
@@ -184,10 +184,10 @@ def test_label_check_labels_with_its_torque_limit(monkeypatch, library):
     the scene's grasps are labelled with, as `generate --max-torque-ratio` labels them."""
     import dataclasses
 
-    import drake_grasp.grasps as grasps_module
-    import drake_grasp.scene as scene_module
-    from drake_grasp.labelcheck import LabelCheckConfig, check_scene
-    from drake_grasp.scenario import load_scenario
+    import drake_grasp.geometry.grasps as grasps_module
+    import drake_grasp.world.scene as scene_module
+    from drake_grasp.evaluation.labelcheck import LabelCheckConfig, check_scene
+    from drake_grasp.config.scenario import load_scenario
 
     class Labelled(Exception):
         pass
@@ -211,7 +211,7 @@ def test_label_check_labels_with_its_torque_limit(monkeypatch, library):
 @pytest.mark.parametrize("command", ["label-check", "generate"])
 @pytest.mark.parametrize("value", ["0", "-1", "inf", "abc"])
 def test_a_bad_max_torque_ratio_is_refused_before_anything_runs(command, value, tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     out = tmp_path / "out"
     args = {"label-check": ["label-check", "--scenes", "1", "--seed", "0"],
@@ -226,8 +226,8 @@ def test_a_bad_max_torque_ratio_is_refused_before_anything_runs(command, value, 
 def _generate_config(monkeypatch, tmp_path, argv):
     """The `DatasetConfig` that `drake-grasp generate ... ARGV` hands to the generator
     (which is replaced, so nothing is generated)."""
-    import drake_grasp.dataset as dataset_module
-    from drake_grasp.cli import main
+    import drake_grasp.learning.dataset as dataset_module
+    from drake_grasp.cli.main import main
 
     seen = {}
 
@@ -250,9 +250,9 @@ def test_generate_searches_grasps_with_the_sample_count_given(monkeypatch, tmp_p
     """`generate --grasp-samples N` reaches the ground-truth search of every scene; a bad
     N is refused before anything runs; the default keeps the identity (config hash) that
     datasets made before the flag existed have."""
-    from drake_grasp.cli import main
-    from drake_grasp.dataset import DatasetConfig, _config_dict
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.cli.main import main
+    from drake_grasp.learning.dataset import DatasetConfig, _config_dict
+    from drake_grasp.config.scenario import load_scenario
 
     for argv, samples in (([], 400), (["--grasp-samples", "2000"], 2000)):
         assert _generate_config(monkeypatch, tmp_path, argv).grasp_samples == samples
@@ -272,10 +272,10 @@ def test_generate_searches_grasps_with_the_sample_count_given(monkeypatch, tmp_p
 
 
 def test_the_scene_search_uses_the_configured_sample_count(monkeypatch, library):
-    import drake_grasp.grasps as grasps_module
-    import drake_grasp.scene as scene_module
-    from drake_grasp.dataset import DatasetConfig, generate_scene
-    from drake_grasp.scenario import load_scenario
+    import drake_grasp.geometry.grasps as grasps_module
+    import drake_grasp.world.scene as scene_module
+    from drake_grasp.learning.dataset import DatasetConfig, generate_scene
+    from drake_grasp.config.scenario import load_scenario
 
     class Searched(Exception):
         pass

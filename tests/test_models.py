@@ -13,7 +13,7 @@ import logging
 import numpy as np
 import pytest
 
-from drake_grasp.assets import make_parser
+from drake_grasp.core.assets import make_parser
 
 UR5_URL = "package://drake_grasp/ur5/ur5.urdf"
 GRIPPER_URL = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"

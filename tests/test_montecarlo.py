@@ -13,12 +13,12 @@ from types import SimpleNamespace
 
 import pytest
 
-import drake_grasp.montecarlo as m
-from drake_grasp.experiments import EXPERIMENTS, Condition, Experiment
-from drake_grasp.montecarlo import config_hash, evaluate
-from drake_grasp.provenance import code_version, file_sha256
-from drake_grasp.report import make_report
-from drake_grasp.results import load_records, read_run_info
+import drake_grasp.evaluation.montecarlo as m
+from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.evaluation.montecarlo import config_hash, evaluate
+from drake_grasp.core.provenance import code_version, file_sha256
+from drake_grasp.evaluation.report import make_report
+from drake_grasp.evaluation.records import load_records, read_run_info
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,8 +65,8 @@ def test_rerun_skips_finished_trials(reference):
     assert info["created_utc"] <= info["sessions"][0]["started_utc"]
     assert "Elapsed: " in (out / "report.md").read_text()
     # each session names the machine its records were computed on
-    from drake_grasp.montecarlo import machine_note
-    from drake_grasp.provenance import MACHINE_PACKAGES, machine
+    from drake_grasp.evaluation.montecarlo import machine_note
+    from drake_grasp.core.provenance import MACHINE_PACKAGES, machine
 
     assert info["sessions"][0]["machine"] == machine()
     assert set(machine()["packages"]) == set(MACHINE_PACKAGES)
@@ -75,8 +75,8 @@ def test_rerun_skips_finished_trials(reference):
 
 
 def test_a_replay_says_when_its_records_came_from_another_machine():
-    from drake_grasp.montecarlo import machine_note
-    from drake_grasp.provenance import machine
+    from drake_grasp.evaluation.montecarlo import machine_note
+    from drake_grasp.core.provenance import machine
 
     here = machine()
     other = {**here, "cpu": "Some CPU (family 25, model 17, stepping 1)"}
@@ -108,7 +108,7 @@ def test_killed_run_resumes_to_the_same_records(reference, tmp_path):
     # The child runs the same code; pin its code version to this process's, which is
     # computed once per process, so a commit landing in the checkout meanwhile cannot make
     # the resume below a different run.
-    code = ("import drake_grasp.montecarlo as m\n"
+    code = ("import drake_grasp.evaluation.montecarlo as m\n"
             f"m.code_version = lambda: {m.code_version()!r}\n"
             f"m.code_tree = lambda: {m.code_tree()!r}\n"
             f"m.evaluate(experiment='smoke', out={str(killed)!r}, trials=2, workers=1, seed=3,"
@@ -308,7 +308,7 @@ def test_a_trial_whose_scenario_cannot_be_built_is_recorded(tmp_path, monkeypatc
 
 
 def _pile(n=3):
-    from drake_grasp.scene import ObjectPlacement, SceneSpec
+    from drake_grasp.world.scene import ObjectPlacement, SceneSpec
 
     return SceneSpec(kind="clutter", seed=1, center_xy_m=[0.5, 0.0], settled=True, objects=[
         ObjectPlacement(f"apple_00{i}", [0.5 + 0.02 * i, 0.0, 0.03], [1.0, 0.0, 0.0, 0.0])
@@ -338,7 +338,7 @@ def _scripted_simulate(outcomes, calls, grasped=None, *, seen=lambda scenario, s
 
 
 def _fake_clutter(monkeypatch, outcomes, grasped=None):
-    import drake_grasp.scene as scene_module
+    import drake_grasp.world.scene as scene_module
 
     calls = []
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
@@ -354,7 +354,7 @@ def _clutter(out, **kw):
 
 
 def test_clutter_scene_error_is_recorded_and_ends_the_run(tmp_path, monkeypatch):
-    import drake_grasp.scene as scene_module
+    import drake_grasp.world.scene as scene_module
 
     def no_pile(*args, **kwargs):
         raise RuntimeError("pile did not settle (test)")
@@ -414,7 +414,7 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     """`evaluate --weights FILE`: the CNN conditions load FILE and the run's identity
     holds its sha256 (so a resume with other weights is refused); the other conditions
     are unchanged; a missing file is refused before any folder is made."""
-    from drake_grasp.assets import models_dir
+    from drake_grasp.core.assets import models_dir
 
     shipped = models_dir() / "cnn" / "weights.safetensors"
     other = tmp_path / "other.safetensors"
@@ -427,7 +427,7 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
     # What the workers run: each task carries the weights into its trial's scenario.
-    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.evaluation.experiments import trial_scenario
 
     for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
         run_exp = m.task_experiment(task)
@@ -443,7 +443,7 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
 def test_weights_option_takes_an_ensemble_and_records_every_members_sha256(tmp_path):
     """`evaluate --weights A,B`: the run's identity holds both files' sha256 in order; a
     missing member or an empty item is refused, naming it, before any folder is made."""
-    from drake_grasp.assets import models_dir
+    from drake_grasp.core.assets import models_dir
 
     grid = models_dir() / "cnn-grid" / "weights.safetensors"
     paper = models_dir() / "cnn" / "weights.safetensors"
@@ -466,9 +466,9 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     holds its sha256, so a folder run with one classifier refuses a resume with a file
     changed in place; the other conditions are unchanged; a missing file is refused
     before any folder is made."""
-    from drake_grasp.experiments import trial_scenario
-    from drake_grasp.gpd import default_weights_path, load_classifier
-    from drake_grasp.results import write_run_info
+    from drake_grasp.evaluation.experiments import trial_scenario
+    from drake_grasp.policies.gpd import default_weights_path, load_classifier
+    from drake_grasp.evaluation.records import write_run_info
 
     shipped = default_weights_path()
     other = tmp_path / "gpd.safetensors"
@@ -492,7 +492,7 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     write_run_info(out, m.run_identity(exp, seed=0))
     import torch
 
-    from drake_grasp.gpd import save_classifier
+    from drake_grasp.policies.gpd import save_classifier
 
     model = load_classifier(other)
     with torch.no_grad():
@@ -511,7 +511,7 @@ def _check_controller_option(exp, field: str, on=True, off=False) -> None:
     experiment's) to `on` for the CTR conditions: it reaches their resolved scenarios and
     each trial's, changes their config hash, and leaves the gpd and scripted conditions
     as they were."""
-    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.evaluation.experiments import trial_scenario
 
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
@@ -533,7 +533,7 @@ def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp
     _check_controller_option(exp, "mirror_average")
     out = tmp_path / "run"
     out.mkdir()
-    from drake_grasp.results import write_run_info
+    from drake_grasp.evaluation.records import write_run_info
 
     write_run_info(out, m.run_identity(exp, seed=0))
     assert m.folder_conflict(out, m.run_identity(EXPERIMENTS["isolation"], seed=0)) is not None
@@ -543,7 +543,7 @@ def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path)
     """`evaluate --converge N`: the closed-loop conditions run with
     controller.converge_iterations = N, the run's identity differs, the others are
     unchanged; a negative N is refused before anything is written."""
-    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.evaluation.experiments import trial_scenario
 
     exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_converge_iterations=0)
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
@@ -567,7 +567,7 @@ def test_distance_samples_option_reaches_every_condition_and_the_identity(tmp_pa
     """`evaluate --distance-samples N`: every condition's judge searches the ground truth
     behind the final distance from N surface points; the identity differs; N <= 0 other
     than the 0 that keeps the scenarios' is refused before anything is written."""
-    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.evaluation.experiments import trial_scenario
 
     exp = dataclasses.replace(EXPERIMENTS["sim-distance"], judge_distance_samples=1600)
     ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
@@ -591,8 +591,8 @@ def test_a_denser_distance_search_finds_more_true_grasps_for_the_same_episode():
     same INIT episode (same seed, same hand pose) measured against a 4x denser search
     counts more than twice the true grasps. (Its nearest one is not always nearer: the
     two searches draw independent points.)"""
-    from drake_grasp.episode import simulate_episode
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.config.scenario import load_scenario
 
     runs = {}
     for n in (400, 1600):
@@ -619,7 +619,7 @@ def test_pool_workers_are_recycled_without_deadlock():
     3.11-3.15.0b3, CPython gh-115634) this backlog deadlocked once a worker exited at
     its limit, so it runs in a subprocess with a time limit."""
     code = ("import collections, os\n"
-            "from drake_grasp.montecarlo import pooled_map\n"
+            "from drake_grasp.evaluation.montecarlo import pooled_map\n"
             "pids = []\n"
             "pooled_map(os.getpid, [()] * 10, workers=2, per_worker=2, on_result=pids.append)\n"
             "print(len(pids), len(set(pids)), max(collections.Counter(pids).values()))\n")
@@ -637,7 +637,7 @@ def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch,
                                                           moves):
     """The pile and every pile an attempt leaves are settled with the sheet collision of
     the episode (the box where the sheet is shifted): see tests/test_table.py."""
-    import drake_grasp.scene as scene_module
+    import drake_grasp.world.scene as scene_module
 
     seen = []
 
@@ -661,7 +661,7 @@ def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch,
 def test_hand_check_option_reaches_the_closed_loop_conditions_and_their_identity():
     """`evaluate --hand-check`: the closed-loop conditions' trials run with
     controller.hand_check on, the run's identity differs, the others are unchanged."""
-    from drake_grasp.cli import build_parser
+    from drake_grasp.cli.main import build_parser
 
     _check_controller_option(dataclasses.replace(EXPERIMENTS["isolation"], ctr_hand_check=True),
                              "hand_check")
@@ -674,7 +674,7 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
     """`evaluate --ctr-text YAML`: the closed-loop conditions' trials run with those
     controller settings, the run's identity differs, the others are unchanged; an unknown
     key or a value out of range is refused by name before anything is written."""
-    from drake_grasp.cli import build_parser
+    from drake_grasp.cli.main import build_parser
 
     exp = dataclasses.replace(EXPERIMENTS["isolation"],
                               ctr_controller_text="{stop_distance_m: 0.2}")
@@ -697,10 +697,10 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
 def test_sensor_policies_are_every_builtin_policy_but_scripted():
     """`policies.SENSOR_POLICIES` (what the bridge runs and `evaluate --conditions` may
     add) stays `scenario.POLICIES` less `scripted`, the one that reads the true poses."""
-    from drake_grasp.bridge import BRIDGE_POLICIES
-    from drake_grasp.experiments import EXTRA_POLICIES
-    from drake_grasp.policies import SENSOR_POLICIES
-    from drake_grasp.scenario import POLICIES
+    from drake_grasp.evaluation.bridge import BRIDGE_POLICIES
+    from drake_grasp.evaluation.experiments import EXTRA_POLICIES
+    from drake_grasp.policies.decisions import SENSOR_POLICIES
+    from drake_grasp.config.scenario import POLICIES
 
     assert set(SENSOR_POLICIES) == set(POLICIES) - {"scripted"}
     assert len(set(SENSOR_POLICIES)) == len(SENSOR_POLICIES)
@@ -721,7 +721,7 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
         ("ctr", 0, ""), ("cnn-ctr", 0, "cnn-ctr"), ("ctr", 1, ""), ("cnn-ctr", 1, "cnn-ctr")]
     extra = m.task_condition(tasks[1], exp)
     assert (extra.name, extra.policy, extra.noise) == ("cnn-ctr", "cnn-ctr", "none")
-    from drake_grasp.experiments import condition_scenario
+    from drake_grasp.evaluation.experiments import condition_scenario
     s = condition_scenario(exp, extra)
     assert s.policy == "cnn-ctr"
     assert (s.controller.step_ratio, s.controller.converge_step_ratio) == (0.5, 0.2)
@@ -752,7 +752,7 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
     assert m.evaluate(conditions=["init"], **kw)["ran"] == 0
     assert m.evaluate(conditions=["cnn-only"], **kw)["ran"] == 0
     other = tmp_path / "other.safetensors"
-    shutil.copy(Path(m.__file__).resolve().parents[1] / "models" / "cnn" / "weights.safetensors",
+    shutil.copy(ROOT / "models" / "cnn" / "weights.safetensors",
                 other)
     with pytest.raises(ValueError, match=r"plugin_conditions.cnn-only.scenario.controller.weights"):
         m.evaluate(conditions=["cnn-only"], weights=str(other), **kw)
@@ -761,8 +761,8 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
 def test_the_replay_command_notes_a_record_from_another_machine(reference, tmp_path, capsys):
     import shutil
 
-    from drake_grasp.cli import main
-    from drake_grasp.results import RUN_INFO_FILE, write_run_info
+    from drake_grasp.cli.main import main
+    from drake_grasp.evaluation.records import RUN_INFO_FILE, write_run_info
 
     out, _ = reference
     copy = tmp_path / "run"

@@ -1,4 +1,4 @@
-"""Rendering and training in one process, in either order (drake_grasp.native).
+"""Rendering and training in one process, in either order (drake_grasp.core.native).
 
 With torch's CUDA build (which brings triton), creating an optimizer after Drake's
 VTK/EGL renderer had drawn a frame crashed the process with a segmentation fault: Mesa's
@@ -18,8 +18,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 _EPISODE = """
-from drake_grasp.episode import simulate_episode
-from drake_grasp.scenario import load_scenario, replace
+from drake_grasp.evaluation.episode import simulate_episode
+from drake_grasp.config.scenario import load_scenario, replace
 
 def render():
     s = replace(load_scenario(scenario_name="isolation", scenario_text="{policy: scripted}"),
@@ -34,8 +34,8 @@ import torch
 
 def train_step():
     g = torch.Generator().manual_seed(0)
-    from drake_grasp.network import DistanceCNN
-    from drake_grasp.native import load_llvm_users_first
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.core.native import load_llvm_users_first
     load_llvm_users_first()
     model = DistanceCNN(generator=g)
     opt = torch.optim.SGD(model.parameters(), lr=1e-3, momentum=0.9)
@@ -121,9 +121,9 @@ def test_the_station_loads_triton_before_the_renderer():
     proc = _run("""
         import sys
         from drake_grasp.objects import load_library
-        from drake_grasp.scenario import load_scenario
-        from drake_grasp.scene import make_scene
-        from drake_grasp.station import MakeGraspStation
+        from drake_grasp.config.scenario import load_scenario
+        from drake_grasp.world.scene import make_scene
+        from drake_grasp.world.station import MakeGraspStation
         s = load_scenario(scenario_name="isolation")
         lib = load_library(None)
         MakeGraspStation(s, make_scene(s.scene, 0, lib, s.plant), lib)

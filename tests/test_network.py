@@ -13,7 +13,7 @@ import safetensors.torch
 import torch
 
 import drake_grasp
-from drake_grasp.network import (
+from drake_grasp.cnn.network import (
     DistanceCNN,
     MirrorAveragedCNN,
     NetworkConfig,
@@ -551,7 +551,7 @@ def test_window_is_placed_where_the_candidate_grasp_is_seen():
     the image, and the candidate moved by the same 4 pixels' worth of metres at the
     image's depth, score the same. And the window's centre is the pixel where the
     candidate's grasp axis is seen (`policies.grasp_axis_pixel`'s geometry)."""
-    from drake_grasp.policies import grasp_axis_pixel
+    from drake_grasp.policies.decisions import grasp_axis_pixel
 
     m = _model(config=WIN)
     rng = np.random.default_rng(0)
@@ -677,7 +677,7 @@ def test_the_episode_scores_the_shipped_grid_net_at_its_needed_nodes():
     the whole grid's interpolation to float rounding."""
     import numpy as np
 
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
     net = load_cnn("")
     assert net.grid
@@ -699,10 +699,10 @@ def test_view_averaged_scores_interpolate_the_grid_averaged_over_the_turned_view
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.sensors import ImageDepth32F
 
-    from drake_grasp.assets import models_dir
-    from drake_grasp.dense_training import AUGMENTATIONS, turn_grids, turn_images
-    from drake_grasp.network import action_features, grid_scores
-    from drake_grasp.systems.evaluator import DistanceEvaluator, load_cnn, score_candidates
+    from drake_grasp.core.assets import models_dir
+    from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
+    from drake_grasp.cnn.network import action_features, grid_scores
+    from drake_grasp.policies.evaluator import DistanceEvaluator, load_cnn, score_candidates
 
     net = load_cnn("")
     rng = np.random.default_rng(7)
@@ -755,11 +755,11 @@ def test_an_episode_scores_with_the_views_and_refuses_a_net_without_a_grid(libra
     so is the DistanceEvaluator itself, and an ensemble with such a member."""
     import numpy as np
 
-    from drake_grasp.assets import models_dir
-    from drake_grasp.episode import build_episode_diagram
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.scene import make_scene
-    from drake_grasp.systems.evaluator import (CnnEnsemble, DistanceEvaluator, check_views,
+    from drake_grasp.core.assets import models_dir
+    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.scene import make_scene
+    from drake_grasp.policies.evaluator import (CnnEnsemble, DistanceEvaluator, check_views,
                                                load_cnn, score_candidates)
 
     text = ("{seed: 3, policy: ctr, controller: {profile: robot, view_average: d4%s},"
@@ -793,7 +793,7 @@ def test_an_episode_scores_with_the_views_and_refuses_a_net_without_a_grid(libra
 def test_view_average_is_checked_by_the_scenario():
     """`controller.view_average`: one of none / mirror / d4, and not together with
     mirror_average; each refused naming the key."""
-    from drake_grasp.scenario import load_scenario
+    from drake_grasp.config.scenario import load_scenario
 
     assert load_scenario(scenario_text="controller: {view_average: d4}").controller.view_average == "d4"
     with pytest.raises(ValueError, match="controller.view_average: got 'd8', expected one of"):
@@ -808,8 +808,8 @@ def test_an_ensemble_scores_the_mean_of_its_members():
     grid head and a tiled net together), with mirror averaging applied to each member."""
     import numpy as np
 
-    from drake_grasp.assets import models_dir
-    from drake_grasp.systems.evaluator import (CnnEnsemble, load_cnn, needs_torch,
+    from drake_grasp.core.assets import models_dir
+    from drake_grasp.policies.evaluator import (CnnEnsemble, load_cnn, needs_torch,
                                                score_candidates)
 
     grid, paper = (str(models_dir() / d / "weights.safetensors") for d in ("cnn-grid", "cnn"))
@@ -836,7 +836,7 @@ def test_an_ensemble_scores_the_mean_of_its_members():
 
 
 def test_grid_starts_from_a_tiled_net_at_its_zero_action():
-    from drake_grasp.dense_training import init_from_tiled
+    from drake_grasp.learning.dense_training import init_from_tiled
 
     tiled = _model(seed=5, config=dataclasses.replace(CFG, theta_unit="deg"))
     grid = _model(seed=6, config=GRID)

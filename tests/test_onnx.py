@@ -16,14 +16,14 @@ import pytest
 import torch
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.assets import models_dir
-from drake_grasp.cli import main
-from drake_grasp.network import (DistanceCNN, MirrorAveragedCNN, NetworkConfig,
+from drake_grasp.core.assets import models_dir
+from drake_grasp.cli.main import main
+from drake_grasp.cnn.network import (DistanceCNN, MirrorAveragedCNN, NetworkConfig,
                                   normalize_depth, save_weights)
-from drake_grasp.onnx_export import SHIPPED_WEIGHTS, export_onnx
-from drake_grasp.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
-from drake_grasp.onnx_runtime import normalize_depth as normalize_depth_np
-from drake_grasp.systems.evaluator import (
+from drake_grasp.cnn.onnx_export import SHIPPED_WEIGHTS, export_onnx
+from drake_grasp.cnn.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
+from drake_grasp.cnn.onnx_runtime import normalize_depth as normalize_depth_np
+from drake_grasp.policies.evaluator import (
     DEFAULT_WEIGHTS,
     PAPER_WEIGHTS,
     DistanceEvaluator,
@@ -157,7 +157,7 @@ def test_onnx_backend_runs_with_torch_not_importable(exported, torch_model):
         sys.modules["torch"] = None  # any `import torch` now raises ImportError
         import numpy as np
         from pydrake.systems.sensors import ImageDepth32F
-        from drake_grasp.systems.evaluator import DistanceEvaluator, load_cnn
+        from drake_grasp.policies.evaluator import DistanceEvaluator, load_cnn
         args = json.loads(sys.argv[1])
         depth = np.array(args["depth"], np.float32)
         system = DistanceEvaluator(load_cnn(args["path"]))

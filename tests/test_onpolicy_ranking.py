@@ -66,12 +66,12 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     with np.load(path) as z:
         assert z["depth"].shape == (meta["decisions"], 64, 64)
         assert np.isfinite(z["true"]).all() and (z["true"] >= 0).all()
-        from drake_grasp.actions import apply_actions
-        from drake_grasp.grasps import distance_to_nearest_grasp
+        from drake_grasp.geometry.actions import apply_actions
+        from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 
         moved = apply_actions(z["hand"][0, [0, 1, 3]][None], z["actions"][0][None])[0]
         np.testing.assert_allclose(distance_to_nearest_grasp(moved, z["grasps"]), z["true"][0])
-    from drake_grasp.systems.evaluator import load_cnn, score_candidates
+    from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
     net = load_cnn("")
     out = O.score(tmp_path, {"none": lambda d, a: score_candidates(net, d, a)})
@@ -98,9 +98,9 @@ def test_labels_label_every_kept_image_as_the_dataset_and_train_grid_reads_them(
     not reproduced are left out and counted; a file without grasps and an unknown
     folder name are refused by name; a re-run skips what is written."""
     O = analysis_script("onpolicy_ranking")
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.dense_training import GRID_CONFIG, LabelStore, grid_node_actions
-    from drake_grasp.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.learning.dense_training import GRID_CONFIG, LabelStore, grid_node_actions
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 
     rng = np.random.default_rng(5)
     col = tmp_path / "collect"

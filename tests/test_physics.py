@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from drake_grasp.scenario import PHYSICS_PROFILES, load_scenario
+from drake_grasp.config.scenario import PHYSICS_PROFILES, load_scenario
 
 
 def test_default_is_the_fast_profile_and_reference_restores_the_old_settings():
@@ -75,7 +75,7 @@ def test_half_space_sheet_cannot_follow_a_moving_sheet():
     with pytest.raises(ValueError, match="physics.sheet_collision.*moves"):
         load_scenario(scenario_name="clutter_shift",
                       scenario_text="{physics: {sheet_collision: halfspace}}")
-    from drake_grasp.physics import sheet_collision
+    from drake_grasp.config.physics import sheet_collision
 
     s = load_scenario(scenario_name="clutter_shift")
     assert s.physics.sheet_collision == "auto"
@@ -87,9 +87,9 @@ def _world(physics):
     from pydrake.multibody.plant import AddMultibodyPlant
     from pydrake.systems.framework import DiagramBuilder
 
-    from drake_grasp.physics import apply_hydroelastic_margin, sheet_collision
-    from drake_grasp.scene import add_table_and_sheet
-    from drake_grasp.station import _add_robot
+    from drake_grasp.config.physics import apply_hydroelastic_margin, sheet_collision
+    from drake_grasp.world.scene import add_table_and_sheet
+    from drake_grasp.world.station import _add_robot
 
     s = load_scenario(scenario_name="isolation", physics_profile=physics)
     builder = DiagramBuilder()
@@ -126,7 +126,7 @@ def test_fast_profile_puts_a_half_space_under_the_objects_and_a_margin_on_the_pa
 def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can):
     """The fidelity guard in small: the same grasps (a centred one that holds, one 6 cm
     beside the can that misses) get the same verdict under every profile."""
-    from drake_grasp.lab import check_grasp, isolated_scene
+    from drake_grasp.evaluation.lab import check_grasp, isolated_scene
 
     scene = isolated_scene("can_000", library, lying=True)
     for offset, held in ((0.0, True), (0.06, False)):
@@ -138,8 +138,8 @@ def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can)
 
 
 def test_a_record_made_before_physics_profiles_replays_with_the_reference_settings():
-    from drake_grasp.montecarlo import recorded_scenario
-    from drake_grasp.scenario import dump_scenario
+    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.config.scenario import dump_scenario
 
     fast = load_scenario(scenario_name="isolation")
     now = recorded_scenario(dump_scenario(fast))
@@ -158,8 +158,8 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
 ])
 def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
         scenario_name, key, value_now, value_before):
-    from drake_grasp.montecarlo import recorded_scenario
-    from drake_grasp.scenario import dump_scenario
+    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.config.scenario import dump_scenario
 
     section, name = key.split(".")
     now = load_scenario(scenario_name=scenario_name)
@@ -177,8 +177,8 @@ def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
 def test_a_gpd_record_made_before_the_fallback_was_a_key_replays_without_it():
     """`gpd.fallback_best` is on by default now; a record whose scenario has no such key
     ran GPD's strict threshold and replays so; one that names it keeps its value."""
-    from drake_grasp.montecarlo import recorded_scenario
-    from drake_grasp.scenario import dump_scenario
+    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.config.scenario import dump_scenario
 
     now = load_scenario(scenario_name="clutter")
     text = dump_scenario(now)
@@ -193,9 +193,9 @@ def test_a_gpd_record_made_before_the_fallback_was_a_key_replays_without_it():
 
 
 def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
-    from drake_grasp.montecarlo import replay_trial
-    from drake_grasp.results import TrialRecord, write_record
-    from drake_grasp.scenario import dump_scenario
+    from drake_grasp.evaluation.montecarlo import replay_trial
+    from drake_grasp.evaluation.records import TrialRecord, write_record
+    from drake_grasp.config.scenario import dump_scenario
 
     text = dump_scenario(load_scenario(scenario_name="isolation")).replace(
         "controller:\n", "controller:\n  stop_window_fraction: 0.1\n", 1)

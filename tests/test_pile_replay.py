@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from drake_grasp.assets import models_dir
+from drake_grasp.core.assets import models_dir
 
 RECORD = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-bn12" / "clutter"
           / "trials" / "clutter__ctr__0000__attempt01.json")

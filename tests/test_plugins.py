@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
-import drake_grasp.montecarlo as m
-from drake_grasp import plugins
-from drake_grasp.experiments import EXPERIMENTS, Condition, Experiment
-from drake_grasp.results import GRASP_FAILURES, load_records, read_run_info
-from drake_grasp.scenario import load_scenario
+import drake_grasp.evaluation.montecarlo as m
+from drake_grasp.policies import plugins
+from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.evaluation.records import GRASP_FAILURES, load_records, read_run_info
+from drake_grasp.config.scenario import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 CENTROID = "centroid_policy:make_policy"
@@ -264,8 +264,8 @@ def test_user_policy_resume_and_refusals(user_modules, tmp_path, monkeypatch):
 
 
 def test_episode_diagram_wires_a_user_policy(library, monkeypatch):
-    from drake_grasp.episode import build_episode_diagram
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.world.scene import make_scene
 
     monkeypatch.syspath_prepend(str(EXAMPLES))
     scenario = load_scenario(scenario_name="clutter_shift", scenario_text=(

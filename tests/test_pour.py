@@ -4,13 +4,13 @@ pile instead of dropped from a column."""
 import pytest
 
 from drake_grasp.objects import load_library
-from drake_grasp.scenario import load_scenario
+from drake_grasp.config.scenario import load_scenario
 import dataclasses
 
 import numpy as np
 
 from drake_grasp.objects import visual_mesh
-from drake_grasp.scene import make_scene, release_above, sample_scene, scene_top_z
+from drake_grasp.world.scene import make_scene, release_above, sample_scene, scene_top_z
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,9 @@ import subprocess
 
 import pytest
 
-from drake_grasp import __version__, provenance
+from drake_grasp import __version__
+
+from drake_grasp.core import provenance
 
 
 @pytest.fixture

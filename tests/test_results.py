@@ -1,4 +1,4 @@
-"""Trial-record format of a results directory (drake_grasp.results). Fast, no Drake."""
+"""Trial-record format of a results directory (drake_grasp.evaluation.records). Fast, no Drake."""
 
 import json
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from drake_grasp.results import (FAILURE_CLASSES, TrialRecord, classify_failure, done_trial_ids,
+from drake_grasp.evaluation.records import (FAILURE_CLASSES, TrialRecord, classify_failure, done_trial_ids,
                                  load_records, read_run_info, trial_file_stem, trial_id_from_stem,
                                  wilson_interval, write_record, write_run_info)
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from drake_grasp.scenario import Scenario, dump_scenario, list_scenarios, load_scenario
+from drake_grasp.config.scenario import Scenario, dump_scenario, list_scenarios, load_scenario
 
 
 def test_every_named_scenario_loads_and_validates():
@@ -48,7 +48,7 @@ def test_override_and_round_trip(tmp_path):
 
 
 def test_controller_profiles_resolve_to_the_papers_numbers(tmp_path):
-    from drake_grasp.scenario import CONTROLLER_PROFILES, ControllerConfig
+    from drake_grasp.config.scenario import CONTROLLER_PROFILES, ControllerConfig
 
     # The defaults are the "sim" profile: r = 0.2, 75 iterations, camera 0.3 -> 0.15 m.
     sim = load_scenario(scenario_name="isolation").controller
@@ -98,7 +98,7 @@ def test_unknown_controller_profile_names_the_key_and_the_profiles(text):
 
 
 def test_table1_experiments_run_the_robot_profile_and_isolation_also_the_sim_one():
-    from drake_grasp.experiments import EXPERIMENTS, condition_scenario
+    from drake_grasp.evaluation.experiments import EXPERIMENTS, condition_scenario
 
     for name in ("isolation", "clutter", "clutter-shift"):
         e = EXPERIMENTS[name]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.sensing import (
+from drake_grasp.geometry.sensing import (
     INVALID_DEPTH,
     DepthNoiseConfig,
     apply_depth_noise,

@@ -12,10 +12,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from drake_grasp.dataset import DatasetConfig, scene_seed
+from drake_grasp.learning.dataset import DatasetConfig, scene_seed
 from drake_grasp.objects import load_library
-from drake_grasp.scenario import load_scenario
-from drake_grasp.scene import _floating_joint, build_scene_world, sample_scene, settle_world
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.world.scene import _floating_joint, build_scene_world, sample_scene, settle_world
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +77,8 @@ def test_verified_settling_gives_up_at_the_cap(setup):
 
 
 def test_clutter_scenarios_settle_verified_and_make_scene_passes_it_on(monkeypatch):
-    import drake_grasp.scene as scene_module
-    from drake_grasp.scene import make_scene
+    import drake_grasp.world.scene as scene_module
+    from drake_grasp.world.scene import make_scene
 
     for name in ("clutter", "clutter_shift", "clutter_moving"):
         assert load_scenario(scenario_name=name).scene.settle == "verified"

@@ -8,9 +8,9 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
 from pydrake.common.value import AbstractValue
 
-from drake_grasp.scenario import load_scenario
-from drake_grasp.scene import SceneSpec, make_scene
-from drake_grasp.station import MakeGraspStation
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.world.scene import SceneSpec, make_scene
+from drake_grasp.world.station import MakeGraspStation
 
 
 @pytest.fixture(scope="module")
@@ -91,9 +91,9 @@ def test_gpd_viewpoint_sees_the_top_of_an_upright_hammer(library):
     """The GPD sensor reads nothing nearer than `gpd.depth_min_m`, so the viewpoint must be
     high enough for the tallest test object standing upright: the cloud the detector
     builds of an upright hammer_000 (0.283 m tall) reaches to within 5 mm of its top."""
-    from drake_grasp import gpd
-    from drake_grasp.gpd_training import experiment_view
-    from drake_grasp.grasps import scene_meshes
+    from drake_grasp.policies import gpd
+    from drake_grasp.learning.gpd_training import experiment_view
+    from drake_grasp.geometry.grasps import scene_meshes
 
     # The isolation experiment's trial 26: "lying" turned this hammer onto its end.
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
@@ -111,7 +111,7 @@ def test_gpd_viewpoint_sees_the_top_of_an_upright_hammer(library):
 def test_gpd_camera_sees_the_table_from_the_viewpoint(scenario, scene, library):
     """The GPD sensor (640x480) on its mount, the hand at the gpd policy's viewpoint: the
     table fills most of the view at the viewpoint's height; the object is nearer."""
-    from drake_grasp.station import gpd_camera_offset, solve_start_configuration, topdown_pose
+    from drake_grasp.world.station import gpd_camera_offset, solve_start_configuration, topdown_pose
 
     station = MakeGraspStation(scenario, scene, library)
     X_GC_gpd = station.X_GC_gpd
@@ -143,7 +143,7 @@ def test_start_configuration_solves_at_every_start_height_on_one_branch():
     solves, and neighbouring heights give neighbouring joint angles."""
     from pydrake.multibody.plant import MultibodyPlant
 
-    from drake_grasp.station import (Q_HOME, _add_robot, gripper_frame_offsets,
+    from drake_grasp.world.station import (Q_HOME, _add_robot, gripper_frame_offsets,
                                       make_control_plant, solve_start_configuration,
                                       topdown_pose)
 

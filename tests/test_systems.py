@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_grasp.grasps import (
+from drake_grasp.geometry.grasps import (
     STROKE_M,
     plan_topdown_grasp,
     points_between_pads,
     topdown_rotation,
 )
-from drake_grasp.scenario import GripperConfig, ScriptedGraspConfig
+from drake_grasp.config.scenario import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.gripper import GripperController, gripper_pd_target
 from drake_grasp.systems.supervisor import Mode, ScriptedGraspSupervisor, interpolate_pose, min_jerk
 
@@ -130,8 +130,8 @@ def test_distance_evaluator_alone_matches_the_direct_form():
     import torch
     from pydrake.systems.sensors import ImageDepth32F
 
-    from drake_grasp.network import DistanceCNN, NetworkConfig
-    from drake_grasp.systems.evaluator import DistanceEvaluator
+    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.policies.evaluator import DistanceEvaluator
 
     model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(4))
     system = DistanceEvaluator(model)
@@ -151,7 +151,7 @@ def test_distance_evaluator_alone_matches_the_direct_form():
 
 
 def test_action_sampler_alone_is_deterministic_per_seed_and_step():
-    from drake_grasp.systems.evaluator import ActionSampler
+    from drake_grasp.policies.evaluator import ActionSampler
 
     system = ActionSampler(num_candidates=32, xy_m=0.04, theta_deg=45.0, period_s=0.1, seed=5)
     ctx = system.CreateDefaultContext()
@@ -185,9 +185,9 @@ def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-    from drake_grasp.scenario import load_scenario
-    from drake_grasp.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
-    from drake_grasp.systems.controller import GraspController
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.world.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
+    from drake_grasp.policies.controller import GraspController
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=scenario_text)
     _, _, X_GC = gripper_frame_offsets()
@@ -209,8 +209,8 @@ def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
 
 
 def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
-    from drake_grasp.station import gpd_camera_offset
-    from drake_grasp.systems.controller import Phase
+    from drake_grasp.world.station import gpd_camera_offset
+    from drake_grasp.policies.controller import Phase
 
     grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
     calls = []
@@ -276,7 +276,7 @@ def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
 
 
 def test_gpd_controller_without_a_detection_stays_at_the_viewpoint():
-    from drake_grasp.systems.controller import Phase
+    from drake_grasp.policies.controller import Phase
 
     scenario, ctrl, sim, _ = _gpd_controller(lambda depth, X_WC: None)
     sim.AdvanceTo(3.0)
@@ -294,7 +294,7 @@ def test_gpd_kinematic_noise_moves_the_grasp_in_the_plane_and_keeps_its_tilt(see
     """The commanded planar move gets the noise; the tilt and the height are kept. The
     detection's x_G points away from the view's (yaw 10 + 160 deg): the hand takes the
     same grasp turned half a turn about its approach, a 20 degree wrist turn."""
-    from drake_grasp.systems.controller import Phase
+    from drake_grasp.policies.controller import Phase
 
     grasp = _tilted_grasp([0.45, -0.04, 0.05], 170.0, 25.0)
     _, ctrl, sim, _ = _gpd_controller(
@@ -324,7 +324,7 @@ def test_gpd_without_noise_takes_the_detection_turned_half_a_turn_when_nearer():
 def test_gpd_offset_noise_shifts_the_executed_grasp_and_keeps_its_tilt():
     """The constant-offset model: the hand really goes 2 cm along the grasp's x_G (on
     the table) from where the policy believes; the orientation is the believed one."""
-    from drake_grasp.systems.controller import Phase
+    from drake_grasp.policies.controller import Phase
 
     grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
     _, ctrl, sim, _ = _gpd_controller(
@@ -344,7 +344,7 @@ def test_depth_postprocessor_streams_draw_their_own_noise_from_one_seed():
     (stream 0, the draws it always had) for the same trial seed."""
     from pydrake.systems.sensors import ImageDepth32F
 
-    from drake_grasp.sensing import DepthNoiseConfig, frame_rng, postprocess_depth
+    from drake_grasp.geometry.sensing import DepthNoiseConfig, frame_rng, postprocess_depth
     from drake_grasp.systems.depth import DepthPostProcessor
 
     config = DepthNoiseConfig(enabled=True)
@@ -377,7 +377,7 @@ def test_state_values_are_shared_not_copied_and_stay_immutable():
     import copy
     from dataclasses import dataclass, replace
 
-    from drake_grasp.systems.controller import ControllerState
+    from drake_grasp.policies.controller import ControllerState
     from drake_grasp.systems.judge import JudgeHistory
     from drake_grasp.systems.state import freeze, shared_when_copied
 
@@ -405,7 +405,7 @@ def test_context_clone_keeps_its_own_controller_state():
     from pydrake.common.value import AbstractValue
     from pydrake.systems.framework import LeafSystem
 
-    from drake_grasp.systems.controller import ControllerState
+    from drake_grasp.policies.controller import ControllerState
 
     class Holder(LeafSystem):
         def __init__(self):
@@ -452,8 +452,8 @@ def test_free_closing_fingers_follow_the_ramp(time_step):
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource
 
-    from drake_grasp.assets import make_parser
-    from drake_grasp.lab import GRIPPER_URI
+    from drake_grasp.core.assets import make_parser
+    from drake_grasp.evaluation.lab import GRIPPER_URI
 
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(MultibodyPlantConfig(

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from drake_grasp.objects import load_library
-from drake_grasp.scenario import load_scenario
-from drake_grasp.scene import (TABLE_TOP_X_M, TABLE_TOP_Y_M, ObjectPlacement, SceneSpec,
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.world.scene import (TABLE_TOP_X_M, TABLE_TOP_Y_M, ObjectPlacement, SceneSpec,
                                build_scene_world, settle_world)
 
 MODELS = Path(__file__).resolve().parents[1] / "models"

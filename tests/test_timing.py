@@ -9,8 +9,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.experiments import condition_scenario, get_experiment
-from drake_grasp.scenario import CalibrationConfig, load_scenario
+from drake_grasp.evaluation.experiments import condition_scenario, get_experiment
+from drake_grasp.config.scenario import CalibrationConfig, load_scenario
 from drake_grasp.systems.frames import FrameBuffer, frame_dropped
 
 
@@ -106,8 +106,8 @@ def test_bad_timing_and_calibration_values_are_named(key, value):
 
 
 def test_camera_mount_error_moves_the_cameras_not_the_belief(library):
-    from drake_grasp.scene import make_scene
-    from drake_grasp.station import MakeGraspStation, camera_mount_error
+    from drake_grasp.world.scene import make_scene
+    from drake_grasp.world.station import MakeGraspStation, camera_mount_error
 
     text = "{seed: 5, scene: {object_ids: [can_000], pose: lying}}"
     nominal_scenario = load_scenario(scenario_name="isolation", scenario_text=text)
@@ -160,8 +160,8 @@ def test_latency_drops_and_mount_error_reach_the_episode(library):
     """One short CTR episode with all three: the frame buffer sits in front of the
     controller and the evaluator, the mount error is recorded, and the same seed gives
     the same trial."""
-    from drake_grasp.episode import build_episode_diagram, simulate_episode
-    from drake_grasp.scene import make_scene
+    from drake_grasp.evaluation.episode import build_episode_diagram, simulate_episode
+    from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
         "{seed: 2, policy: ctr, max_sim_time_s: 1.2, controller: {profile: robot},"
@@ -180,7 +180,7 @@ def test_latency_drops_and_mount_error_reach_the_episode(library):
 
 
 def test_interleaved_sweeps_cover_every_test_object_in_their_first_trials(library):
-    from drake_grasp.experiments import trial_scenario
+    from drake_grasp.evaluation.experiments import trial_scenario
 
     experiment = get_experiment("sweep-latency")
     condition = experiment.conditions[0]
@@ -201,8 +201,8 @@ def test_interleaved_sweeps_cover_every_test_object_in_their_first_trials(librar
 def test_latency_sweep_runs_through_evaluate_and_plots(tmp_path):
     """The path a user takes: `evaluate --experiment sweep-latency` (two CTR points, one
     trial each) -> records carrying the latency, a report with the sweep picture."""
-    from drake_grasp.cli import main
-    from drake_grasp.results import load_records
+    from drake_grasp.cli.main import main
+    from drake_grasp.evaluation.records import load_records
 
     out = tmp_path / "sweep"
     main(["evaluate", "--experiment", "sweep-latency", "--trials", "1", "--workers", "1",

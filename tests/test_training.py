@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from drake_grasp.dataset import SceneSamples, write_manifest, write_shard, shard_name
-from drake_grasp.training import TrainConfig, train
+from drake_grasp.learning.dataset import SceneSamples, write_manifest, write_shard, shard_name
+from drake_grasp.learning.training import TrainConfig, train
 
 
 def _synthetic(out, *, seed, scenes=4, images=24, m=10):
@@ -82,7 +82,7 @@ def test_init_weights_start_from_a_trained_net(data, tmp_path):
         cold = train(data=data, out=tmp_path / "c", config=_config(1, **still), progress=False)
     assert warm["test_l1_m"] == pytest.approx(trained["test_l1_m"], rel=1e-4)
     assert cold["test_l1_m"] > 1.5 * warm["test_l1_m"]
-    from drake_grasp.network import load_weights, tensors_sha256
+    from drake_grasp.cnn.network import load_weights, tensors_sha256
 
     net, _ = load_weights(tmp_path / "a" / "weights.safetensors")
     config = json.loads((tmp_path / "b" / "train_config.json").read_text())
@@ -98,8 +98,8 @@ def test_the_window_fusion_trains_from_the_cli(data, tmp_path, capsys):
     """`train --action-fusion window` learns the synthetic task (whose labels are
     distances in the image plane, which the window reads where the candidate is) and
     writes a window net; the default run's identity and weights stay tiled."""
-    from drake_grasp.cli import main
-    from drake_grasp.network import load_weights
+    from drake_grasp.cli.main import main
+    from drake_grasp.cnn.network import load_weights
 
     args = _cli_args(data)
     with torch.random.fork_rng():
@@ -123,7 +123,7 @@ def test_the_window_fusion_trains_from_the_cli(data, tmp_path, capsys):
 def test_the_log_l1_loss_weights_errors_near_a_grasp_more():
     """log-l1 is |log(p + c) - log(t + c)|; a 1 cm error 1 cm from a grasp costs about
     (0.2 + c) / (0.01 + c) times what it costs 20 cm away, while L1 costs both the same."""
-    from drake_grasp.training import training_loss
+    from drake_grasp.learning.training import training_loss
 
     log = TrainConfig(loss="log-l1", loss_offset_m=0.01)
     pred, true = torch.tensor([0.02, 0.21]), torch.tensor([0.01, 0.20])
@@ -145,7 +145,7 @@ def test_the_log_l1_loss_trains_from_the_cli_and_l1_runs_keep_their_identity(
     """`train --loss log-l1` learns the synthetic task (its running figure is the L1 in
     metres) and records the loss in the run's identity; an L1 run's identity has no loss
     fields, as runs made before the option; bad flags are refused before a folder is made."""
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     args = _cli_args(data)
     with torch.random.fork_rng():
@@ -195,7 +195,7 @@ def test_a_run_killed_within_an_epoch_resumes_to_the_uninterrupted_weights(
     of a run that was never stopped."""
     from safetensors.torch import load_file
 
-    from drake_grasp import training
+    from drake_grasp.learning import training
 
     config = _config(3, recipe="fast", learning_rate=0.001, checkpoint_minutes=0.0)
     train(data=data, out=tmp_path / "straight", config=config, progress=False)
@@ -322,7 +322,7 @@ def test_loader_memory_measured_with_tracemalloc_stays_under_max_memory_gb(big):
     shuffled training epoch and a test pass, batch by batch as training does."""
     import tracemalloc
 
-    from drake_grasp.training import open_training_sets
+    from drake_grasp.learning.common import open_training_sets
 
     train_set, test_set, cache = open_training_sets(big / "train", big / "test",
                                                     max_memory_gb=BUDGET_GB, batch_instances=80)
@@ -360,7 +360,7 @@ def test_loader_memory_measured_with_tracemalloc_stays_under_max_memory_gb(big):
 
 
 def test_max_memory_gb_too_small_for_one_batch_is_refused(big, tmp_path, capsys):
-    from drake_grasp.cli import main
+    from drake_grasp.cli.main import main
 
     rc = main(["train", "--data", str(big), "--out", str(tmp_path / "o"), "--epochs", "1",
                "--batch", "80", "--max-memory-gb", "0.0005"])
@@ -383,7 +383,7 @@ def test_a_moved_dataset_still_resumes(data, tmp_path):
 
 _HOLD_TRAIN_LOCK = """
 import sys
-from drake_grasp.training import TrainLock
+from drake_grasp.learning.training import TrainLock
 TrainLock(sys.argv[1]).acquire()
 print("ready", flush=True)
 sys.stdin.read()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.lazy import lazy_import
+from drake_grasp.core.lazy import lazy_import
 
 trimesh = lazy_import("trimesh")  # loaded when first used
 

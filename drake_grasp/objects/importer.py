@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.lazy import lazy_import
+from drake_grasp.core.lazy import lazy_import
 
 from drake_grasp.objects import categories as cat
 from drake_grasp.objects import geometry as g

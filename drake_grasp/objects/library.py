@@ -358,7 +358,7 @@ class ObjectLibrary:
                     category, split = self._index[oid]
                     h.update(f"{oid}\0{category}\0{split}\n".encode())
             else:
-                from drake_grasp.provenance import tree_sha256
+                from drake_grasp.core.provenance import tree_sha256
 
                 h.update(b"user library\n")
                 for oid in sorted(self._index):

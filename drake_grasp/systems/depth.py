@@ -1,4 +1,4 @@
-"""Drake wrapper around the depth post-processing pipeline of `drake_grasp.sensing`."""
+"""Drake wrapper around the depth post-processing pipeline of `drake_grasp.geometry.sensing`."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, LeafSystem, NumericParameterIndex
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.sensing import DepthNoiseConfig, frame_rng, postprocess_depth
+from drake_grasp.geometry.sensing import DepthNoiseConfig, frame_rng, postprocess_depth
 
 # The seed is stored as a double parameter; integers are exact up to 2**53.
 _MAX_SEED = 2**53
@@ -19,7 +19,7 @@ _MAX_SEED = 2**53
 class DepthPostProcessor(LeafSystem):
     """Adds sensor noise to the rendered depth image and fills its holes.
 
-    Runs `drake_grasp.sensing.postprocess_depth` on each evaluation. The output is
+    Runs `drake_grasp.geometry.sensing.postprocess_depth` on each evaluation. The output is
     a pure function of (input image, seed parameter, time), so it is safe with
     Drake's output caching: the noise of camera frame
     ``round(t / frame_period_s)`` comes from ``frame_rng(seed, frame)``.

@@ -11,7 +11,7 @@ Success: when the motion is done (after the hold), an object touches both pads (
 2F-85's `left_finger` and `right_finger` bodies) and its lowest point is at least
 `JudgeConfig.min_lift_m` above the table.
 
-Failure classes (`drake_grasp.results.GRASP_FAILURES`; each reason starts with its class):
+Failure classes (`drake_grasp.evaluation.records.GRASP_FAILURES`; each reason starts with its class):
     missed: no object touched both pads when the closing ended (also when the policy
         ended without closing the gripper; the policy's own reason is kept then).
     pushed-away: the object the grasp went for (the one nearest the grasp axis when the
@@ -38,7 +38,7 @@ from pydrake.multibody.plant import ContactResults
 from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.framework import LeafSystem
 
-from drake_grasp.scenario import JudgeConfig
+from drake_grasp.config.scenario import JudgeConfig
 from drake_grasp.systems.state import shared_when_copied
 from drake_grasp.systems.supervisor import MOTION_PHASES, motion_phase_name
 
@@ -147,7 +147,7 @@ class GraspJudgement:
         decided: the grasp motion was done when this was computed (else: timeout).
         attempted: the gripper closed (False when the policy gave up before closing).
         success: held and lifted after the hold.
-        failure: "" on success, else one of `drake_grasp.results.GRASP_FAILURES`.
+        failure: "" on success, else one of `drake_grasp.evaluation.records.GRASP_FAILURES`.
         reason: None on success, else "<failure>: <what happened>".
         grasped_object_id: the object held and lifted at the end (None unless success).
         object_lowest_point_m: the lowest point above the table, at the end, of the

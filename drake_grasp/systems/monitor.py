@@ -1,7 +1,7 @@
 """The harness's view of a user policy's grasp motion: which phase it is in, for the judge.
 
 A built-in policy reports the phase of the shared grasp motion itself (its
-`control_status`). A user policy (`drake_grasp.plugins`) does not: the
+`control_status`). A user policy (`drake_grasp.policies.plugins`) does not: the
 `GraspMotionMonitor` derives the phase from what the policy commands and from the
 gripper's measured state, with the rules the built-in policies follow, so the judge
 judges both the same way and a policy cannot shorten its own hold.
@@ -15,8 +15,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_grasp.plugins import CLOSE_WIDTH_M
-from drake_grasp.scenario import Scenario
+from drake_grasp.config.policy_spec import CLOSE_WIDTH_M
+from drake_grasp.config.scenario import Scenario
 from drake_grasp.systems.state import shared_when_copied
 from drake_grasp.systems.supervisor import grasp_motion_next, motion_phase_code
 

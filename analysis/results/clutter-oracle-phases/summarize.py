@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.results import mcnemar_exact_p, wilson_interval
+from drake_grasp.evaluation.records import mcnemar_exact_p, wilson_interval
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (16, 25, 26, 27, 28)

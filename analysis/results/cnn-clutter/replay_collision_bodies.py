@@ -1,10 +1,10 @@
 """Replays every collision attempt of the given run folders and prints which gripper
 bodies touched an object at the judge's first touching sample."""
 import json, sys
-from drake_grasp.episode import simulate_episode
-from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.results import load_records
-from drake_grasp.scene import SceneSpec
+from drake_grasp.evaluation.episode import simulate_episode
+from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.world.scene import SceneSpec
 out = open(sys.argv[1], "a")
 for f in sys.argv[2:]:
     for rec in load_records(f):

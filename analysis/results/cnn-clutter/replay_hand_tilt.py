@@ -3,10 +3,10 @@ right finger pad centres in the world, and the angle of the grasp frame's z axis
 vertical, for recorded attempts replayed exactly."""
 import json, sys
 import numpy as np
-import drake_grasp.episode as E
-from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.results import load_records
-from drake_grasp.scene import SceneSpec
+import drake_grasp.evaluation.episode as E
+from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.world.scene import SceneSpec
 LOG = []
 _fd = E.final_distance
 def logged(plant, ctx, station, *a, **k):

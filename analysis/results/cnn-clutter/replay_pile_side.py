@@ -3,10 +3,10 @@ position of the objects at the start of the attempt) lies in the hand's frame wh
 first collision happens, and which gripper body touched."""
 import json, sys
 import numpy as np
-import drake_grasp.episode as E
-from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.results import load_records
-from drake_grasp.scene import SceneSpec
+import drake_grasp.evaluation.episode as E
+from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.world.scene import SceneSpec
 
 POSES = []
 _fd = E.final_distance

@@ -3,10 +3,10 @@ height difference every 10 ms, reported at the judge's first collision time."""
 import json, sys
 import numpy as np
 import pydrake.systems.analysis as A
-import drake_grasp.episode as E
-from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.results import load_records
-from drake_grasp.scene import SceneSpec
+import drake_grasp.evaluation.episode as E
+from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.world.scene import SceneSpec
 
 TRACE = []
 _Base = A.Simulator

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import torch
 from torch import nn
-from drake_grasp.network import load_weights
-from drake_grasp.cnn_metrics import ranking_metrics
+from drake_grasp.cnn.network import load_weights
+from drake_grasp.learning.cnn_metrics import ranking_metrics
 torch.set_num_threads(1)
 class Smoothed(nn.Module):
     def __init__(s, base, r_m, r_deg, grid):

@@ -62,7 +62,7 @@ def main(argv=None) -> int:
         result = gate(read(args.folder))
     except FileNotFoundError as e:
         sys.exit(f"gate.py: {e.filename}: not found (score every arm with cnn_eval.py first)")
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     print_json(result, args.out)
     return 0

@@ -19,10 +19,10 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.dense_training import (LabelStore, batch_tensors, pairwise_rank_loss,
+from drake_grasp.learning.dense_training import (LabelStore, batch_tensors, pairwise_rank_loss,
                                         rank_pair_gaps, rank_pairs)
-from drake_grasp.network import load_weights
-from drake_grasp.station import gripper_frame_offsets
+from drake_grasp.cnn.network import load_weights
+from drake_grasp.world.station import gripper_frame_offsets
 
 
 def score(net, folder: str, *, images: int = 2000, batch: int = 50, seed: int = 0) -> dict:
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         net = load_weights(path)[0]
         out[name] = {folder: score(net, folder) for folder in args.labels.split(",")}
         print(name, json.dumps(out[name]))
-    from drake_grasp.results import atomic_write_text
+    from drake_grasp.core.files import atomic_write_text
     atomic_write_text(args.out, json.dumps(out, indent=1) + "\n")
     return 0
 

@@ -26,13 +26,13 @@ import numpy as np
 def main(argv=None) -> int:
     import h5py
 
-    from drake_grasp.actions import apply_actions
-    from drake_grasp.cnn_metrics import regret_m, spearman
-    from drake_grasp.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.actions import apply_actions
+    from drake_grasp.learning.cnn_metrics import regret_m, spearman
+    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.objects import load_library
-    from drake_grasp.policies import sample_candidates
-    from drake_grasp.results import print_json
-    from drake_grasp.scene import SceneSpec
+    from drake_grasp.policies.decisions import sample_candidates
+    from drake_grasp.core.files import print_json
+    from drake_grasp.world.scene import SceneSpec
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("data", type=Path, help="a `generate` folder")

@@ -17,8 +17,9 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.dense_training import load_labels, turn_images
-from drake_grasp.network import load_weights
+from drake_grasp.learning.dense_training import load_labels
+from drake_grasp.cnn.views import turn_images
+from drake_grasp.cnn.network import load_weights
 
 
 def main() -> None:

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drake_grasp.actions import apply_actions
-from drake_grasp.cnn_metrics import regret_m, sample_image_indices, spearman
-from drake_grasp.dataset import DepthGraspDataset
-from drake_grasp.grasps import distance_to_nearest_grasp
-from drake_grasp.policies import sample_candidates
-from drake_grasp.results import print_json
-from drake_grasp.systems.evaluator import load_cnn, score_candidates
+from drake_grasp.geometry.actions import apply_actions
+from drake_grasp.learning.cnn_metrics import regret_m, sample_image_indices, spearman
+from drake_grasp.learning.dataset import DepthGraspDataset
+from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.policies.decisions import sample_candidates
+from drake_grasp.core.files import print_json
+from drake_grasp.policies.evaluator import load_cnn, score_candidates
 
 HEIGHT_EDGES_M = (0.0, 0.06, 0.09, 0.12, 0.15, 1.0)  # the grasp frame's z above the table
 BEST_EDGES_M = (0.0, 0.01, 0.03, 0.06, 1.0)  # the best candidate's true distance

@@ -36,7 +36,7 @@ ISOLATION_MARGIN = 2  # rule 2: at most this many fewer of the 120 isolation tri
 def run_counts(folder: Path) -> dict:
     """CTR's counts in one evaluate folder: grasped / attempts, runs and attempts per run
     (clutter), failure classes, and the CNN time per decision from the trial records."""
-    from drake_grasp.results import load_records
+    from drake_grasp.evaluation.records import load_records
 
     path = folder / "summary.json"
     if not path.is_file():
@@ -65,7 +65,7 @@ def run_counts(folder: Path) -> dict:
 
 
 def pool(root: Path, arm: str, folders: list[str]) -> dict:
-    from drake_grasp.results import wilson_interval
+    from drake_grasp.evaluation.records import wilson_interval
 
     per = {f: run_counts(root / f"{arm}-{f}") for f in folders}
     k = sum(c["successes"] for c in per.values())
@@ -121,7 +121,7 @@ def decide(root: Path, candidate: str = "d4", clutter_seeds=CLUTTER_SEEDS,
 
 
 def main(argv=None) -> int:
-    from drake_grasp.results import print_json
+    from drake_grasp.core.files import print_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the folder holding the runs")

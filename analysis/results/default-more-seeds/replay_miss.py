@@ -22,10 +22,10 @@ import numpy as np
 import pydrake.systems.analysis as A
 from pydrake.multibody.tree import ModelInstanceIndex
 
-import drake_grasp.episode as E
-from drake_grasp.montecarlo import recorded_scenario
-from drake_grasp.results import load_records
-from drake_grasp.scene import SceneSpec
+import drake_grasp.evaluation.episode as E
+from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.records import load_records
+from drake_grasp.world.scene import SceneSpec
 
 TRACE = []
 PLANT = [None]

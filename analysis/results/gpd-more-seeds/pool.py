@@ -13,8 +13,8 @@ import collections
 import json
 from pathlib import Path
 
-from drake_grasp.report import clutter_runs
-from drake_grasp.results import load_records, wilson_interval
+from drake_grasp.evaluation.report import clutter_runs
+from drake_grasp.evaluation.records import load_records, wilson_interval
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent

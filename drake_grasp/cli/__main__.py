@@ -1,0 +1,5 @@
+import sys
+
+from drake_grasp.cli.main import main
+
+sys.exit(main())
