@@ -48,11 +48,3 @@ def make_parser(plant, model_name_prefix: str | None = None):
     parser = Parser(plant) if model_name_prefix is None else Parser(plant, model_name_prefix)
     register_package(parser.package_map())
     return parser
-
-
-def resolve_uri(uri: str) -> Path:
-    """Resolves a `package://drake_grasp/...` URI (or a plain path) to a file path."""
-    prefix = f"package://{PACKAGE_NAME}/"
-    if uri.startswith(prefix):
-        return models_dir() / uri[len(prefix):]
-    return Path(uri)

@@ -631,7 +631,8 @@ def build_station_side(scenario, scene, library, link: BridgeLink):
     ports = policy_image_ports(builder, scenario, sd)
     for name, key in (("depth_image", "depth"), ("label_image", "label"),
                       ("gpd_depth_image", "gpd_depth")):
-        builder.Connect(ports[key], proxy.GetInputPort(name))
+        if ports[key] is not None:  # the label image: target mode only
+            builder.Connect(ports[key], proxy.GetInputPort(name))
     for name in ("gripper_state", "arm_state"):
         builder.Connect(sd.GetOutputPort(name), proxy.GetInputPort(name))
     for name in ("arm_position_command", "gripper_command"):
@@ -858,15 +859,17 @@ class ControllerSide:
         model = load_cnn(c.weights, threads=c.torch_threads) if needs_cnn else None
         builder = DiagramBuilder()
         images = {}
-        for name, model_image in (("depth_image", ImageDepth32F()), ("label_image", ImageLabel16I()),
-                                  ("gpd_depth_image", ImageDepth32F())):
+        streams = [("depth_image", ImageDepth32F()), ("gpd_depth_image", ImageDepth32F())]
+        if scenario.target:  # the label image (ground truth) only in target mode
+            streams.append(("label_image", ImageLabel16I()))
+        for name, model_image in streams:
             images[name] = builder.AddNamedSystem(f"remote_{name}", _make_remote_image(
                 link, name, model_image, self.counts)).get_output_port()
         controller, self.timer, _ = add_policy_systems(
             builder, scenario, model=model, X_WG_start=_pose(task["X_WG_start"]),
             X_GC=_pose(task["X_GC"]), X_GC_gpd=_pose(task["X_GC_gpd"]),
             target_label=task.get("target_label"), detect_fn=None,
-            depth=images["depth_image"], label=images["label_image"],
+            depth=images["depth_image"], label=images.get("label_image"),
             gpd_depth=images["gpd_depth_image"])
         self._control_plant = _control_plant(scenario)  # the IK keeps no reference
         self.diff_ik = builder.AddNamedSystem("diff_ik", make_arm_diff_ik(scenario, self._control_plant))

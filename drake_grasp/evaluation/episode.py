@@ -423,12 +423,12 @@ def policy_image_ports(builder, scenario, station_diagram) -> dict:
     (`depth`, `label`, `gpd_depth`): through the timing's frame buffers (`_sensor`) where
     the policy reads them. Only target mode reads the label image and only gpd the GPD
     sensor (once): a frame buffer, which renders every period, is put in front of them
-    only then."""
+    only then. Outside target mode `label` is None: the label image, ground truth of which
+    pixel shows which object, is then connected to no policy-side system."""
     sd = station_diagram
     return {
         "depth": _sensor(builder, scenario, sd, "depth_image"),
-        "label": (_sensor(builder, scenario, sd, "label_image") if scenario.target
-                  else sd.GetOutputPort("label_image")),
+        "label": _sensor(builder, scenario, sd, "label_image") if scenario.target else None,
         "gpd_depth": (_sensor(builder, scenario, sd, "gpd_depth_image")
                       if scenario.policy == "gpd" else sd.GetOutputPort("gpd_depth_image")),
     }
@@ -438,7 +438,8 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
                        detect_fn, depth, label, gpd_depth):
     """The built-in policy's systems: "controller" (GraspController), "action_sampler" and
     "distance_evaluator" (the CNN; "no_evaluator" for policies without it), connected to
-    the image output ports given (`depth`, `label`, `gpd_depth`). The in-process episode
+    the image output ports given (`depth`, `label` - None outside target mode -,
+    `gpd_depth`). The in-process episode
     and the controller side of `drake_grasp.evaluation.bridge` both build the policy here.
 
     Returns (controller, its DecisionTimer, the sampler)."""
@@ -463,7 +464,8 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
         X_GC_gpd=X_GC_gpd, score_fn=score_fn, score_needs_height=needs_height,
         detect_fn=timer.wrap(_detector(scenario, detect_fn)), target_label=target_label))
     builder.Connect(depth, controller.GetInputPort("depth_image"))
-    builder.Connect(label, controller.GetInputPort("label_image"))
+    if label is not None:  # target mode only: the label image is ground truth
+        builder.Connect(label, controller.GetInputPort("label_image"))
     builder.Connect(gpd_depth, controller.GetInputPort("gpd_depth_image"))
     sampler = builder.AddNamedSystem("action_sampler", ActionSampler(
         num_candidates=c.num_candidates, xy_m=c.sample_xy_m, theta_deg=c.sample_theta_deg,

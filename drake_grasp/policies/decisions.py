@@ -232,8 +232,3 @@ def grasp_height(between: np.ndarray, around: np.ndarray, *, depth_below_top_m: 
     if widest_z is not None and np.isfinite(widest_z):
         centre = min(centre, float(widest_z))
     return max(floor, centre)
-
-
-def wrap_theta_deg(theta) -> np.ndarray:
-    """Angles to [-90, 90): the hand is symmetric under 180 degrees."""
-    return (np.asarray(theta, dtype=float) + 90.0) % 180.0 - 90.0
