@@ -206,7 +206,7 @@ def test_ensemble_averages_its_members_and_round_trips(tmp_path, capsys):
 
     bad = tmp_path / "bad.safetensors"
     safetensors.torch.save_file({k: v.contiguous() for k, v in loaded.state_dict().items()}, str(bad),
-                                metadata={"format": "drake_grasp.policies.gpd.GraspClassifier", "members": "1"})
+                                metadata={"format": "drake_grasp.gpd.GraspClassifier", "members": "1"})
     with pytest.raises(ValueError, match="'members' is '1'"):
         gpd.load_classifier(bad)
 

@@ -63,6 +63,9 @@ from drake_grasp.geometry.grasps import (
     evaluation_poses,
 )
 
+# The weights files' format id (in their metadata; the shipped models/gpd/ carries it): a name,
+# not a module path.
+WEIGHTS_FORMAT = "drake_grasp.gpd.GraspClassifier"
 IMAGE_SIZE = 32
 CHANNELS = 15
 # Half side of the cube imaged around the grasp centre [m]: the stroke.
@@ -427,7 +430,7 @@ def save_classifier(model: GraspClassifier | ClassifierEnsemble, path: str | Pat
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"format": "drake_grasp.policies.gpd.GraspClassifier", "image_size": str(model.size)}
+    meta = {"format": WEIGHTS_FORMAT, "image_size": str(model.size)}
     if isinstance(model, ClassifierEnsemble):
         meta["members"] = str(len(model.members))
     meta.update({k: str(v) for k, v in (metadata or {}).items()})
@@ -459,9 +462,9 @@ def load_classifier(path: str | Path = "") -> GraspClassifier | ClassifierEnsemb
             f"{path}: no GPD classifier weights (train them with `drake-grasp gpd-train`)")
     with safetensors.safe_open(str(path), framework="pt") as f:
         meta = f.metadata() or {}
-    if meta.get("format") != "drake_grasp.policies.gpd.GraspClassifier":
+    if meta.get("format") != WEIGHTS_FORMAT:
         raise ValueError(f"{path}: not GPD classifier weights (metadata format "
-                         f"{meta.get('format')!r}, expected 'drake_grasp.policies.gpd.GraspClassifier')")
+                         f"{meta.get('format')!r}, expected {WEIGHTS_FORMAT!r})")
     size = int(meta.get("image_size", IMAGE_SIZE))
     members = meta.get("members")
     if members is None:
