@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_grasp.geometry.camera import PinholeCamera
+
 
 def contact_sheet(count: int, max_panels: int, *, cols: int, panel_in: tuple):
     """(figure, axes, picked indices) for a grid showing up to `max_panels` of `count`
@@ -46,13 +48,11 @@ def save_depth_contact_sheet(frames, path: Path, *, max_frames: int = 24, title:
     plt.close(fig)
 
 
-def _pixels(points_G: np.ndarray, *, depth_m: float, X_GC_xyz, focal: float, w: int, h: int):
+def _pixels(points_G: np.ndarray, *, depth_m: float, X_GC_xyz, cam: PinholeCamera):
     """Pixel (u, v) of points given in the hand frame G at a given depth below the camera
     (camera and G share their orientation; the camera sits at X_GC_xyz in G)."""
     P = np.asarray(points_G, float)
-    u = (P[:, 0] - X_GC_xyz[0]) * focal / depth_m + (w / 2 - 0.5)
-    v = (P[:, 1] - X_GC_xyz[1]) * focal / depth_m + (h / 2 - 0.5)
-    return u, v
+    return cam.project(P[:, 0] - X_GC_xyz[0], P[:, 1] - X_GC_xyz[1], depth_m)
 
 
 def save_controller_steps(steps, path: str | Path, *, fov_y_deg: float, X_GC_xyz,
@@ -67,19 +67,18 @@ def save_controller_steps(steps, path: str | Path, *, fov_y_deg: float, X_GC_xyz
     for ax, i in zip(axes.ravel(), idx):
         s = steps[i]
         depth = s.depth
-        h, w = depth.shape
-        focal = 0.5 * h / np.tan(np.deg2rad(fov_y_deg) / 2.0)
+        cam = PinholeCamera.of_image(depth, fov_y_deg)
         ax.imshow(depth, cmap="gray_r", vmin=np.percentile(depth, 1), vmax=np.percentile(depth, 99))
         # Candidate hand centres at the depth of the nearest surface in view.
         d = float(np.percentile(depth, 5))
         u, v = _pixels(np.column_stack([s.actions[:, :2], np.zeros(len(s.actions))]),
-                       depth_m=d, X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+                       depth_m=d, X_GC_xyz=X_GC_xyz, cam=cam)
         finite = np.isfinite(s.distances)
         sc = ax.scatter(u[finite], v[finite], c=s.distances[finite], cmap="viridis_r", s=6,
                         vmin=0.0, vmax=max(0.02, float(np.percentile(s.distances[finite], 95))))
         # Current gripper: a red line across the closing direction (x_G), 85 mm wide.
         u0, v0 = _pixels(np.array([[-0.0425, 0, 0], [0.0425, 0, 0]]), depth_m=d,
-                         X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+                         X_GC_xyz=X_GC_xyz, cam=cam)
         ax.plot(u0, v0, "-", color="red", lw=2)
         # Chosen action: where the best candidate would put the closing line (green).
         a = s.chosen
@@ -87,10 +86,10 @@ def save_controller_steps(steps, path: str | Path, *, fov_y_deg: float, X_GC_xyz
         c, sn = np.cos(np.deg2rad(a[2])), np.sin(np.deg2rad(a[2]))
         ends = np.array([[a[0] - 0.0425 * c, a[1] - 0.0425 * sn, 0],
                          [a[0] + 0.0425 * c, a[1] + 0.0425 * sn, 0]])
-        u1, v1 = _pixels(ends, depth_m=d, X_GC_xyz=X_GC_xyz, focal=focal, w=w, h=h)
+        u1, v1 = _pixels(ends, depth_m=d, X_GC_xyz=X_GC_xyz, cam=cam)
         ax.plot(u1, v1, "-", color="lime", lw=2)
-        ax.set_xlim(-0.5, w - 0.5)
-        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_xlim(-0.5, cam.width - 0.5)
+        ax.set_ylim(cam.height - 0.5, -0.5)
         ax.set_title(f"step {s.iteration}  t={s.time_s:.1f}s  best {1000 * np.nanmin(s.distances):.0f} mm",
                      fontsize=8)
     if sc is not None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.learning.dataset import DepthGraspDataset
 
 
@@ -16,12 +17,11 @@ def camera_projector(hand_pose, *, width: int, height: int, fov_y_deg: float, X_
 
     x, y, z, yaw = (float(v) for v in hand_pose)
     X_CW = (topdown_pose([x, y], z, np.deg2rad(yaw)) @ X_GC).inverse()
-    f = 0.5 * height / np.tan(np.deg2rad(fov_y_deg) / 2.0)
-    cu, cv = width / 2.0 - 0.5, height / 2.0 - 0.5
+    cam = PinholeCamera.from_fov(width, height, fov_y_deg)
 
     def project(P_W: np.ndarray) -> np.ndarray:
         P_C = (X_CW.rotation().matrix() @ np.asarray(P_W, float).T).T + X_CW.translation()
-        return np.stack([f * P_C[:, 0] / P_C[:, 2] + cu, f * P_C[:, 1] / P_C[:, 2] + cv], axis=1)
+        return np.stack(cam.project(P_C[:, 0], P_C[:, 1], P_C[:, 2]), axis=1)
 
     return project
 
