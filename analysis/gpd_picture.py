@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from drake_grasp.policies import gpd
+    from drake_grasp.policies import gpd, gpd_ranking
     from drake_grasp.learning.gpd_training import experiment_view
     from drake_grasp.objects import load_library
     from drake_grasp.config.scenario import load_scenario
@@ -44,7 +44,7 @@ def main(argv=None) -> int:
                                      center_xy=settled.center_xy_m)
         hands = gpd.sample_hands(cloud, rng, detector.search)
         prob = detector.classifier.probabilities(gpd.grasp_images(cloud, hands.poses))
-        order = gpd.select(hands.poses, prob, detector.selection)
+        order = gpd_ranking.select(hands.poses, prob, detector.selection)
         shown = np.where(np.isfinite(depth) & (depth < scenario.gpd.depth_max_m), depth, np.nan)
         ax = axes[row, 0]
         im = ax.imshow(shown, cmap="viridis")

@@ -73,7 +73,7 @@ def variants(poses: np.ndarray, prob_a: np.ndarray, prob_b: np.ndarray | None,
              arms: np.ndarray | None = None) -> dict:
     """Index of the top-1 candidate of each variant (None: nothing accepted). `arms`:
     each candidate's lever arm (`gpd.lever_arms`) for the balance variants."""
-    from drake_grasp.policies.gpd import Selection, cluster_scores, cluster_support, select
+    from drake_grasp.policies.gpd_ranking import Selection, cluster_scores, cluster_support, select
 
     out = {}
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import drake_grasp.evaluation.montecarlo as m
-from drake_grasp.policies.gpd import Detections
+from drake_grasp.policies.gpd_ranking import Detections
 from drake_grasp.evaluation.montecarlo import evaluate
 from drake_grasp.policies.decisions import memory_penalty
 from drake_grasp.evaluation.records import load_records

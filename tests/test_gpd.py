@@ -5,7 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from drake_grasp.policies import gpd
+from drake_grasp.policies import gpd, gpd_ranking
 from drake_grasp.geometry.grasps import TABLE_TOP_Z_M, topdown_rotation
 
 
@@ -132,7 +132,7 @@ def test_selection_ranks_by_the_cluster_mean_probability():
                       pose(0.3), pose(0.303, 90.0),          # confident, neighbour unlike it
                       pose(0.6), pose(0.603)])               # confident, neighbour weak
     prob = np.array([0.90, 0.92, 0.91, 0.99, 0.10, 0.97, 0.2])
-    scores = gpd.cluster_scores(poses, prob)
+    scores = gpd_ranking.cluster_scores(poses, prob)
     # The turned neighbour is not aligned with the confident one: it stands alone.
     assert scores[3] == pytest.approx(0.99)
     assert scores[5] == pytest.approx((0.97 + 0.2) / 2)

@@ -99,7 +99,7 @@ class GpdConfig:
     # Classifier weights; "" = the shipped models/gpd/weights.safetensors.
     weights: str = ""
     # True: when no candidate reaches the classifier's threshold, take the best-ranked
-    # one anyway (`gpd.Selection.fallback`) instead of reporting no detection. On by
+    # one anyway (`gpd_ranking.Selection.fallback`) instead of reporting no detection. On by
     # default: without it GPD closed on nothing in 8 of its 10 failures in clutter and
     # grasped 89.7% there, the paper's GPD 94.8% (README, *Remembering failed grasps;
     # GPD's fallback*); false is the strict-threshold GPD of the earlier records.
