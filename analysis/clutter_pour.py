@@ -131,16 +131,17 @@ def _world(spec, library, physics, *, walls_half_m: float = 0.0):
     from pydrake.systems.framework import DiagramBuilder
 
     from drake_grasp.world import scene as S
+    from drake_grasp.world import table as T
 
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(S.default_scene_plant_config(), builder)
-    _, sheet = S.add_table_and_sheet(plant, scene_graph, spec.center_xy_m,
+    _, sheet = T.add_table_and_sheet(plant, scene_graph, spec.center_xy_m,
                                      sheet_collision=S.sheet_collision(physics, sheet_moves=False))
     instances = S.add_scene_objects(plant, spec, library)
     if walls_half_m > 0:
         _add_walls(plant, spec.center_xy_m, walls_half_m)
     plant.Finalize()
-    S.connect_sheet_hold(builder, plant, sheet)
+    T.connect_sheet_hold(builder, plant, sheet)
     diagram = builder.Build()
     world = S.SceneWorld(diagram, plant, scene_graph, instances, Simulator(diagram))
     S.set_object_poses(plant, world.plant_context(), spec, instances)

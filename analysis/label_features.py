@@ -44,7 +44,7 @@ def _lean_deg(check) -> np.ndarray:
 def run_scene(index: int, seed: int, per_scene: int) -> dict:
     import drake_grasp.geometry.grasps as G
     from drake_grasp.evaluation.lab import check_grasp
-    from drake_grasp.world.scene import SHEET_THICKNESS_M
+    from drake_grasp.world.table import SHEET_THICKNESS_M
     from label_load_case import _grasps, gravity_only, isolation_scene
 
     t0 = time.perf_counter()

@@ -88,7 +88,7 @@ def _world(physics):
     from pydrake.systems.framework import DiagramBuilder
 
     from drake_grasp.config.physics import apply_hydroelastic_margin, sheet_collision
-    from drake_grasp.world.scene import add_table_and_sheet
+    from drake_grasp.world.table import add_table_and_sheet
     from drake_grasp.world.station import _add_robot
 
     s = load_scenario(scenario_name="isolation", physics_profile=physics)

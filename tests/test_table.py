@@ -15,8 +15,8 @@ import pytest
 
 from drake_grasp.objects import load_library
 from drake_grasp.config.scenario import load_scenario
-from drake_grasp.world.scene import (TABLE_TOP_X_M, TABLE_TOP_Y_M, ObjectPlacement, SceneSpec,
-                               build_scene_world, settle_world)
+from drake_grasp.world.scene import ObjectPlacement, SceneSpec, build_scene_world, settle_world
+from drake_grasp.world.table import TABLE_TOP_X_M, TABLE_TOP_Y_M
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 LYING = [0.7071068, 0.7071068, 0.0, 0.0]  # 90 deg about x: a can on its side

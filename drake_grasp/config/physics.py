@@ -85,5 +85,5 @@ def sheet_collision(physics, *, sheet_moves: bool) -> str:
 def table_collision(physics) -> str:
     """The table collision ("box" or "halfspace") from `PhysicsConfig.table_collision`
     ("box" without a physics config: the reference settings). Under a half-space sheet
-    `scene.add_table_and_sheet` gives the table none either way."""
+    `table.add_table_and_sheet` gives the table none either way."""
     return physics.table_collision if physics is not None else "box"

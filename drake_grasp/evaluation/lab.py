@@ -3,7 +3,7 @@
 A small, fast Diagram (no arm, no camera): the station's Robotiq 2F-85 model with its
 compliant hydroelastic pads and the same force-controlled `GripperController`, mounted on a
 floating base, grasping ONE object that rests on the station's table and sheet
-(`scene.add_table_and_sheet`, `scene.add_scene_objects`; the object is settled first).
+(`table.add_table_and_sheet`, `scene.add_scene_objects`; the object is settled first).
 
 Base actuation: the gripper base rides on six joints (prismatic x, y, z in the world,
 then revolute z, y, x - the roll-pitch-yaw order, so R_WB = RollPitchYaw(r, p, y)),
@@ -48,11 +48,10 @@ from drake_grasp.world.scene import (
     ObjectPlacement,
     SceneSpec,
     add_scene_objects,
-    add_table_and_sheet,
-    connect_sheet_hold,
     set_object_poses,
     settle_scene,
 )
+from drake_grasp.world.table import add_table_and_sheet, connect_sheet_hold
 
 GRIPPER_URI = "package://drake_grasp/robotiq_2f85/robotiq_2f85.urdf"
 FAILURES = ("missed", "slipped-during-lift", "slipped-during-hold", "dropped-by-shake",

@@ -70,10 +70,10 @@ from drake_grasp.world.scene import (
     OBJECT_BODY_NAME,
     SceneSpec,
     add_scene_objects,
-    add_table_and_sheet,
     scene_top_z,
     set_object_poses,
 )
+from drake_grasp.world.table import add_table_and_sheet
 from drake_grasp.systems.depth import DepthPostProcessor
 from drake_grasp.systems.gripper import GripperController
 
