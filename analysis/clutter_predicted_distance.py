@@ -25,7 +25,7 @@ import numpy as np
 
 def replay(path: str) -> dict:
     """One recorded CTR clutter attempt replayed with the CNN, its decisions logged."""
-    from drake_grasp.evaluation.episode import controller_class
+    from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
     from drake_grasp.policies.controller import GraspController
     from drake_grasp.objects import load_library

@@ -51,7 +51,8 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     (skipped when it exists). Returns the attempt's summary row."""
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.learning.dataset import DatasetConfig
-    from drake_grasp.evaluation.episode import controller_class, simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
     from drake_grasp.evaluation.montecarlo import _model, recorded_pile
     from drake_grasp.objects import load_library

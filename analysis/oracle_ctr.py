@@ -80,7 +80,8 @@ def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
 
 
 def run_trial(index: int, seed: int, phase: str = "all") -> dict:
-    from drake_grasp.evaluation.episode import controller_class, simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.evaluation.experiments import EXPERIMENTS, trial_scenario
     from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.objects import load_library
@@ -110,7 +111,7 @@ def run_attempt(path: str, arms=("cnn", "oracle"), phase: str = "all") -> dict:
     (`arms`; the oracle scoring the decisions of `phase`)."""
     import contextlib
 
-    from drake_grasp.evaluation.episode import controller_class
+    from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
     from drake_grasp.objects import load_library

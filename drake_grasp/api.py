@@ -37,14 +37,8 @@ The usual path, lowest level first:
 
 from __future__ import annotations
 
-from drake_grasp.evaluation.episode import (
-    EpisodeDiagram,
-    EpisodeResult,
-    EpisodeRun,
-    build_episode_diagram,
-    run_episode,
-    simulate_episode,
-)
+from drake_grasp.evaluation.episode import EpisodeResult, EpisodeRun, run_episode, simulate_episode
+from drake_grasp.evaluation.episode_diagram import EpisodeDiagram, build_episode_diagram
 from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
 from drake_grasp.cnn.fcn import FcnDistanceModel
 from drake_grasp.evaluation.montecarlo import evaluate

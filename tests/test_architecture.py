@@ -107,8 +107,8 @@ def test_no_import_circle():
 def test_the_graph_sees_lazy_imports():
     """The checks above would pass on a graph that missed imports inside functions."""
     graph = _graph()
-    # episode imports the station inside a function only
-    assert "drake_grasp.world.station" in graph["drake_grasp.evaluation.episode"]
+    # episode_diagram imports the station inside a function only
+    assert "drake_grasp.world.station" in graph["drake_grasp.evaluation.episode_diagram"]
     assert "drake_grasp.cnn.network" in graph["drake_grasp.learning.training"]
 
 

@@ -163,7 +163,7 @@ def test_gpd_executes_a_tilted_ground_truth_detection_and_lifts(library, monkeyp
     """The gpd policy with a stand-in detector that returns the scripted (ground-truth)
     grasp tilted 20 degrees about y_G: one GPD image at the viewpoint, then the
     tilted approach, close and lift hold the can."""
-    from drake_grasp.evaluation.episode import plan_scripted_grasp
+    from drake_grasp.evaluation.episode_diagram import plan_scripted_grasp
     from drake_grasp.world.scene import make_scene
 
     counts = _count_depth_postprocessing(monkeypatch)
@@ -277,7 +277,7 @@ def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
 
 
 def test_controller_class_swaps_the_policys_controller_for_the_block_only(library):
-    from drake_grasp.evaluation.episode import build_episode_diagram, controller_class
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram, controller_class
     from drake_grasp.world.scene import make_scene
     from drake_grasp.policies.controller import GraspController
 

@@ -132,7 +132,7 @@ def test_the_shipped_fcns_are_the_committed_nets_with_their_validation_threshold
 
 
 def test_the_evaluator_gets_the_controllers_camera_height_in_the_episode(library):
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(

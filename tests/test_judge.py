@@ -7,7 +7,7 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.plant import ContactResults
 from pydrake.systems.analysis import Simulator
 
-from drake_grasp.evaluation import episode as episode_module
+from drake_grasp.evaluation import episode_diagram as episode_diagram_module
 from drake_grasp.evaluation.episode import simulate_episode
 from drake_grasp.evaluation.records import GRASP_FAILURES
 from drake_grasp.config.scenario import JudgeConfig, load_scenario
@@ -90,7 +90,7 @@ def _can(extra: str = ""):
 
 def _shifted_plan(monkeypatch, d_W):
     """The scripted supervisor's planned grasp shifted by d_W (world)."""
-    original = episode_module.plan_scripted_grasp
+    original = episode_diagram_module.plan_scripted_grasp
 
     def shifted(scene, library, seed):
         i, P_O, X = original(scene, library, seed)
@@ -98,7 +98,7 @@ def _shifted_plan(monkeypatch, d_W):
         X[:3, 3] += np.asarray(d_W, float)
         return i, P_O, X
 
-    monkeypatch.setattr(episode_module, "plan_scripted_grasp", shifted)
+    monkeypatch.setattr(episode_diagram_module, "plan_scripted_grasp", shifted)
 
 
 def test_scripted_grasp_of_a_can_is_judged_a_success(library):
@@ -115,7 +115,7 @@ def test_scripted_grasp_of_a_can_is_judged_a_success(library):
 def test_pad_contacts_and_the_judge_agree_while_the_can_is_held(library):
     """`pad_contacts` (for code holding the plant, e.g. the grasp lab) reads the same
     contacts as the judge's ports: both pads on the can once the closing has ended."""
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
     from drake_grasp.systems.judge import pad_contacts
 
@@ -208,7 +208,7 @@ def test_no_controller_policy_has_privileged_ports(policy):
 
 
 def test_only_the_judge_reads_privileged_ports_in_the_episode_diagram(library):
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(

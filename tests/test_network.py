@@ -756,7 +756,7 @@ def test_an_episode_scores_with_the_views_and_refuses_a_net_without_a_grid(libra
     import numpy as np
 
     from drake_grasp.core.assets import models_dir
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.scene import make_scene
     from drake_grasp.policies.evaluator import (CnnEnsemble, DistanceEvaluator, check_views,

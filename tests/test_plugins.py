@@ -264,7 +264,7 @@ def test_user_policy_resume_and_refusals(user_modules, tmp_path, monkeypatch):
 
 
 def test_episode_diagram_wires_a_user_policy(library, monkeypatch):
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
 
     monkeypatch.syspath_prepend(str(EXAMPLES))

@@ -34,7 +34,7 @@ def _privileged_feeds(diagram) -> set[tuple[str, str]]:
 
 
 def _episode(policy: str, library, *, extra: str = ""):
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(

@@ -160,7 +160,8 @@ def test_latency_drops_and_mount_error_reach_the_episode(library):
     """One short CTR episode with all three: the frame buffer sits in front of the
     controller and the evaluator, the mount error is recorded, and the same seed gives
     the same trial."""
-    from drake_grasp.evaluation.episode import build_episode_diagram, simulate_episode
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.world.scene import make_scene
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(

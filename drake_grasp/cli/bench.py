@@ -147,7 +147,7 @@ def bench_controller_step_ms(repeats: int = 50) -> dict:
 
 def bench_depth_frame_ms(repeats: int = 200) -> dict:
     """Median time to render and post-process one frame at a new time (cache miss)."""
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.objects import load_library
     from drake_grasp.config.scenario import load_scenario, replace
     from drake_grasp.world.scene import scenario_scene

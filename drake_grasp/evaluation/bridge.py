@@ -604,10 +604,10 @@ def _send_task(link: BridgeLink, scenario, station, target_label) -> dict:
 def build_station_side(scenario, scene, library, link: BridgeLink):
     """The station process's Diagram: the station (joint-command arm input), the proxy
     of the controller ("remote_controller"), the sheet command and the judge. Does the
-    task handshake on `link`. Returns an `episode.EpisodeDiagram`."""
+    task handshake on `link`. Returns an `episode_diagram.EpisodeDiagram`."""
     from pydrake.systems.framework import DiagramBuilder
 
-    from drake_grasp.evaluation.episode import (
+    from drake_grasp.evaluation.episode_diagram import (
         EpisodeDiagram,
         _add_judge,
         _drive_sheet,
@@ -837,7 +837,7 @@ class ControllerSide:
         from pydrake.systems.framework import DiagramBuilder
         from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-        from drake_grasp.evaluation.episode import add_policy_systems
+        from drake_grasp.evaluation.episode_diagram import add_policy_systems
         from drake_grasp.config.scenario import Scenario, dump_scenario
         from drake_grasp.world.station import make_arm_diff_ik
         from drake_grasp.policies.evaluator import load_cnn

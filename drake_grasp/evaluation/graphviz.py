@@ -11,7 +11,7 @@ from drake_grasp.config.scenario import Scenario
 
 def diagram_dot(scenario: Scenario, *, depth: int = 2) -> str:
     """Graphviz text of the episode Diagram for a scenario (its settled scene)."""
-    from drake_grasp.evaluation.episode import build_episode_diagram
+    from drake_grasp.evaluation.episode_diagram import build_episode_diagram
     from drake_grasp.objects import load_library
     from drake_grasp.world.scene import scenario_scene
 
