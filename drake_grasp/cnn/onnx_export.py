@@ -127,6 +127,29 @@ def _set_metadata(path: Path, metadata: dict[str, str]) -> None:
     onnx.save(model, str(path))
 
 
+def _export_parts(model, exporter: str, *, tmp_head: Path, tmp_image: Path, features,
+                  example_actions, images) -> None:
+    """Exports the head part, then the image part, with the exporters' noise silenced."""
+    # The exporters' tracer warnings (shape checks become constants: the shapes they
+    # check are the fixed ones) and notes about torchvision are noise for this net.
+    onnx_log = logging.getLogger("torch.onnx")
+    level = onnx_log.level
+    onnx_log.setLevel(logging.ERROR)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _export(_HeadPart(model).eval(), (features, example_actions), tmp_head,
+                    exporter=exporter, input_names=["features", "actions"],
+                    output_names=["distances"],
+                    axes={"features": {0: "B"}, "actions": {0: "B", 1: "K"},
+                          "distances": {0: "B", 1: "K"}})
+            _export(_ImagePart(model).eval(), (images,), tmp_image, exporter=exporter,
+                    input_names=["images"], output_names=["features"],
+                    axes={"images": {0: "B"}, "features": {0: "B"}})
+    finally:
+        onnx_log.setLevel(level)
+
+
 def export_onnx(
     *, out: Union[str, os.PathLike], weights: Union[str, os.PathLike] = "",
     exporter: str = "auto",
@@ -191,24 +214,8 @@ def export_onnx(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
         tmp_image, tmp_head = tmp / out.name, tmp / head.name
-        # The exporters' tracer warnings (shape checks become constants: the shapes they
-        # check are the fixed ones) and notes about torchvision are noise for this net.
-        onnx_log = logging.getLogger("torch.onnx")
-        level = onnx_log.level
-        onnx_log.setLevel(logging.ERROR)
-        try:
-            with torch.no_grad(), warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                _export(_HeadPart(model).eval(), (features, example_actions), tmp_head,
-                        exporter=exporter, input_names=["features", "actions"],
-                        output_names=["distances"],
-                        axes={"features": {0: "B"}, "actions": {0: "B", 1: "K"},
-                              "distances": {0: "B", 1: "K"}})
-                _export(_ImagePart(model).eval(), (images,), tmp_image, exporter=exporter,
-                        input_names=["images"], output_names=["features"],
-                        axes={"images": {0: "B"}, "features": {0: "B"}})
-        finally:
-            onnx_log.setLevel(level)
+        _export_parts(model, exporter, tmp_head=tmp_head, tmp_image=tmp_image,
+                      features=features, example_actions=example_actions, images=images)
         common = {"format": ONNX_FORMAT, "code_version": drake_grasp.__version__,
                   "exporter": exporter, "torch_version": torch.__version__,
                   "source_tensors_sha256": source_sha}
