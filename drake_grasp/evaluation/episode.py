@@ -178,6 +178,40 @@ def simulate_episode(scenario: Scenario, *, scenario_name: str = "", library=Non
             torch.set_num_threads(threads)
 
 
+def _replay_html(ed: EpisodeDiagram, meshcat) -> str | None:
+    """The Meshcat recording as a standalone page (None without a visualizer)."""
+    if ed.visualizer is None:
+        return None
+    ed.visualizer.StopRecording()
+    ed.visualizer.PublishRecording()
+    return meshcat.StaticHtml()
+
+
+def _failure_reason(verdict, outcome: dict):
+    """The judge's reason, or the policy's own where it attempted no grasp."""
+    failure_reason = verdict.reason
+    if not verdict.attempted and verdict.decided and outcome.get("failure_reason"):
+        failure_reason = outcome["failure_reason"]  # e.g. "init: no grasp attempted"
+    return failure_reason
+
+
+def _disturbance_record(ed: EpisodeDiagram, scenario, root) -> dict:
+    """What the sheet's disturbance did (its kind; a shift's size and time)."""
+    disturbance = {"kind": "none"}
+    if ed.disturbance is not None and scenario.disturbance.kind != "none":
+        dctx = ed.disturbance.GetMyContextFromRoot(root)
+        disturbance = {"kind": scenario.disturbance.kind}
+        if scenario.disturbance.kind == "shift":
+            trigger = ed.disturbance.trigger_time(dctx)
+            disturbance.update({
+                "shift_xy_m": ed.disturbance.shift[:2].tolist(),
+                "shift_yaw_deg": float(np.rad2deg(ed.disturbance.shift[2])),
+                "time_s": None if np.isnan(trigger) else trigger})
+        else:
+            disturbance["velocity_m_s"] = list(scenario.disturbance.velocity_m_s)
+    return disturbance
+
+
 def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, record_depth,
          wall_start) -> EpisodeRun:
     from pydrake.systems.analysis import Simulator
@@ -229,33 +263,15 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
     if distance is None:
         distance = final_distance(plant, plant_context, station, scene, library, scenario.seed,
                                   num_samples=scenario.judge.distance_grasp_samples)
-    replay = None
-    if ed.visualizer is not None:
-        ed.visualizer.StopRecording()
-        ed.visualizer.PublishRecording()
-        replay = meshcat.StaticHtml()
+    replay = _replay_html(ed, meshcat)
     # The policy's own data (iterations, stop reason; why it gave up, if it did) and the
     # judge's verdict (success, failure class and reason, what was lifted).
     outcome = policy.outcome(policy_context)
     verdict = ed.judge.GetOutputPort("judgement").Eval(ed.judge.GetMyContextFromRoot(root))
-    failure_reason = verdict.reason
-    if not verdict.attempted and verdict.decided and outcome.get("failure_reason"):
-        failure_reason = outcome["failure_reason"]  # e.g. "init: no grasp attempted"
+    failure_reason = _failure_reason(verdict, outcome)
     X_WG = plant.CalcRelativeTransform(plant_context, plant.world_frame(),
                                        plant.GetFrameByName("grasp_frame", station.gripper))
-    disturbance = {"kind": "none"}
-    if ed.disturbance is not None and scenario.disturbance.kind != "none":
-        dctx = ed.disturbance.GetMyContextFromRoot(root)
-        disturbance = {"kind": scenario.disturbance.kind}
-        if scenario.disturbance.kind == "shift":
-            trigger = ed.disturbance.trigger_time(dctx)
-            disturbance.update({
-                "shift_xy_m": ed.disturbance.shift[:2].tolist(),
-                "shift_yaw_deg": float(np.rad2deg(ed.disturbance.shift[2])),
-                "time_s": None if np.isnan(trigger) else trigger})
-        else:
-            disturbance["velocity_m_s"] = list(scenario.disturbance.velocity_m_s)
-    target_id = scene.objects[ed.target].object_id if ed.target is not None else None
+    disturbance = _disturbance_record(ed, scenario, root)
     result = EpisodeResult(
         success=bool(verdict.success),
         failure_reason=failure_reason,
@@ -265,7 +281,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         sim_time_s=float(root.get_time()),
         wall_time_s=time.perf_counter() - wall_start,
         object_ids=scene.object_ids(),
-        target_object_id=target_id,
+        target_object_id=None if ed.target is None else scene.objects[ed.target].object_id,
         final_X_WG=_pose_dict(X_WG),
         object_lowest_point_m=verdict.object_lowest_point_m,
         final_distance_m=distance["final_distance_m"],
