@@ -317,6 +317,52 @@ def solve_start_configuration(control_plant: MultibodyPlant, X_WG: RigidTransfor
                        f"{max(1, int(tries))} starts)")
 
 
+def _add_cameras(builder, plant, scene_graph, gripper, scenario: Scenario):
+    """The wrist depth camera and the GPD baseline's sensor, each with its depth
+    post-processing, and their exported images. Returns X_CC_actual, the calibration
+    error of the camera mount."""
+    # --- wrist camera ----------------------------------------------------------------
+    cam = scenario.camera
+    # Before the first render: Mesa's LLVM must not shadow triton's (drake_grasp.core.native).
+    load_llvm_users_first()
+    scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
+    camera_frame = plant.GetFrameByName("camera_mount", gripper)
+    # The camera where it really is: the model's mount, off by the calibration error.
+    X_CC_actual = camera_mount_error(scenario.calibration, scenario.seed)
+    X_PC = camera_frame.GetFixedPoseInBodyFrame()
+    gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
+    X_PC_gpd = gpd_frame.GetFixedPoseInBodyFrame()
+    if scenario.calibration.active():
+        X_PC = X_PC @ X_CC_actual
+        X_PC_gpd = X_PC_gpd @ X_CC_actual
+    depth_camera = make_depth_camera(cam)
+    sensor = builder.AddNamedSystem("wrist_camera", RgbdSensor(
+        plant.GetBodyFrameIdOrThrow(camera_frame.body().index()), X_PC, depth_camera))
+    builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())
+    post = builder.AddNamedSystem("depth_postprocessor", DepthPostProcessor(
+        scenario.depth_noise, width=cam.width, height=cam.height,
+        far_value_m=cam.depth_max_m, frame_period_s=1.0 / cam.fps, seed=scenario.seed))
+    builder.Connect(sensor.depth_image_32F_output_port(), post.GetInputPort("depth_image_32f"))
+    builder.ExportOutput(post.GetOutputPort("depth_image"), "depth_image")
+    builder.ExportOutput(sensor.depth_image_32F_output_port(), "depth_image_raw")
+    builder.ExportOutput(sensor.label_image_output_port(), "label_image")
+
+    # --- the GPD baseline's sensor (a Structure IO in the paper) ------------------------
+    g = scenario.gpd
+    gpd_sensor = builder.AddNamedSystem("gpd_camera", RgbdSensor(
+        plant.GetBodyFrameIdOrThrow(gpd_frame.body().index()),
+        X_PC_gpd, make_depth_camera(g)))
+    builder.Connect(scene_graph.get_query_output_port(), gpd_sensor.query_object_input_port())
+    gpd_post = builder.AddNamedSystem("gpd_depth_postprocessor", DepthPostProcessor(
+        g.noise, width=g.width, height=g.height, far_value_m=g.depth_max_m,
+        frame_period_s=1.0 / GPD_CAMERA_FPS, seed=scenario.seed, stream=GPD_NOISE_STREAM))
+    builder.Connect(gpd_sensor.depth_image_32F_output_port(),
+                    gpd_post.GetInputPort("depth_image_32f"))
+    builder.ExportOutput(gpd_post.GetOutputPort("depth_image"), "gpd_depth_image")
+    builder.ExportOutput(gpd_sensor.depth_image_32F_output_port(), "gpd_depth_image_raw")
+    return X_CC_actual
+
+
 def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrary, *,
                      arm_input: str = "X_WG_desired") -> GraspStation:
     """Builds the station Diagram for a (settled) scene. See the module docstring.
@@ -387,45 +433,7 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     # --- sheet -----------------------------------------------------------------------
     builder.ExportInput(plant.get_desired_state_input_port(sheet), "sheet_desired_state")
 
-    # --- wrist camera ----------------------------------------------------------------
-    cam = scenario.camera
-    # Before the first render: Mesa's LLVM must not shadow triton's (drake_grasp.core.native).
-    load_llvm_users_first()
-    scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams()))
-    camera_frame = plant.GetFrameByName("camera_mount", gripper)
-    # The camera where it really is: the model's mount, off by the calibration error.
-    X_CC_actual = camera_mount_error(scenario.calibration, scenario.seed)
-    X_PC = camera_frame.GetFixedPoseInBodyFrame()
-    gpd_frame = plant.GetFrameByName(GPD_CAMERA_FRAME, gripper)
-    X_PC_gpd = gpd_frame.GetFixedPoseInBodyFrame()
-    if scenario.calibration.active():
-        X_PC = X_PC @ X_CC_actual
-        X_PC_gpd = X_PC_gpd @ X_CC_actual
-    depth_camera = make_depth_camera(cam)
-    sensor = builder.AddNamedSystem("wrist_camera", RgbdSensor(
-        plant.GetBodyFrameIdOrThrow(camera_frame.body().index()), X_PC, depth_camera))
-    builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())
-    post = builder.AddNamedSystem("depth_postprocessor", DepthPostProcessor(
-        scenario.depth_noise, width=cam.width, height=cam.height,
-        far_value_m=cam.depth_max_m, frame_period_s=1.0 / cam.fps, seed=scenario.seed))
-    builder.Connect(sensor.depth_image_32F_output_port(), post.GetInputPort("depth_image_32f"))
-    builder.ExportOutput(post.GetOutputPort("depth_image"), "depth_image")
-    builder.ExportOutput(sensor.depth_image_32F_output_port(), "depth_image_raw")
-    builder.ExportOutput(sensor.label_image_output_port(), "label_image")
-
-    # --- the GPD baseline's sensor (a Structure IO in the paper) ------------------------
-    g = scenario.gpd
-    gpd_sensor = builder.AddNamedSystem("gpd_camera", RgbdSensor(
-        plant.GetBodyFrameIdOrThrow(gpd_frame.body().index()),
-        X_PC_gpd, make_depth_camera(g)))
-    builder.Connect(scene_graph.get_query_output_port(), gpd_sensor.query_object_input_port())
-    gpd_post = builder.AddNamedSystem("gpd_depth_postprocessor", DepthPostProcessor(
-        g.noise, width=g.width, height=g.height, far_value_m=g.depth_max_m,
-        frame_period_s=1.0 / GPD_CAMERA_FPS, seed=scenario.seed, stream=GPD_NOISE_STREAM))
-    builder.Connect(gpd_sensor.depth_image_32F_output_port(),
-                    gpd_post.GetInputPort("depth_image_32f"))
-    builder.ExportOutput(gpd_post.GetOutputPort("depth_image"), "gpd_depth_image")
-    builder.ExportOutput(gpd_sensor.depth_image_32F_output_port(), "gpd_depth_image_raw")
+    X_CC_actual = _add_cameras(builder, plant, scene_graph, gripper, scenario)
 
     # --- measurements ----------------------------------------------------------------
     builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
