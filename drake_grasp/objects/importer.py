@@ -38,6 +38,38 @@ MAX_INPUT_FACES = 2_000_000
 USER_RGBA = (0.7, 0.7, 0.72, 1.0)
 
 
+def _mass_of(path: Path, mesh, watertight: bool, density_kg_m3: float,
+             warnings: list[str]) -> tuple:
+    """(mass properties, what the volume was taken from) of the imported mesh: the
+    repaired mesh, or its convex hull where it could not be made watertight (with a
+    warning, as for an unusual mass). ValueError where it encloses no volume."""
+    if watertight:
+        solid = mesh
+        volume_basis = "repaired mesh"
+    else:
+        solid = mesh.convex_hull
+        volume_basis = "convex hull (the mesh could not be made watertight)"
+        warnings.append(
+            "mesh is not watertight after repair; mass and inertia use its convex hull, "
+            "which overestimates the volume of concave shapes"
+        )
+    props = solid.mass_properties
+    mass = g.MassProperties(
+        mass_kg=density_kg_m3 * float(props.volume),
+        volume_m3=float(props.volume),
+        com_m=np.asarray(props.center_mass, dtype=float),
+        inertia_kg_m2=density_kg_m3 * np.asarray(props.inertia, dtype=float),
+    )
+    if not (math.isfinite(mass.mass_kg) and mass.mass_kg > 0):
+        raise ValueError(f"mesh file {path}: encloses no volume (mass {mass.mass_kg!r} kg); "
+                         "expected a closed solid")
+    if not 0.01 <= mass.mass_kg <= 2.0:
+        warnings.append(
+            f"mass {mass.mass_kg:.4g} kg is unusual for a graspable object; check scale and density"
+        )
+    return mass, volume_basis
+
+
 def import_mesh(
     mesh_path: str | Path,
     *,
@@ -87,9 +119,8 @@ def import_mesh(
     meta.json says from how many faces to how many).
     """
     path = Path(mesh_path).expanduser()
-    _check_args(
-        name, category, split, scale, density_kg_m3, max_convex_hulls, seed, hydroelastic_modulus_pa
-    )
+    _check_args(name, category, split, scale, density_kg_m3, max_convex_hulls, seed,
+                hydroelastic_modulus_pa)
     target = Path(library_dir).expanduser() / name
     if target.exists() and not overwrite:
         raise FileExistsError(
@@ -107,30 +138,7 @@ def import_mesh(
     _check_solid(path, mesh)
     mesh.apply_translation(g.bottom_center_offset([mesh]))
 
-    if watertight:
-        solid = mesh
-        volume_basis = "repaired mesh"
-    else:
-        solid = mesh.convex_hull
-        volume_basis = "convex hull (the mesh could not be made watertight)"
-        warnings.append(
-            "mesh is not watertight after repair; mass and inertia use its convex hull, "
-            "which overestimates the volume of concave shapes"
-        )
-    props = solid.mass_properties
-    mass = g.MassProperties(
-        mass_kg=density_kg_m3 * float(props.volume),
-        volume_m3=float(props.volume),
-        com_m=np.asarray(props.center_mass, dtype=float),
-        inertia_kg_m2=density_kg_m3 * np.asarray(props.inertia, dtype=float),
-    )
-    if not (math.isfinite(mass.mass_kg) and mass.mass_kg > 0):
-        raise ValueError(f"mesh file {path}: encloses no volume (mass {mass.mass_kg!r} kg); "
-                         "expected a closed solid")
-    if not 0.01 <= mass.mass_kg <= 2.0:
-        warnings.append(
-            f"mass {mass.mass_kg:.4g} kg is unusual for a graspable object; check scale and density"
-        )
+    mass, volume_basis = _mass_of(path, mesh, watertight, density_kg_m3, warnings)
     pieces = _decompose(mesh, watertight, max_convex_hulls, seed, warnings)
     contact = ContactMaterial(hydroelastic_modulus_pa, mu_static=0.6, mu_dynamic=0.5)
     meta = {
@@ -156,21 +164,11 @@ def import_mesh(
         "relaxation_time_s": contact.relaxation_time_s,
         "warnings": warnings,
     }
-    placed = write_object_dir(
-        target,
-        model_name=name,
-        visual=mesh,
-        collision=pieces,
-        mass=mass,
-        rgba=USER_RGBA,
-        contact=contact,
-        meta=meta,
-        overwrite=overwrite,
-    )
+    placed = write_object_dir(target, model_name=name, visual=mesh, collision=pieces, mass=mass,
+                              rgba=USER_RGBA, contact=contact, meta=meta, overwrite=overwrite)
     if not placed:
-        raise FileExistsError(
-            f"object {name!r} was created at {target} by someone else meanwhile; not replaced"
-        )
+        raise FileExistsError(f"object {name!r} was created at {target} by someone else "
+                              "meanwhile; not replaced")
     return ObjectInfo.from_dir(target)
 
 
