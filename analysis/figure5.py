@@ -14,7 +14,8 @@ import argparse
 import sys
 from typing import Sequence
 
-from drake_grasp.evaluation.report import BIN_M, HIST_MAX_M, write_figure5
+from drake_grasp.evaluation.report import write_figure5
+from drake_grasp.evaluation.report_stats import BIN_M, HIST_MAX_M
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -412,7 +412,7 @@ def test_records_of_the_geometric_judge_stay_readable(tmp_path):
 
 
 def test_fairness_table_names_each_policys_sensor_and_decision_time():
-    from drake_grasp.evaluation.report import fairness_markdown
+    from drake_grasp.evaluation.report_tables import fairness_markdown
 
     records = [make_record("isolation/ctr/0000", extra={"decision_time_s": 1.0, "decisions": 40}),
                make_record("isolation/ctr/0001", extra={"decision_time_s": 3.0, "decisions": 60}),
@@ -431,7 +431,7 @@ def test_report_counts_gpds_detections_by_their_ground_truth_verdict(tmp_path):
     """The report's detection table: per gpd condition, detections that pass the ground
     truth on 2, 1 and 0 surface samplings, with how many of each succeeded; simulation
     errors and records without the check are left out; no table without any check."""
-    from drake_grasp.evaluation.report import detection_markdown
+    from drake_grasp.evaluation.report_tables import detection_markdown
 
     def gpd(i, passes, success, object_id=None, **kw):
         kw.setdefault("failure_class", "none" if success else "slipped-during-lift")

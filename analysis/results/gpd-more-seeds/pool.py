@@ -13,7 +13,7 @@ import collections
 import json
 from pathlib import Path
 
-from drake_grasp.evaluation.report import clutter_runs
+from drake_grasp.evaluation.report_stats import clutter_runs
 from drake_grasp.evaluation.records import load_records, wilson_interval
 
 HERE = Path(__file__).resolve().parent
