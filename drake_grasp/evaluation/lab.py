@@ -34,6 +34,7 @@ touching both pads after closing), `slipped-during-lift`, `slipped-during-hold`,
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -180,69 +181,16 @@ def _base_trajectory(X_WB_grasp, lab: LabConfig, t_close_end: float):
     return traj, q_start, phases
 
 
-def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
-                scenario: Scenario | None = None, library: ObjectLibrary,
-                lab: LabConfig | None = None, grip_force_n: float | None = None,
-                object_index: int = 0, neighbours: bool = False) -> GraspCheckResult:
-    """Executes the grasp X_WG (grasp frame: z_G approach, x_G closing) on one object.
-
-    Args:
-        object_id: the object (on `isolated_scene(object_id)` when `scene` is None).
-        X_WG: the grasp pose, a RigidTransform or a 4x4 matrix (as in `GraspSet.poses`).
-        scene: a settled scene; `scene.objects[object_index]` is the object to grasp.
-        scenario: plant config, grip force, closing speed, open width, judge thresholds.
-        grip_force_n: overrides `scenario.gripper.grip_force_n`.
-        neighbours: load every object of `scene` (as settled) instead of the one to
-            grasp alone; the judge still looks at `scene.objects[object_index]`.
-    """
-    from pydrake.math import RigidTransform
-    from pydrake.multibody.plant import AddMultibodyPlant
+def _add_floating_base(plant, base_instance, gripper, lab: LabConfig) -> list:
+    """Six PD-actuated joints (x, y, z, yaw, pitch, roll) from the world to the gripper's
+    base: the floating hand of the lab. Returns the joints, in that order."""
     from pydrake.multibody.tree import (
         PdControllerGains,
         PrismaticJoint,
         RevoluteJoint,
         SpatialInertia,
     )
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
-    from pydrake.trajectories import PiecewisePolynomial
 
-    from drake_grasp.core.assets import make_parser
-    from drake_grasp.systems.gripper import GripperController
-
-    scenario = scenario if scenario is not None else Scenario()
-    lab = lab if lab is not None else LabConfig()
-    force = float(scenario.gripper.grip_force_n if grip_force_n is None else grip_force_n)
-    if scene is None:
-        if object_id is None:
-            raise ValueError("check_grasp: give object_id or scene")
-        scene = isolated_scene(object_id, library)
-        object_index = 0
-    if not 0 <= int(object_index) < len(scene.objects):
-        raise ValueError(f"object_index: got {object_index}, the scene has "
-                         f"{len(scene.objects)} objects")
-    placement = scene.objects[object_index]
-    loaded = list(scene.objects) if neighbours else [placement]
-    target = int(object_index) if neighbours else 0
-    one = SceneSpec(kind=scene.kind, seed=scene.seed, center_xy_m=list(scene.center_xy_m),
-                    objects=loaded, settled=scene.settled)
-    X_WG = X_WG if isinstance(X_WG, RigidTransform) else RigidTransform(np.asarray(X_WG))
-    t_wall = time.perf_counter()
-
-    builder = DiagramBuilder()
-    plant_config = scenario.plant
-    if lab.time_step_s is not None:
-        import copy
-
-        plant_config = copy.deepcopy(scenario.plant)
-        plant_config.time_step = float(lab.time_step_s)
-    plant, scene_graph = AddMultibodyPlant(plant_config, builder)
-    plant.set_name("plant")
-    (gripper,) = make_parser(plant).AddModels(url=GRIPPER_URI)
-    base_instance = plant.AddModelInstance("lab_base")
-    G = plant.GetFrameByName("grasp_frame", gripper)
-    X_BG = G.GetFixedPoseInBodyFrame()
     link_inertia = SpatialInertia.SolidSphereWithMass(0.01, 0.01)
     parent = plant.world_frame()
     joints = []
@@ -261,15 +209,12 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
         joints.append(joint)
         parent = child
     plant.WeldFrames(parent, plant.GetFrameByName("robotiq_base", gripper))
-    _, sheet = add_table_and_sheet(plant, scene_graph, one.center_xy_m,
-                                   sheet_collision=sheet_collision(scenario.physics,
-                                                                   sheet_moves=False),
-                                   table_collision=table_collision(scenario.physics))
-    instances = add_scene_objects(plant, one, library)
-    plant.Finalize()
-    apply_hydroelastic_margin(plant, scene_graph, scenario.physics.hydroelastic_margin_m,
-                              [gripper])
-    connect_sheet_hold(builder, plant, sheet)
+    return joints
+
+
+def _add_gravity_feedforward(builder, plant, gripper, base_instance) -> None:
+    """A constant upward force on the base's z joint that carries the moving mass."""
+    from pydrake.systems.primitives import ConstantVectorSource
 
     moving_mass = sum(plant.get_body(b).default_mass() for b in
                       plant.GetBodyIndices(gripper) + plant.GetBodyIndices(base_instance))
@@ -279,12 +224,14 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     gravity_ff = builder.AddNamedSystem("gravity_feedforward", ConstantVectorSource(ff))
     builder.Connect(gravity_ff.get_output_port(), plant.get_actuation_input_port(base_instance))
 
-    close_time = scenario.gripper.open_width_m / scenario.gripper.closing_speed_m_s
-    t_close_end = max(lab.close_s, close_time + 0.3)
-    X_WB = X_WG @ X_BG.inverse()
-    traj, q_start, phases = _base_trajectory(X_WB, lab, t_close_end)
-    base_source = builder.AddNamedSystem("base_trajectory", TrajectorySource(traj, 1))
-    builder.Connect(base_source.get_output_port(), plant.get_desired_state_input_port(base_instance))
+
+def _add_gripper(builder, plant, gripper, scenario: Scenario, phases: dict,
+                 force: float) -> None:
+    """The gripper controller, commanded open until the descent ends, then `force`."""
+    from pydrake.systems.primitives import TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from drake_grasp.systems.gripper import GripperController
 
     finger = plant.GetJointActuatorByName("left_finger_actuator", gripper)
     grip = builder.AddNamedSystem("gripper_controller", GripperController(
@@ -299,23 +246,14 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     builder.Connect(command_source.get_output_port(), grip.GetInputPort("gripper_command"))
     builder.Connect(plant.get_state_output_port(gripper), grip.GetInputPort("gripper_state"))
     builder.Connect(grip.GetOutputPort("desired_state"), plant.get_desired_state_input_port(gripper))
-    diagram = builder.Build()
-    diagram.set_name("grasp_lab")
 
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    plant_context = plant.GetMyMutableContextFromRoot(context)
-    for joint, q in zip(joints, q_start):
-        joint.set_translation(plant_context, q) if isinstance(joint, PrismaticJoint) \
-            else joint.set_angle(plant_context, q)
-    nq = plant.num_positions(gripper)
-    plant.SetPositions(plant_context, gripper, np.full(nq, 0.5 * open_w))
-    set_object_poses(plant, plant_context, one, instances)
-    body = plant.GetBodyByName(OBJECT_BODY_NAME, instances[target])
-    z_rest = float(placement.xyz[2])
 
-    details = {"object_id": placement.object_id, "grip_force_n": force,
-               "X_WG": np.asarray(X_WG.GetAsMatrix4()).round(6).tolist()}
+def _run_checks(simulator, plant, plant_context, gripper, body, lab: LabConfig,
+                scenario: Scenario, phases: dict, *, X_WB, base_source, z_rest: float,
+                details: dict) -> tuple[str, dict]:
+    """Simulates close, lift, hold and shake, recording each phase's pads, width, squeeze
+    and rise in `details`; stops at the first failed check. Returns (failure class, ""
+    when held; the phase times, moved earlier when the close settled early)."""
     checks = [("close", "missed", False), ("lift", "slipped-during-lift", True),
               ("hold", "slipped-during-hold", True), ("shake", "dropped-by-shake", True)]
     failure = ""
@@ -343,6 +281,105 @@ def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
     except RuntimeError as e:
         failure = "simulation-error"
         details["error"] = str(e)
+    return failure, phases
+
+
+def check_grasp(object_id: str | None, X_WG, *, scene: SceneSpec | None = None,
+                scenario: Scenario | None = None, library: ObjectLibrary,
+                lab: LabConfig | None = None, grip_force_n: float | None = None,
+                object_index: int = 0, neighbours: bool = False) -> GraspCheckResult:
+    """Executes the grasp X_WG (grasp frame: z_G approach, x_G closing) on one object.
+
+    Args:
+        object_id: the object (on `isolated_scene(object_id)` when `scene` is None).
+        X_WG: the grasp pose, a RigidTransform or a 4x4 matrix (as in `GraspSet.poses`).
+        scene: a settled scene; `scene.objects[object_index]` is the object to grasp.
+        scenario: plant config, grip force, closing speed, open width, judge thresholds.
+        grip_force_n: overrides `scenario.gripper.grip_force_n`.
+        neighbours: load every object of `scene` (as settled) instead of the one to
+            grasp alone; the judge still looks at `scene.objects[object_index]`.
+    """
+    from pydrake.math import RigidTransform
+    from pydrake.multibody.plant import AddMultibodyPlant
+    from pydrake.multibody.tree import PrismaticJoint
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import TrajectorySource
+
+    from drake_grasp.core.assets import make_parser
+
+    scenario = scenario if scenario is not None else Scenario()
+    lab = lab if lab is not None else LabConfig()
+    force = float(scenario.gripper.grip_force_n if grip_force_n is None else grip_force_n)
+    if scene is None:
+        if object_id is None:
+            raise ValueError("check_grasp: give object_id or scene")
+        scene = isolated_scene(object_id, library)
+        object_index = 0
+    if not 0 <= int(object_index) < len(scene.objects):
+        raise ValueError(f"object_index: got {object_index}, the scene has "
+                         f"{len(scene.objects)} objects")
+    placement = scene.objects[object_index]
+    loaded = list(scene.objects) if neighbours else [placement]
+    target = int(object_index) if neighbours else 0
+    one = SceneSpec(kind=scene.kind, seed=scene.seed, center_xy_m=list(scene.center_xy_m),
+                    objects=loaded, settled=scene.settled)
+    X_WG = X_WG if isinstance(X_WG, RigidTransform) else RigidTransform(np.asarray(X_WG))
+    t_wall = time.perf_counter()
+
+    builder = DiagramBuilder()
+    plant_config = scenario.plant
+    if lab.time_step_s is not None:
+        plant_config = copy.deepcopy(scenario.plant)
+        plant_config.time_step = float(lab.time_step_s)
+    plant, scene_graph = AddMultibodyPlant(plant_config, builder)
+    plant.set_name("plant")
+    (gripper,) = make_parser(plant).AddModels(url=GRIPPER_URI)
+    base_instance = plant.AddModelInstance("lab_base")
+    G = plant.GetFrameByName("grasp_frame", gripper)
+    X_BG = G.GetFixedPoseInBodyFrame()
+    joints = _add_floating_base(plant, base_instance, gripper, lab)
+    _, sheet = add_table_and_sheet(plant, scene_graph, one.center_xy_m,
+                                   sheet_collision=sheet_collision(scenario.physics,
+                                                                   sheet_moves=False),
+                                   table_collision=table_collision(scenario.physics))
+    instances = add_scene_objects(plant, one, library)
+    plant.Finalize()
+    apply_hydroelastic_margin(plant, scene_graph, scenario.physics.hydroelastic_margin_m,
+                              [gripper])
+    connect_sheet_hold(builder, plant, sheet)
+
+    _add_gravity_feedforward(builder, plant, gripper, base_instance)
+
+    close_time = scenario.gripper.open_width_m / scenario.gripper.closing_speed_m_s
+    t_close_end = max(lab.close_s, close_time + 0.3)
+    X_WB = X_WG @ X_BG.inverse()
+    traj, q_start, phases = _base_trajectory(X_WB, lab, t_close_end)
+    base_source = builder.AddNamedSystem("base_trajectory", TrajectorySource(traj, 1))
+    builder.Connect(base_source.get_output_port(), plant.get_desired_state_input_port(base_instance))
+
+    _add_gripper(builder, plant, gripper, scenario, phases, force)
+    open_w = scenario.gripper.open_width_m
+    diagram = builder.Build()
+    diagram.set_name("grasp_lab")
+
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    for joint, q in zip(joints, q_start):
+        joint.set_translation(plant_context, q) if isinstance(joint, PrismaticJoint) \
+            else joint.set_angle(plant_context, q)
+    nq = plant.num_positions(gripper)
+    plant.SetPositions(plant_context, gripper, np.full(nq, 0.5 * open_w))
+    set_object_poses(plant, plant_context, one, instances)
+    body = plant.GetBodyByName(OBJECT_BODY_NAME, instances[target])
+    z_rest = float(placement.xyz[2])
+
+    details = {"object_id": placement.object_id, "grip_force_n": force,
+               "X_WG": np.asarray(X_WG.GetAsMatrix4()).round(6).tolist()}
+    failure, phases = _run_checks(simulator, plant, plant_context, gripper, body, lab, scenario,
+                                  phases, X_WB=X_WB, base_source=base_source, z_rest=z_rest,
+                                  details=details)
     details["close_end_s"] = round(phases["close"], 4)
     details["sim_time_s"] = round(context.get_time(), 4)
     details["wall_s"] = round(time.perf_counter() - t_wall, 3)
