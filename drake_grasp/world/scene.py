@@ -22,7 +22,7 @@ import numpy as np
 from drake_grasp.core.assets import make_parser
 from drake_grasp.objects import ObjectLibrary, visual_mesh
 from drake_grasp.config.physics import sheet_collision, table_collision
-from drake_grasp.config.scenario import SceneConfig
+from drake_grasp.config.sections import SceneConfig
 
 TABLE_URI = "package://drake_grasp/scene/table.urdf"
 SHEET_URI = "package://drake_grasp/scene/sheet.urdf"
