@@ -28,7 +28,7 @@ from drake_grasp.evaluation.montecarlo import recorded_scenario
 from drake_grasp.policies.decisions import heights_in_hand_box, image_points_W
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.world.scene import SceneSpec
-from drake_grasp.systems import controller as C
+from drake_grasp.policies import controller as C
 
 LOG = []
 _grasp_from_depth = C.GraspController._grasp_from_depth

@@ -111,7 +111,7 @@ def main(argv=None) -> int:
                    help="comma-separated physics profiles, each optionally with another plant "
                         "step and discrete contact approximation as NAME[@SECONDS][:APPROX], "
                         "e.g. fast@0.01 or fast@0.01:sap (default: reference,fast)")
-    from drake_grasp.config.scenario import GRIP_FORCE_MODES
+    from drake_grasp.config.sections import GRIP_FORCE_MODES
 
     p.add_argument("--force-mode", choices=GRIP_FORCE_MODES, default=None,
                    help="gripper.force_mode for every profile (default: the scenario's; "
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
 
     from drake_grasp.evaluation.labelcheck import record_path
     from drake_grasp.core.files import atomic_write_text
-    from drake_grasp.config.scenario import PHYSICS_PROFILES
+    from drake_grasp.config.sections import PHYSICS_PROFILES
 
     profiles = [x for x in args.profiles.split(",") if x]
     unknown = [x for x in profiles if _parse_profile(x)[0] not in PHYSICS_PROFILES]

@@ -114,7 +114,7 @@ def test_the_options_reach_their_conditions_and_the_runs_identity():
     only (the fallback is the scenario's default); both change the identity of what they
     reach."""
     from drake_grasp.evaluation.experiments import EXPERIMENTS, trial_scenario
-    from drake_grasp.config.scenario import GpdConfig
+    from drake_grasp.config.sections import GpdConfig
 
     assert GpdConfig().fallback_best is True
     base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}

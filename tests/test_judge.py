@@ -10,7 +10,8 @@ from pydrake.systems.analysis import Simulator
 from drake_grasp.evaluation import episode_diagram as episode_diagram_module
 from drake_grasp.evaluation.episode import simulate_episode
 from drake_grasp.evaluation.records import GRASP_FAILURES
-from drake_grasp.config.scenario import JudgeConfig, load_scenario
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.config.sections import JudgeConfig
 from drake_grasp.systems.judge import GraspJudge
 from drake_grasp.systems.supervisor import motion_phase_code
 

@@ -700,7 +700,7 @@ def test_sensor_policies_are_every_builtin_policy_but_scripted():
     from drake_grasp.evaluation.bridge import BRIDGE_POLICIES
     from drake_grasp.evaluation.experiments import EXTRA_POLICIES
     from drake_grasp.policies.decisions import SENSOR_POLICIES
-    from drake_grasp.config.scenario import POLICIES
+    from drake_grasp.config.sections import POLICIES
 
     assert set(SENSOR_POLICIES) == set(POLICIES) - {"scripted"}
     assert len(set(SENSOR_POLICIES)) == len(SENSOR_POLICIES)

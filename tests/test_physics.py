@@ -6,7 +6,8 @@ import re
 
 import pytest
 
-from drake_grasp.config.scenario import PHYSICS_PROFILES, load_scenario
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.config.sections import PHYSICS_PROFILES
 
 
 def test_default_is_the_fast_profile_and_reference_restores_the_old_settings():

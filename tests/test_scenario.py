@@ -48,7 +48,7 @@ def test_override_and_round_trip(tmp_path):
 
 
 def test_controller_profiles_resolve_to_the_papers_numbers(tmp_path):
-    from drake_grasp.config.scenario import CONTROLLER_PROFILES, ControllerConfig
+    from drake_grasp.config.sections import CONTROLLER_PROFILES, ControllerConfig
 
     # The defaults are the "sim" profile: r = 0.2, 75 iterations, camera 0.3 -> 0.15 m.
     sim = load_scenario(scenario_name="isolation").controller

@@ -10,7 +10,7 @@ from drake_grasp.geometry.grasps import (
     points_between_pads,
     topdown_rotation,
 )
-from drake_grasp.config.scenario import GripperConfig, ScriptedGraspConfig
+from drake_grasp.config.sections import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.gripper import GripperController, gripper_pd_target
 from drake_grasp.systems.supervisor import Mode, ScriptedGraspSupervisor, interpolate_pose, min_jerk
 

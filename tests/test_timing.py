@@ -10,7 +10,8 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
 from drake_grasp.evaluation.experiments import condition_scenario, get_experiment
-from drake_grasp.config.scenario import CalibrationConfig, load_scenario
+from drake_grasp.config.scenario import load_scenario
+from drake_grasp.config.sections import CalibrationConfig
 from drake_grasp.systems.frames import FrameBuffer, frame_dropped
 
 

@@ -9,7 +9,7 @@ import argparse
 def policy_arg(text: str) -> str:
     """--policy: a built-in policy name or MODULE:FACTORY (a user policy)."""
     from drake_grasp.policies.plugins import is_policy_spec, parse_policy_spec
-    from drake_grasp.config.scenario import POLICIES
+    from drake_grasp.config.sections import POLICIES
 
     if text in POLICIES:
         return text

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_grasp.config.scenario import DisturbanceConfig
+from drake_grasp.config.sections import DisturbanceConfig
 from drake_grasp.systems.supervisor import min_jerk
 
 

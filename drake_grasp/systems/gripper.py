@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_grasp.config.scenario import GRIP_FORCE_MODES
+from drake_grasp.config.sections import GRIP_FORCE_MODES
 
 # "constant": how many times the ramp's lead past a blocked finger its PD target is set
 # beyond it. At the default closing speed (0.1 m/s, 0.05 m/s per finger) and kp 2000 N/m

@@ -38,7 +38,7 @@ from pydrake.multibody.plant import ContactResults
 from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.framework import LeafSystem
 
-from drake_grasp.config.scenario import JudgeConfig
+from drake_grasp.config.sections import JudgeConfig
 from drake_grasp.systems.state import shared_when_copied
 from drake_grasp.systems.supervisor import MOTION_PHASES, motion_phase_name
 

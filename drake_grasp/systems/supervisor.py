@@ -19,7 +19,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from drake_grasp.geometry.grasps import plan_topdown_grasp
-from drake_grasp.config.scenario import GripperConfig, ScriptedGraspConfig
+from drake_grasp.config.sections import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.state import shared_when_copied
 
 # The phases of the shared grasp motion, as every policy reports them in the third entry

@@ -21,7 +21,7 @@ import numpy as np
 
 from drake_grasp.objects import ObjectLibrary, visual_mesh
 from drake_grasp.config.physics import sheet_collision, table_collision
-from drake_grasp.config.scenario import SceneConfig
+from drake_grasp.config.sections import SceneConfig
 from drake_grasp.world.table import (SHEET_THICKNESS_M, add_table_and_sheet, connect_sheet_hold,
                                      on_table_top)
 
