@@ -238,7 +238,9 @@ def test_corrupt_or_tampered_weights_file(tmp_path, capsys, variant):
 
 
 def _tiny_dataset(out: Path) -> Path:
-    from drake_grasp.learning.dataset import SceneSamples, config_hash, shard_name, write_manifest, write_shard
+    from drake_grasp.learning.dataset import SceneSamples, config_hash
+    from drake_grasp.learning.dataset_generate import write_manifest
+    from drake_grasp.learning.dataset_shards import shard_name, write_shard
 
     rng = np.random.default_rng(0)
     n, m = 8, 10
@@ -255,7 +257,7 @@ def _tiny_dataset(out: Path) -> Path:
 
 
 def test_truncated_hdf5_shard(tmp_path, capsys):
-    from drake_grasp.learning.dataset import DepthGraspDataset, read_shard_counts
+    from drake_grasp.learning.dataset_shards import DepthGraspDataset, read_shard_counts
 
     shard = _tiny_dataset(tmp_path / "data")
     assert len(DepthGraspDataset(tmp_path / "data")) == 16
@@ -299,7 +301,7 @@ def _enospc(*args, **kwargs):
 
 
 def test_full_disk_during_a_write(tmp_path, monkeypatch):
-    from drake_grasp.learning.dataset import shard_name
+    from drake_grasp.learning.dataset_shards import shard_name
     from drake_grasp.core.files import atomic_write_bytes
     path = tmp_path / "results" / "run.json"
     atomic_write_bytes(path, b"old")

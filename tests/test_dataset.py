@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from drake_grasp.learning import dataset as dataset_module
-from drake_grasp.learning.dataset import (DatasetConfig, DepthGraspDataset, SceneSamples,
-                                 generate_dataset, scene_seed)
+from drake_grasp.learning.dataset import DatasetConfig, SceneSamples, scene_seed
+from drake_grasp.learning.dataset_generate import generate_dataset
+from drake_grasp.learning.dataset_shards import DepthGraspDataset
 from drake_grasp.config.scenario import load_scenario
 
 TINY = dict(images_per_scene=3, offsets_per_image=5, scenes_per_shard=2)
@@ -181,7 +182,8 @@ def test_killed_run_resumes_to_the_same_counts(reference, tmp_path, capfd):
     _, manifest = reference
     out = tmp_path / "killed"
     code = (
-        "from drake_grasp.learning.dataset import DatasetConfig, generate_dataset\n"
+        "from drake_grasp.learning.dataset import DatasetConfig\n"
+        "from drake_grasp.learning.dataset_generate import generate_dataset\n"
         "from drake_grasp.config.scenario import load_scenario\n"
         f"generate_dataset(out={str(out)!r}, num_scenes=3, split='train', seed=5,\n"
         "  scenario=load_scenario(scenario_name='random', scenario_text='{seed: 5}'),\n"
@@ -348,7 +350,7 @@ def test_scenes_gives_exactly_n_when_n_is_not_a_multiple_of_the_shard_size(tmp_p
 _HOLD_LOCK = """
 import sys
 from pathlib import Path
-from drake_grasp.learning.dataset import GenerateLock
+from drake_grasp.learning.folder_lock import GenerateLock
 lock = GenerateLock(sys.argv[1]).acquire()
 Path(sys.argv[1], f"shard-00000.h5.{lock.token}.{sys.argv[2]}.tmp").write_bytes(b"in progress")
 print("ready", flush=True)

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from drake_grasp.geometry.actions import apply_actions
-from drake_grasp.learning.dataset import SceneSamples, shard_name, write_shard
+from drake_grasp.learning.dataset import SceneSamples
+from drake_grasp.learning.dataset_shards import shard_name, write_shard
 from drake_grasp.learning.dense_training import (GRID_CONFIG, augment_batch, build_labels,
     grid_node_actions, load_labels, nearest_grasp_tree, train, tree_distances, view_masks)
 from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images

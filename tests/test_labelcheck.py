@@ -226,7 +226,7 @@ def test_a_bad_max_torque_ratio_is_refused_before_anything_runs(command, value, 
 def _generate_config(monkeypatch, tmp_path, argv):
     """The `DatasetConfig` that `drake-grasp generate ... ARGV` hands to the generator
     (which is replaced, so nothing is generated)."""
-    import drake_grasp.learning.dataset as dataset_module
+    import drake_grasp.learning.dataset_generate as generate_module
     from drake_grasp.cli.main import main
 
     seen = {}
@@ -235,7 +235,7 @@ def _generate_config(monkeypatch, tmp_path, argv):
         seen.update(kwargs)
         raise SystemExit(0)
 
-    monkeypatch.setattr(dataset_module, "generate_dataset", generate_dataset)
+    monkeypatch.setattr(generate_module, "generate_dataset", generate_dataset)
     with pytest.raises(SystemExit):
         main(["generate", "--scenes", "1", "--split", "train", "--out", str(tmp_path)] + argv)
     return seen["config"]

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from drake_grasp.learning.dataset import SceneSamples, write_manifest, write_shard, shard_name
+from drake_grasp.learning.dataset import SceneSamples
+from drake_grasp.learning.dataset_generate import write_manifest
+from drake_grasp.learning.dataset_shards import write_shard, shard_name
 from drake_grasp.learning.training import TrainConfig, train
 
 

@@ -179,7 +179,8 @@ def bench_labels_per_s(num_scenes: int = 24, workers: int = 2) -> dict:
     included), plus the worker seconds spent in each stage (where the time goes)."""
     import tempfile
 
-    from drake_grasp.learning.dataset import DatasetConfig, generate_dataset
+    from drake_grasp.learning.dataset import DatasetConfig
+    from drake_grasp.learning.dataset_generate import generate_dataset
     from drake_grasp.config.scenario import load_scenario
 
     scenario = load_scenario(scenario_name="random", scenario_text=f"{{seed: {BENCH_SEED}}}")

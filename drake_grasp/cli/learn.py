@@ -9,7 +9,8 @@ from drake_grasp.cli.args import add_scenario_flags, load_scenario_from_args, po
 
 
 def _cmd_generate(args) -> int:
-    from drake_grasp.learning.dataset import DatasetConfig, generate_dataset
+    from drake_grasp.learning.dataset import DatasetConfig
+    from drake_grasp.learning.dataset_generate import generate_dataset
 
     scenario = load_scenario_from_args(args, seed=args.seed)
     config = DatasetConfig(images_per_scene=args.images_per_scene,

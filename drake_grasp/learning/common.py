@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drake_grasp.learning.dataset import load_manifest
+from drake_grasp.learning.dataset_shards import load_manifest
 
 
 # ----------------------------------------------------------------------------

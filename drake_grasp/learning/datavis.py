@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp.geometry.camera import PinholeCamera
-from drake_grasp.learning.dataset import DepthGraspDataset
+from drake_grasp.learning.dataset_shards import DepthGraspDataset
 
 
 def camera_projector(hand_pose, *, width: int, height: int, fov_y_deg: float, X_GC):

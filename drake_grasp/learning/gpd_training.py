@@ -278,7 +278,8 @@ def generate(*, out: str | Path, num_scenes: int, split: str, seed: int, scenari
     """
     from tqdm import tqdm
 
-    from drake_grasp.learning.dataset import GenerateLock, check_generate_args
+    from drake_grasp.learning.dataset_generate import check_generate_args
+    from drake_grasp.learning.folder_lock import GenerateLock
     from drake_grasp.core.provenance import code_version
     from drake_grasp.config.scenario import dump_scenario
 

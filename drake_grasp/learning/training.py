@@ -54,7 +54,7 @@ import torch
 from drake_grasp.learning.cnn_metrics import ranking_metrics
 from drake_grasp.learning.common import (ShardSet, full_float32, load_checkpoint, open_training_sets,
                                          resolve_data_dirs, torch_device)
-from drake_grasp.learning.dataset import GenerateLock, replace_durably
+from drake_grasp.learning.folder_lock import GenerateLock, replace_durably
 from drake_grasp.core.native import load_llvm_users_first
 from drake_grasp.cnn.network import (
     DistanceCNN,
