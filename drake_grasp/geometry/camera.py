@@ -62,6 +62,12 @@ class PinholeCamera:
                    width / 2.0 - 0.5, height / 2.0 - 0.5)
 
     @classmethod
+    def centred(cls, width: int, height: int, focal_px: float) -> "PinholeCamera":
+        """The camera of this image size and focal length [pixels], principal point at
+        the image centre (Drake's convention)."""
+        return cls(int(width), int(height), focal_px, width / 2.0 - 0.5, height / 2.0 - 0.5)
+
+    @classmethod
     def of_image(cls, image: np.ndarray, fov_y_deg: float) -> "PinholeCamera":
         """The camera that rendered `image` ((H, W) or (H, W, C)) with this field of view."""
         h, w = np.shape(image)[:2]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.geometry.grasps import (
     FINGER_OUTER_X_M,
     FINGERTIP_Z_M,
@@ -99,8 +100,8 @@ def grasp_axis_pixel(shape, focal_px: float, camera_xy_G, depth_m: float) -> tup
     sensor, for a camera looking along z_G with its axes parallel to G and its centre
     at `camera_xy_G` in G (the wrist camera sits beside the grasp axis)."""
     h, w = shape[:2]
-    return (-float(camera_xy_G[0]) * focal_px / depth_m + (w / 2 - 0.5),
-            -float(camera_xy_G[1]) * focal_px / depth_m + (h / 2 - 0.5))
+    return PinholeCamera.centred(w, h, focal_px).project(
+        -float(camera_xy_G[0]), -float(camera_xy_G[1]), depth_m)
 
 
 def min_depth_under_axis(depth: np.ndarray, focal_px: float, camera_xy_G, at_depth_m: float,
@@ -109,7 +110,8 @@ def min_depth_under_axis(depth: np.ndarray, focal_px: float, camera_xy_G, at_dep
     (the 14 cm stop rule): half side `half_window_m` at that depth, at least one pixel."""
     h, w = depth.shape[:2]
     u, v = grasp_axis_pixel(depth.shape, focal_px, camera_xy_G, at_depth_m)
-    half = max(0.5, half_window_m * focal_px / at_depth_m)
+    half = max(0.5, PinholeCamera.centred(w, h, focal_px).metres_to_pixels(half_window_m,
+                                                                       at_depth_m))
     c0, c1 = max(0, int(np.ceil(u - half))), min(w - 1, int(np.floor(u + half)))
     r0, r1 = max(0, int(np.ceil(v - half))), min(h - 1, int(np.floor(v + half)))
     if c0 > c1 or r0 > r1:
@@ -129,8 +131,8 @@ def image_points_W(depth: np.ndarray, focal_px: float, X_WC: np.ndarray,
     v, u = np.mgrid[0:h, 0:w]
     ok = np.isfinite(d) & (d > 0) & (d < max_depth_m)
     z = d[ok]
-    P_C = np.stack([(u[ok] - (w / 2 - 0.5)) * z / focal_px,
-                    (v[ok] - (h / 2 - 0.5)) * z / focal_px, z, np.ones_like(z)])
+    x, y = PinholeCamera.centred(w, h, focal_px).back_project(u[ok], v[ok], z)
+    P_C = np.stack([x, y, z, np.ones_like(z)])
     return np.asarray(X_WC, float) @ P_C
 
 

@@ -54,6 +54,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.geometry.grasps import (
     DEFAULT_DEPTHS_M,
     STROKE_M,
@@ -97,12 +98,6 @@ class Cloud:
         return len(self.points)
 
 
-def _intrinsics(height: int, width: int, fov_y_deg: float) -> tuple[float, float, float]:
-    """Drake's `CameraInfo(width, height, fov_y)` pinhole: focal [px], principal point."""
-    f = 0.5 * height / np.tan(np.deg2rad(fov_y_deg) / 2.0)
-    return float(f), width / 2.0 - 0.5, height / 2.0 - 0.5
-
-
 def back_project(depth, *, fov_y_deg: float, X_WC, depth_min_m: float,
                  depth_max_m: float) -> np.ndarray:
     """World points (N, 3) of the pixels with a reading inside [depth_min_m, depth_max_m).
@@ -123,12 +118,13 @@ def back_project(depth, *, fov_y_deg: float, X_WC, depth_min_m: float,
     if X.shape != (4, 4) or not np.all(np.isfinite(X)):
         raise ValueError(f"X_WC: expected a finite 4x4 pose, got shape {X.shape}")
     H, W = d.shape
-    f, cu, cv = _intrinsics(H, W, fov_y_deg)
+    camera = PinholeCamera.from_fov(W, H, fov_y_deg)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(d) & (d >= depth_min_m) & (d < depth_max_m * (1.0 - 1e-6))
     v, u = np.nonzero(valid)
     z = d[v, u]
-    P_C = np.stack([z * (u - cu) / f, z * (v - cv) / f, z], axis=1)
+    x, y = camera.back_project(u, v, z)
+    P_C = np.stack([x, y, z], axis=1)
     return P_C @ X[:3, :3].T + X[:3, 3]
 
 
