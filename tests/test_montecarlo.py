@@ -704,7 +704,7 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
 def test_sensor_policies_are_every_builtin_policy_but_scripted():
     """`policies.SENSOR_POLICIES` (what the bridge runs and `evaluate --conditions` may
     add) stays `scenario.POLICIES` less `scripted`, the one that reads the true poses."""
-    from drake_grasp.evaluation.bridge import BRIDGE_POLICIES
+    from drake_grasp.evaluation.bridge_protocol import BRIDGE_POLICIES
     from drake_grasp.evaluation.experiments import EXTRA_POLICIES
     from drake_grasp.policies.decisions import SENSOR_POLICIES
     from drake_grasp.config.sections import POLICIES
