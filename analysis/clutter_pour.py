@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 # The clutter run end rule's "in view": within +-15 cm of the pile's centre.
-from drake_grasp.evaluation.montecarlo import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M
+from drake_grasp.evaluation.trial_worker import IN_VIEW_HALF_EXTENT_M as VIEW_HALF_M
 
 
 def out_of_view(objects: list[dict], center) -> list[str]:

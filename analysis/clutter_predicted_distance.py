@@ -26,7 +26,8 @@ import numpy as np
 def replay(path: str) -> dict:
     """One recorded CTR clutter attempt replayed with the CNN, its decisions logged."""
     from drake_grasp.evaluation.episode_diagram import controller_class
-    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
+    from drake_grasp.evaluation.trial_worker import _simulate
     from drake_grasp.policies.controller import GraspController
     from drake_grasp.objects import load_library
 

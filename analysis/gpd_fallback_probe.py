@@ -26,7 +26,7 @@ NO_DETECTION = "missed: no grasp detected"
 
 def probe(folder: Path) -> list[dict]:
     from drake_grasp.evaluation.episode import simulate_episode
-    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.evaluation.replay import recorded_scenario
     from drake_grasp.objects import load_library
     from drake_grasp.world.scene import SceneSpec
 

@@ -7,7 +7,7 @@ meets sparse piles and bare table (`analysis/results/cnn-view-average/`: an 8-vi
 average that ranked the dataset's pile images better grasped 5.9 points less in
 clutter). This measures the ranking where the controller decides.
 
-`collect` replays each recorded attempt (`montecarlo.recorded_pile`: the record's
+`collect` replays each recorded attempt (`replay.recorded_pile`: the record's
 scenario, seed and starting pile; the replay must reproduce the recorded outcome, which
 is checked and stored), keeps every decision's wrist image, believed hand pose,
 candidates and the CNN's distances as the controller saw them, and labels every
@@ -54,7 +54,8 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     from drake_grasp.evaluation.episode import simulate_episode
     from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
-    from drake_grasp.evaluation.montecarlo import _model, recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
+    from drake_grasp.evaluation.trial_worker import _model
     from drake_grasp.objects import load_library
     from drake_grasp.core.files import atomic_write_bytes
     from drake_grasp.policies.controller import GraspController

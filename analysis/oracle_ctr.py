@@ -113,7 +113,8 @@ def run_attempt(path: str, arms=("cnn", "oracle"), phase: str = "all") -> dict:
 
     from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.geometry.grasps import find_grasps
-    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
+    from drake_grasp.evaluation.trial_worker import _simulate
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)

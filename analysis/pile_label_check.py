@@ -28,7 +28,7 @@ def check(record_path: str | Path, object_id: str, grasps: int) -> dict:
     pile or an object not in it."""
     from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.evaluation.lab import check_grasp
-    from drake_grasp.evaluation.montecarlo import recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
     from drake_grasp.objects import load_library
 
     _, scenario, scene = recorded_pile(record_path)

@@ -5,7 +5,7 @@ the recorded outcome.
 Clutter runs of two nets are not paired beyond their first attempts (each attempt's pile
 depends on the attempts before it), so two runs of 10 piles differ by as much as their
 intervals are wide. Replaying every recorded attempt's starting pile (the record's
-`extra.scene`, scenario and seed; `montecarlo.recorded_pile`) with `--weights` pairs the
+`extra.scene`, scenario and seed; `replay.recorded_pile`) with `--weights` pairs the
 two nets attempt by attempt on the same piles: how many only one of them grasped, and
 the exact McNemar test on those.
 
@@ -31,7 +31,8 @@ from pathlib import Path
 def replay(path: str, weights: str) -> dict:
     """One recorded CTR clutter attempt's pile, simulated by CTR with `weights` ("": the
     record's own)."""
-    from drake_grasp.evaluation.montecarlo import _simulate, recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
+    from drake_grasp.evaluation.trial_worker import _simulate
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)

@@ -277,7 +277,8 @@ def test_truncated_hdf5_shard(tmp_path, capsys):
 
 def test_results_folder_of_another_experiment(tmp_path, capsys):
     from drake_grasp.evaluation.experiments import get_experiment
-    from drake_grasp.evaluation.montecarlo import evaluate, run_identity
+    from drake_grasp.evaluation.montecarlo import evaluate
+    from drake_grasp.evaluation.run_folder import run_identity
     from drake_grasp.evaluation.records import write_run_info
 
     out = tmp_path / "results"

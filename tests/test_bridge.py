@@ -9,8 +9,8 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from drake_grasp.evaluation import bridge
-from drake_grasp.evaluation.bridge import BridgeError, BridgeLink
+from drake_grasp.evaluation import bridge, bridge_protocol
+from drake_grasp.evaluation.bridge_protocol import BridgeError, BridgeLink
 from drake_grasp.config.scenario import load_scenario
 
 
@@ -63,38 +63,38 @@ def test_driver_messages_round_trip_bit_for_bit():
 
     rng = np.random.default_rng(0)
     q, v, qc = rng.normal(size=6), rng.normal(size=6), rng.normal(size=6)
-    got = bridge.decode_joint_status(bridge.encode_joint_status(0.125, q, v, qc), 6)
+    got = bridge_protocol.decode_joint_status(bridge_protocol.encode_joint_status(0.125, q, v, qc), 6)
     for sent, back in zip((q, v, qc), got):
         np.testing.assert_array_equal(back, sent)
     fingers = rng.normal(size=4)
-    gq, gv, _ = bridge.decode_joint_status(
-        bridge.encode_joint_status(0.0, fingers[:2], fingers[2:], [0.0, 0.0]), 2)
+    gq, gv, _ = bridge_protocol.decode_joint_status(
+        bridge_protocol.encode_joint_status(0.0, fingers[:2], fingers[2:], [0.0, 0.0]), 2)
     np.testing.assert_array_equal(np.concatenate([gq, gv]), fingers)
-    np.testing.assert_array_equal(bridge.decode_arm_command(bridge.encode_arm_command(1.0, q)), q)
+    np.testing.assert_array_equal(bridge_protocol.decode_arm_command(bridge_protocol.encode_arm_command(1.0, q)), q)
     for command in ([0.085, 5.0], [0.0, 5.0], [0.04, 0.2]):
         np.testing.assert_array_equal(
-            bridge.decode_gripper_command(bridge.encode_gripper_command(0.0, command)), command)
+            bridge_protocol.decode_gripper_command(bridge_protocol.encode_gripper_command(0.0, command)), command)
     status = [3.0, 1.0, 2.0]
     np.testing.assert_array_equal(
-        bridge.decode_control_status(bridge.encode_control_status(0.0, status)), status)
+        bridge_protocol.decode_control_status(bridge_protocol.encode_control_status(0.0, status)), status)
     depth = ImageDepth32F(64, 48)
     depth.mutable_data[:, :, 0] = rng.uniform(0.1, 1.0, size=(48, 64)).astype(np.float32)
     depth.mutable_data[0, :3, 0] = [0.0, np.inf, np.nan]  # below the near clip, beyond the far one
-    back = bridge.decode_image(bridge.encode_image(0.5, depth, "depth_image"))
+    back = bridge_protocol.decode_image(bridge_protocol.encode_image(0.5, depth, "depth_image"))
     assert isinstance(back, ImageDepth32F) and (back.width(), back.height()) == (64, 48)
     np.testing.assert_array_equal(back.data, depth.data)
     labels = ImageLabel16I(8, 4)
     labels.mutable_data[:, :, 0] = rng.integers(-1, 300, size=(4, 8)).astype(np.int16)
-    back = bridge.decode_image(bridge.encode_image(0.5, labels))
+    back = bridge_protocol.decode_image(bridge_protocol.encode_image(0.5, labels))
     assert isinstance(back, ImageLabel16I)
     np.testing.assert_array_equal(back.data, labels.data)
 
 
 def test_a_message_of_another_type_is_refused_by_name():
     with pytest.raises(BridgeError, match="not a lcmt_iiwa_command"):
-        bridge.decode_arm_command(bridge.encode_gripper_command(0.0, [0.085, 5.0]))
+        bridge_protocol.decode_arm_command(bridge_protocol.encode_gripper_command(0.0, [0.085, 5.0]))
     with pytest.raises(BridgeError, match="expected 6 joints, got 2"):
-        bridge.decode_joint_status(bridge.encode_joint_status(0.0, [0, 0], [0, 0], [0, 0]), 6)
+        bridge_protocol.decode_joint_status(bridge_protocol.encode_joint_status(0.0, [0, 0], [0, 0], [0, 0]), 6)
 
 
 def _pair(timeout_s=5.0):
@@ -111,11 +111,11 @@ def _pair(timeout_s=5.0):
 def test_bundles_cross_the_link():
     near, far_sock = _pair()
     far = BridgeLink(far_sock, peer="near", timeout_s=5.0)
-    payload = bridge.encode_arm_command(0.0, np.arange(6.0))
-    near.send_bundle("BRIDGE_TICK", {"version": 3, "t": 0.1}, [(bridge.ARM_COMMAND, payload)])
+    payload = bridge_protocol.encode_arm_command(0.0, np.arange(6.0))
+    near.send_bundle("BRIDGE_TICK", {"version": 3, "t": 0.1}, [(bridge_protocol.ARM_COMMAND, payload)])
     control, body, frames = far.recv_bundle()
     assert (control, body, frames) == ("BRIDGE_TICK", {"version": 3, "t": 0.1},
-                                       {bridge.ARM_COMMAND: payload})
+                                       {bridge_protocol.ARM_COMMAND: payload})
     near.close()
     far.close()
 

@@ -8,7 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-import drake_grasp.evaluation.montecarlo as m
+import drake_grasp.evaluation.run_folder as run_folder
+import drake_grasp.evaluation.trial_plan as trial_plan
+import drake_grasp.evaluation.trial_worker as trial_worker
 from drake_grasp.policies.gpd_ranking import Detections
 from drake_grasp.evaluation.montecarlo import evaluate
 from drake_grasp.policies.decisions import memory_penalty
@@ -80,7 +82,7 @@ def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, mon
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
-    monkeypatch.setattr(m, "_simulate", simulate)
+    monkeypatch.setattr(trial_worker, "_simulate", simulate)
     evaluate(experiment="clutter", out=tmp_path / "c", trials=1, workers=1, seed=0,
              progress=False, conditions=["ctr"], failure_memory_m=0.02, report=False)
     first = [0.5, 0.0, 0.0]
@@ -117,21 +119,21 @@ def test_the_options_reach_their_conditions_and_the_runs_identity():
     from drake_grasp.config.sections import GpdConfig
 
     assert GpdConfig().fallback_best is True
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
     assert base["gpd"]["scenario"]["gpd"]["fallback_best"] is True
     # Asking for the default changes nothing.
     on = dataclasses.replace(EXPERIMENTS["clutter"], gpd_fallback_best=True)
-    assert m.run_identity(on, seed=0)["conditions"] == m.run_identity(
+    assert run_folder.run_identity(on, seed=0)["conditions"] == run_folder.run_identity(
         EXPERIMENTS["clutter"], seed=0)["conditions"]
     exp = dataclasses.replace(EXPERIMENTS["clutter"], failure_memory_m=0.02, gpd_fallback_best=False)
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"]["config_hash"] != base["gpd"]["config_hash"]
     assert ident["gpd"]["scenario"]["gpd"]["fallback_best"] is False
     assert ident["ctr"]["scenario"]["gpd"]["fallback_best"] is True  # untouched: not a gpd condition
-    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.failure_memory.radius_m == 0.02
         assert s.gpd.fallback_best == (task.condition != "gpd")
 

@@ -14,8 +14,12 @@ from types import SimpleNamespace
 import pytest
 
 import drake_grasp.evaluation.montecarlo as m
+import drake_grasp.evaluation.run_folder as run_folder
+import drake_grasp.evaluation.trial_plan as trial_plan
+import drake_grasp.evaluation.trial_worker as trial_worker
 from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
-from drake_grasp.evaluation.montecarlo import config_hash, evaluate
+from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.evaluation.run_folder import config_hash
 from drake_grasp.core.provenance import code_version, file_sha256
 from drake_grasp.evaluation.report import make_report
 from drake_grasp.evaluation.records import load_records, read_run_info
@@ -65,7 +69,7 @@ def test_rerun_skips_finished_trials(reference):
     assert info["created_utc"] <= info["sessions"][0]["started_utc"]
     assert "Elapsed: " in (out / "report.md").read_text()
     # each session names the machine its records were computed on
-    from drake_grasp.evaluation.montecarlo import machine_note
+    from drake_grasp.evaluation.replay import machine_note
     from drake_grasp.core.provenance import MACHINE_PACKAGES, machine
 
     assert info["sessions"][0]["machine"] == machine()
@@ -75,7 +79,7 @@ def test_rerun_skips_finished_trials(reference):
 
 
 def test_a_replay_says_when_its_records_came_from_another_machine():
-    from drake_grasp.evaluation.montecarlo import machine_note
+    from drake_grasp.evaluation.replay import machine_note
     from drake_grasp.core.provenance import machine
 
     here = machine()
@@ -109,8 +113,11 @@ def test_killed_run_resumes_to_the_same_records(reference, tmp_path):
     # computed once per process, so a commit landing in the checkout meanwhile cannot make
     # the resume below a different run.
     code = ("import drake_grasp.evaluation.montecarlo as m\n"
+            "import drake_grasp.evaluation.run_folder as run_folder\n"
+            "import drake_grasp.evaluation.trial_worker as trial_worker\n"
             f"m.code_version = lambda: {m.code_version()!r}\n"
-            f"m.code_tree = lambda: {m.code_tree()!r}\n"
+            f"trial_worker.code_version = lambda: {m.code_version()!r}\n"
+            f"run_folder.code_tree = lambda: {run_folder.code_tree()!r}\n"
             f"m.evaluate(experiment='smoke', out={str(killed)!r}, trials=2, workers=1, seed=3,"
             " progress=False, report=False)\n")
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
@@ -199,7 +206,7 @@ def test_resume_with_another_scenario_is_refused_and_force_new_starts_a_new_fold
     smoke = EXPERIMENTS["smoke"]
     monkeypatch.setitem(EXPERIMENTS, "smoke", dataclasses.replace(
         smoke, scenario_text="{controller: {step_ratio: 0.3}}"))
-    monkeypatch.setattr(m, "_simulate", _boom)  # nothing here needs physics
+    monkeypatch.setattr(trial_worker, "_simulate", _boom)  # nothing here needs physics
     with pytest.raises(ValueError) as e:
         evaluate(experiment="smoke", out=out, trials=2, workers=1, seed=3, progress=False,
                  report=False)
@@ -236,7 +243,7 @@ def test_resume_refuses_other_weights_objects_or_code(tmp_path, monkeypatch, lib
         name="tiny-ctr", scenario="isolation", trials=1, per_object_poses=True,
         description="test", conditions=(Condition("ctr", "ctr"),),
         scenario_text=f"{{controller: {{weights: {str(weights)!r}}}}}"))
-    monkeypatch.setattr(m, "_simulate", _boom)
+    monkeypatch.setattr(trial_worker, "_simulate", _boom)
     out = tmp_path / "run"
     kw = dict(experiment="tiny-ctr", out=out, workers=1, seed=0, progress=False, report=False,
               objects_dir=str(objects))
@@ -263,7 +270,7 @@ def test_resume_refuses_other_weights_objects_or_code(tmp_path, monkeypatch, lib
     # Another commit of the same package code (tests or docs changed): the same run.
     monkeypatch.setattr(m, "code_version", lambda: "0.1.0+git.000000000000")
     assert evaluate(**kw)["ran"] == 0
-    monkeypatch.setattr(m, "code_tree", lambda: "0.1.0+tree.000000000000")
+    monkeypatch.setattr(run_folder, "code_tree", lambda: "0.1.0+tree.000000000000")
     with pytest.raises(ValueError, match=r"code_tree: \"[^\"]+\" in the folder, "
                                          r"\"0\.1\.0\+tree\.000000000000\" now"):
         evaluate(**kw)
@@ -295,7 +302,7 @@ def test_a_trial_whose_scenario_cannot_be_built_is_recorded(tmp_path, monkeypatc
     def no_scenario(*args, **kwargs):
         raise ValueError("the object library has no 'test' objects")
 
-    monkeypatch.setattr(m, "trial_scenario", no_scenario)
+    monkeypatch.setattr(trial_worker, "trial_scenario", no_scenario)
     result = evaluate(experiment="smoke", out=tmp_path / "err", trials=1, workers=1, seed=3,
                       progress=False)
     records = load_records(tmp_path / "err")
@@ -344,7 +351,7 @@ def _fake_clutter(monkeypatch, outcomes, grasped=None):
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
-    monkeypatch.setattr(m, "_simulate", _scripted_simulate(outcomes, calls, grasped))
+    monkeypatch.setattr(trial_worker, "_simulate", _scripted_simulate(outcomes, calls, grasped))
     return calls
 
 
@@ -360,7 +367,7 @@ def test_clutter_scene_error_is_recorded_and_ends_the_run(tmp_path, monkeypatch)
         raise RuntimeError("pile did not settle (test)")
 
     monkeypatch.setattr(scene_module, "make_scene", no_pile)
-    monkeypatch.setattr(m, "_simulate", _boom)
+    monkeypatch.setattr(trial_worker, "_simulate", _boom)
     result = _clutter(tmp_path / "c")
     (rec,) = load_records(tmp_path / "c")
     assert rec.trial_id == "clutter/ctr/0000/attempt00" and rec.failure_class == "simulation-error"
@@ -420,8 +427,8 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     other = tmp_path / "other.safetensors"
     shutil.copy(shipped, other)  # same tensors, another path
     exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=str(other))
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert ident["ctr"]["scenario"]["controller"]["weights"] == str(other)
     assert ident["ctr"]["weights_sha256"] == file_sha256(other) == file_sha256(shipped)
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
@@ -429,11 +436,11 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     # What the workers run: each task carries the weights into its trial's scenario.
     from drake_grasp.evaluation.experiments import trial_scenario
 
-    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.controller.weights == (str(other) if task.condition == "ctr" else "")
-        assert m.weights_path(s) == (str(other) if task.condition == "ctr" else None)
+        assert run_folder.weights_path(s) == (str(other) if task.condition == "ctr" else None)
     with pytest.raises(ValueError, match="--weights .*nope.safetensors: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
                  weights=str(tmp_path / "nope.safetensors"), progress=False)
@@ -448,7 +455,7 @@ def test_weights_option_takes_an_ensemble_and_records_every_members_sha256(tmp_p
     grid = models_dir() / "cnn-grid" / "weights.safetensors"
     paper = models_dir() / "cnn" / "weights.safetensors"
     exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=f"{grid},{paper}")
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     assert ident["ctr"]["weights_sha256"] == f"{file_sha256(grid)},{file_sha256(paper)}"
     assert ident["gpd"]["weights_sha256"] is None
     missing = tmp_path / "nope.safetensors"
@@ -474,22 +481,22 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     other = tmp_path / "gpd.safetensors"
     shutil.copy(shipped, other)
     exp = dataclasses.replace(EXPERIMENTS["isolation"], gpd_weights=str(other))
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert base["gpd"]["gpd_weights_sha256"] == file_sha256(shipped)
     assert ident["gpd"]["scenario"]["gpd"]["weights"] == str(other)
     assert ident["gpd"]["gpd_weights_sha256"] == file_sha256(other)
     assert ident["ctr"] == base["ctr"] and ident["scripted"] == base["scripted"]
     assert base["ctr"]["gpd_weights_sha256"] is None
-    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.gpd.weights == (str(other) if task.condition == "gpd" else "")
-        assert m.gpd_weights_path(s) == (str(other) if task.condition == "gpd" else None)
+        assert run_folder.gpd_weights_path(s) == (str(other) if task.condition == "gpd" else None)
     # The same path with other tensors is another run.
     out = tmp_path / "run"
     out.mkdir()
-    write_run_info(out, m.run_identity(exp, seed=0))
+    write_run_info(out, run_folder.run_identity(exp, seed=0))
     import torch
 
     from drake_grasp.policies.gpd import save_classifier
@@ -498,7 +505,7 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     with torch.no_grad():
         next(model.parameters()).mul_(0.5)
     save_classifier(model, other)
-    conflict = m.folder_conflict(out, m.run_identity(exp, seed=0))
+    conflict = run_folder.folder_conflict(out, run_folder.run_identity(exp, seed=0))
     assert conflict is not None and "gpd_weights_sha256" in conflict
     with pytest.raises(ValueError, match="--gpd-weights .*nope.safetensors: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run2", trials=1,
@@ -513,15 +520,15 @@ def _check_controller_option(exp, field: str, on=True, off=False) -> None:
     as they were."""
     from drake_grasp.evaluation.experiments import trial_scenario
 
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert ident["ctr"]["scenario"]["controller"][field] == on
     assert base["ctr"]["scenario"]["controller"][field] == off
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
-    for task in m.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=2, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert getattr(s.controller, field) == (on if task.condition == "ctr" else off)
 
 
@@ -535,8 +542,8 @@ def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp
     out.mkdir()
     from drake_grasp.evaluation.records import write_run_info
 
-    write_run_info(out, m.run_identity(exp, seed=0))
-    assert m.folder_conflict(out, m.run_identity(EXPERIMENTS["isolation"], seed=0)) is not None
+    write_run_info(out, run_folder.run_identity(exp, seed=0))
+    assert run_folder.folder_conflict(out, run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)) is not None
 
 
 def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path):
@@ -546,16 +553,16 @@ def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path)
     from drake_grasp.evaluation.experiments import trial_scenario
 
     exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_converge_iterations=0)
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert ident["ctr"]["scenario"]["controller"]["converge_iterations"] == 0
     assert base["ctr"]["scenario"]["controller"]["converge_iterations"] == 20
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["ctr-sim"]["config_hash"] != base["ctr-sim"]["config_hash"]
     assert ident["gpd"] == base["gpd"] and ident["scripted"] == base["scripted"]
-    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.controller.converge_iterations == (0 if task.condition == "ctr" else 20)
     with pytest.raises(ValueError, match="--converge: expected >= 0 iterations, got -2"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1, converge_iterations=-2,
@@ -570,15 +577,15 @@ def test_distance_samples_option_reaches_every_condition_and_the_identity(tmp_pa
     from drake_grasp.evaluation.experiments import trial_scenario
 
     exp = dataclasses.replace(EXPERIMENTS["sim-distance"], judge_distance_samples=1600)
-    ident = {c["name"]: c for c in m.run_identity(exp, seed=0)["conditions"]}
-    base = {c["name"]: c for c in m.run_identity(EXPERIMENTS["sim-distance"], seed=0)["conditions"]}
+    ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
+    base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["sim-distance"], seed=0)["conditions"]}
     for name in ("init", "ctr", "ctr_noise", "gpd", "gpd_noise"):
         assert ident[name]["scenario"]["judge"]["distance_grasp_samples"] == 1600
         assert base[name]["scenario"]["judge"]["distance_grasp_samples"] == 400
         assert ident[name]["config_hash"] != base[name]["config_hash"]
-    for task in m.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
-        run_exp = m.task_experiment(task)
-        s = trial_scenario(run_exp, m.task_condition(task, run_exp), task.index, base_seed=0)
+    for task in trial_plan.plan_tasks(exp, trials=1, seed=0, conditions=["ctr", "gpd"]):
+        run_exp = trial_plan.task_experiment(task)
+        s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.judge.distance_grasp_samples == 1600
     with pytest.raises(ValueError, match="--distance-samples: expected a positive number"):
         evaluate(experiment="sim-distance", out=tmp_path / "run", trials=1, distance_samples=-5,
@@ -651,7 +658,7 @@ def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch,
 
     monkeypatch.setattr(scene_module, "make_scene", make_scene)
     monkeypatch.setattr(scene_module, "settle_scene", settle_scene)
-    monkeypatch.setattr(m, "_simulate", _scripted_simulate(["ok", "fail", "fail", "fail"], []))
+    monkeypatch.setattr(trial_worker, "_simulate", _scripted_simulate(["ok", "fail", "fail", "fail"], []))
     evaluate(experiment=experiment, out=tmp_path / "c", trials=1, workers=1, seed=0,
              progress=False, conditions=["ctr"], report=False)
     assert seen[0] == ("make", moves)
@@ -697,7 +704,7 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
 def test_sensor_policies_are_every_builtin_policy_but_scripted():
     """`policies.SENSOR_POLICIES` (what the bridge runs and `evaluate --conditions` may
     add) stays `scenario.POLICIES` less `scripted`, the one that reads the true poses."""
-    from drake_grasp.evaluation.bridge import BRIDGE_POLICIES
+    from drake_grasp.evaluation.bridge_protocol import BRIDGE_POLICIES
     from drake_grasp.evaluation.experiments import EXTRA_POLICIES
     from drake_grasp.policies.decisions import SENSOR_POLICIES
     from drake_grasp.config.sections import POLICIES
@@ -716,10 +723,10 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
     refused naming what is allowed."""
     exp = dataclasses.replace(EXPERIMENTS["clutter"],
                               ctr_controller_text="{converge_step_ratio: 0.2}")
-    tasks = m.plan_tasks(exp, trials=2, seed=5, conditions=["ctr", "cnn-ctr"])
+    tasks = trial_plan.plan_tasks(exp, trials=2, seed=5, conditions=["ctr", "cnn-ctr"])
     assert [(t.condition, t.index, t.policy_spec) for t in tasks] == [
         ("ctr", 0, ""), ("cnn-ctr", 0, "cnn-ctr"), ("ctr", 1, ""), ("cnn-ctr", 1, "cnn-ctr")]
-    extra = m.task_condition(tasks[1], exp)
+    extra = trial_plan.task_condition(tasks[1], exp)
     assert (extra.name, extra.policy, extra.noise) == ("cnn-ctr", "cnn-ctr", "none")
     from drake_grasp.evaluation.experiments import condition_scenario
     s = condition_scenario(exp, extra)
@@ -727,17 +734,17 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
     assert (s.controller.step_ratio, s.controller.converge_step_ratio) == (0.5, 0.2)
     assert s.scene.clutter_objects == 10
     # perception lists cnn-ctr: it is that experiment's own condition, not an extra one
-    own = m.plan_tasks(EXPERIMENTS["perception"], trials=1, seed=0, conditions=["cnn-ctr"])
+    own = trial_plan.plan_tasks(EXPERIMENTS["perception"], trials=1, seed=0, conditions=["cnn-ctr"])
     assert [(t.condition, t.policy_spec) for t in own] == [("cnn-ctr", "")]
     with pytest.raises(ValueError, match=r"\['scripted2'\] not in experiment clutter; its "
                                          r"conditions: \['ctr', 'gpd'\], a built-in policy "
                                          r"\['ctr', 'cnn-ctr'"):
-        m.plan_tasks(exp, trials=1, seed=0, conditions=["scripted2"])
+        trial_plan.plan_tasks(exp, trials=1, seed=0, conditions=["scripted2"])
 
     def no_physics(*args, **kwargs):
         raise RuntimeError("no physics here (test)")
 
-    monkeypatch.setattr(m, "_simulate", no_physics)
+    monkeypatch.setattr(trial_worker, "_simulate", no_physics)
     kw = dict(experiment="smoke", out=tmp_path / "run", trials=1, workers=1, seed=3,
               progress=False, report=False)
     assert m.evaluate(conditions=["init", "cnn-only"], **kw)["ran"] == 2

@@ -139,7 +139,7 @@ def test_fast_and_reference_profiles_agree_in_the_grasp_lab(library, across_can)
 
 
 def test_a_record_made_before_physics_profiles_replays_with_the_reference_settings():
-    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.evaluation.replay import recorded_scenario
     from drake_grasp.config.scenario import dump_scenario
 
     fast = load_scenario(scenario_name="isolation")
@@ -159,7 +159,7 @@ def test_a_record_made_before_physics_profiles_replays_with_the_reference_settin
 ])
 def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
         scenario_name, key, value_now, value_before):
-    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.evaluation.replay import recorded_scenario
     from drake_grasp.config.scenario import dump_scenario
 
     section, name = key.split(".")
@@ -178,7 +178,7 @@ def test_a_record_made_before_a_key_existed_replays_with_what_it_ran(
 def test_a_gpd_record_made_before_the_fallback_was_a_key_replays_without_it():
     """`gpd.fallback_best` is on by default now; a record whose scenario has no such key
     ran GPD's strict threshold and replays so; one that names it keeps its value."""
-    from drake_grasp.evaluation.montecarlo import recorded_scenario
+    from drake_grasp.evaluation.replay import recorded_scenario
     from drake_grasp.config.scenario import dump_scenario
 
     now = load_scenario(scenario_name="clutter")
@@ -194,7 +194,7 @@ def test_a_gpd_record_made_before_the_fallback_was_a_key_replays_without_it():
 
 
 def test_a_record_with_a_retired_key_is_refused_by_name(tmp_path):
-    from drake_grasp.evaluation.montecarlo import replay_trial
+    from drake_grasp.evaluation.replay import replay_trial
     from drake_grasp.evaluation.records import TrialRecord, write_record
     from drake_grasp.config.scenario import dump_scenario
 

@@ -34,7 +34,7 @@ def test_an_object_not_in_the_pile_is_named_with_the_piles_objects(analysis_scri
 def test_recorded_pile_reads_a_clutter_attempt_and_names_a_record_without_one(tmp_path):
     import json
 
-    from drake_grasp.evaluation.montecarlo import recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
 
     rec, scenario, scene = recorded_pile(RECORD)
     assert rec["trial_id"] == "clutter/ctr/0007/attempt02"

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 import drake_grasp.evaluation.montecarlo as m
+import drake_grasp.evaluation.trial_worker as trial_worker
 from drake_grasp.policies import plugins
 from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
 from drake_grasp.evaluation.records import GRASP_FAILURES, load_records, read_run_info
@@ -238,7 +239,7 @@ def test_user_policy_resume_and_refusals(user_modules, tmp_path, monkeypatch):
     def no_physics(*args, **kwargs):
         raise RuntimeError("no physics here (test)")
 
-    monkeypatch.setattr(m, "_simulate", no_physics)
+    monkeypatch.setattr(trial_worker, "_simulate", no_physics)
     name = user_modules("byop_resume")
     kw = dict(experiment="smoke", out=tmp_path / "run", trials=1, workers=1, seed=3,
               progress=False, report=False)

@@ -64,7 +64,7 @@ def test_the_grid_weights_are_the_last_epoch_of_their_run(folder):
 
 
 def test_the_episodes_default_cnn_is_the_batchnorm_grid_head_and_the_others_stay_shipped():
-    from drake_grasp.evaluation.montecarlo import weights_path
+    from drake_grasp.evaluation.run_folder import weights_path
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.policies.evaluator import (BN12_WEIGHTS, BN12500_WEIGHTS, BN_WEIGHTS,
                                                DEFAULT_WEIGHTS, EP5_WEIGHTS, GRID_WEIGHTS,
@@ -93,7 +93,7 @@ def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path
     and refuses a sha256 no shipped file has, naming it."""
     import dataclasses
 
-    from drake_grasp.evaluation.montecarlo import recorded_weights
+    from drake_grasp.evaluation.replay import recorded_weights
     from drake_grasp.core.provenance import file_sha256
     from drake_grasp.config.scenario import load_scenario
 
@@ -128,7 +128,7 @@ def test_a_record_whose_named_weights_are_not_here_replays_with_the_shipped_file
     with its path and sha256 named."""
     import dataclasses
 
-    from drake_grasp.evaluation.montecarlo import recorded_weights
+    from drake_grasp.evaluation.replay import recorded_weights
     from drake_grasp.core.provenance import file_sha256
     from drake_grasp.config.scenario import load_scenario
 
@@ -160,7 +160,7 @@ def test_a_recorded_pile_names_the_weights_its_attempt_ran(tmp_path):
     whatever today's default is."""
     import shutil
 
-    from drake_grasp.evaluation.montecarlo import recorded_pile
+    from drake_grasp.evaluation.replay import recorded_pile
     from drake_grasp.core.provenance import file_sha256
 
     src = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-bn12"

@@ -40,9 +40,9 @@ def _cmd_report(args) -> int:
 
 
 def _cmd_replay(args) -> int:
-    from drake_grasp.evaluation.montecarlo import replay_trial
+    from drake_grasp.evaluation.replay import replay_trial
 
-    from drake_grasp.evaluation.montecarlo import machine_note
+    from drake_grasp.evaluation.replay import machine_note
     from drake_grasp.evaluation.records import RUN_INFO_FILE, read_run_info
 
     result, out = replay_trial(args.results, trial_id=args.trial, out=args.out)

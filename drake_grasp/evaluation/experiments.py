@@ -291,7 +291,7 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
     The per-trial parts, which `trial_scenario` adds, are the seed (0 here) and, for
     `per_object_poses` experiments, the object and its pose chosen from the trial index
     (here `scene.object_ids` and `scene.pose` are as the named scenario has them). This is
-    what `drake_grasp.evaluation.montecarlo` hashes into a record's `config_hash` and compares when
+    what `drake_grasp.evaluation.run_folder` hashes into a record's `config_hash` and compares when
     a run is resumed.
     """
     s = load_scenario(scenario_name=experiment.scenario, scenario_text=experiment.scenario_text,

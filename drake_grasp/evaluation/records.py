@@ -2,7 +2,7 @@
 
 Layout::
 
-    DIR/run.json                 what was run (`montecarlo.run_identity`): experiment, base
+    DIR/run.json                 what was run (`run_folder.run_identity`): experiment, base
                                  seed, object library and its content hash, every
                                  condition's resolved scenario without the seed and its
                                  CNN weights' sha256, code version; plus the most trials
@@ -225,7 +225,7 @@ class TrialRecord:
             "" when building the scenario raised (a simulation error).
         seed: The trial's seed.
         config_hash: Hash of the condition's resolved settings without the per-trial parts
-            (`montecarlo.config_hash`: the seed, and the object and pose chosen per trial),
+            (`run_folder.config_hash`: the seed, and the object and pose chosen per trial),
             so all trials of a condition share it; "unresolved" when the trial's scenario
             could not be built.
         code_version: `drake_grasp.core.provenance.code_version()`: package version plus the

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 # BN12_WEIGHTS (2 epochs on those scenes), BN_WEIGHTS (on 2,500 scenes), the grid head
 # trained without BatchNorm (GRID_WEIGHTS) and the paper's tiled net (PAPER_WEIGHTS) stay
 # shipped and selectable; records made with an earlier default replay with it
-# (`montecarlo.recorded_weights`).
+# (`replay.recorded_weights`).
 DEFAULT_WEIGHTS = "cnn-grid-bn12500-ep3/weights.safetensors"
 BN12500_WEIGHTS = "cnn-grid-bn12500/weights.safetensors"
 EP5_WEIGHTS = "cnn-grid-bn12-ep5/weights.safetensors"

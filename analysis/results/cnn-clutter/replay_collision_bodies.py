@@ -2,7 +2,7 @@
 bodies touched an object at the judge's first touching sample."""
 import json, sys
 from drake_grasp.evaluation.episode import simulate_episode
-from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.replay import recorded_scenario
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.world.scene import SceneSpec
 out = open(sys.argv[1], "a")

@@ -4,7 +4,7 @@ first collision happens, and which gripper body touched."""
 import json, sys
 import numpy as np
 import drake_grasp.evaluation.episode as E
-from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.replay import recorded_scenario
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.world.scene import SceneSpec
 

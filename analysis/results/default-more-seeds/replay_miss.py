@@ -23,7 +23,7 @@ import pydrake.systems.analysis as A
 from pydrake.multibody.tree import ModelInstanceIndex
 
 import drake_grasp.evaluation.episode as E
-from drake_grasp.evaluation.montecarlo import recorded_scenario
+from drake_grasp.evaluation.replay import recorded_scenario
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.world.scene import SceneSpec
 

@@ -1,0 +1,132 @@
+"""The trial plan of a Monte Carlo run: `TrialTask` (one episode, or one whole clutter run
+of several attempts, with the experiment settings it carries), `plan_tasks` (the tasks of a
+run: trial i of every condition asked, user and extra built-in policies after the
+experiment's own, all with trial i's seed), and the experiment and condition a task runs
+(`task_experiment`, `task_condition`). What runs the tasks is `drake_grasp.evaluation.
+trial_worker`; what drives them is `drake_grasp.evaluation.montecarlo`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from drake_grasp.evaluation.experiments import (EXTRA_POLICIES, Condition, Experiment,
+                                     get_experiment, plugin_condition)
+
+
+@dataclass(frozen=True)
+class TrialTask:
+    """One unit of work: an episode, or a whole clutter run (several attempts)."""
+
+    experiment: str
+    condition: str
+    index: int
+    base_seed: int
+    # A `PHYSICS_PROFILES` name the trial runs with; "" = the scenario's (the default).
+    physics_profile: str = ""
+    # A user policy's ``MODULE:FACTORY`` (`drake_grasp.policies.plugins`), or a built-in policy of
+    # `experiments.EXTRA_POLICIES` the experiment does not list, when `condition` is one
+    # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
+    policy_spec: str = ""
+    # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
+    cnn_weights: str = ""
+    # The GPD classifier's weights file of the gpd conditions (`Experiment.gpd_weights`).
+    gpd_weights: str = ""
+    # `Experiment.cnn_mirror_average`.
+    cnn_mirror_average: bool = False
+    # `Experiment.ctr_converge_iterations`.
+    ctr_converge_iterations: int = -1
+    # `Experiment.judge_distance_samples`.
+    judge_distance_samples: int = 0
+    # `Experiment.ctr_hand_check`.
+    ctr_hand_check: bool = False
+    # `Experiment.ctr_controller_text`.
+    ctr_controller_text: str = ""
+    # `Experiment.failure_memory_m`.
+    failure_memory_m: float = 0.0
+    # `Experiment.gpd_fallback_best` (None: the scenario's).
+    gpd_fallback_best: bool | None = None
+
+    @property
+    def trial_id(self) -> str:
+        return f"{self.experiment}/{self.condition}/{self.index:04d}"
+
+
+def task_experiment(task: TrialTask) -> Experiment:
+    """The experiment a task belongs to, with the settings the task carries (physics
+    profile, CNN and GPD weights, the closed-loop options, the failure memory)."""
+    experiment = get_experiment(task.experiment)
+    if task.physics_profile:
+        experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
+    if task.cnn_weights:
+        experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
+    if task.gpd_weights:
+        experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
+    if task.cnn_mirror_average:
+        experiment = dataclasses.replace(experiment, cnn_mirror_average=True)
+    if task.ctr_converge_iterations >= 0:
+        experiment = dataclasses.replace(
+            experiment, ctr_converge_iterations=task.ctr_converge_iterations)
+    if task.judge_distance_samples > 0:
+        experiment = dataclasses.replace(
+            experiment, judge_distance_samples=task.judge_distance_samples)
+    if task.ctr_hand_check:
+        experiment = dataclasses.replace(experiment, ctr_hand_check=True)
+    if task.ctr_controller_text:
+        experiment = dataclasses.replace(experiment,
+                                         ctr_controller_text=task.ctr_controller_text)
+    if task.failure_memory_m > 0:
+        experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
+    if task.gpd_fallback_best is not None:
+        experiment = dataclasses.replace(experiment, gpd_fallback_best=task.gpd_fallback_best)
+    return experiment
+
+
+def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
+               conditions: list[str] | None = None) -> list[TrialTask]:
+    """The tasks of a run: trial i of every condition asked (the experiment's order, then
+    the user policies, ``MODULE:FACTORY`` entries of `conditions`, and the built-in
+    policies of `experiments.EXTRA_POLICIES` that the experiment does not list, in the
+    order given), all with trial i's seed."""
+    from drake_grasp.policies.plugins import is_policy_spec
+
+    n = experiment.trials if trials is None else int(trials)
+    if n < 1:
+        raise ValueError(f"--trials: expected >= 1, got {n}")
+    names = [c.name for c in experiment.conditions]
+    specs = []
+    if conditions:
+        specs = list(dict.fromkeys(
+            c for c in conditions
+            if is_policy_spec(c) or (c in EXTRA_POLICIES and c not in names)))
+        unknown = [c for c in conditions if c not in names and c not in specs]
+        if unknown:
+            raise ValueError(f"--conditions: {unknown} not in experiment "
+                             f"{experiment.name}; its conditions: {names}, a built-in "
+                             f"policy {list(EXTRA_POLICIES)} or a user policy "
+                             "MODULE:FACTORY (see drake_grasp.policies.plugins)")
+        names = [c for c in names if c in conditions]
+    asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
+    return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
+                      experiment.cnn_weights, experiment.gpd_weights,
+                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
+                      experiment.judge_distance_samples, experiment.ctr_hand_check,
+                      experiment.ctr_controller_text, experiment.failure_memory_m,
+                      experiment.gpd_fallback_best)
+            for i in range(n) for c, spec in asked]
+
+
+def task_condition(task: TrialTask, experiment: Experiment) -> Condition:
+    """The condition a task runs: the experiment's, or a user policy's."""
+    if task.policy_spec:
+        return plugin_condition(experiment, task.policy_spec)
+    return _condition(experiment, task.condition)
+
+
+def _condition(experiment: Experiment, name: str) -> Condition:
+    for c in experiment.conditions:
+        if c.name == name:
+            return c
+    raise ValueError(f"experiment {experiment.name}: no condition {name!r}")
+

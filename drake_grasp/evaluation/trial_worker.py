@@ -1,0 +1,337 @@
+"""The worker side of a Monte Carlo run: `run_task` runs one `TrialTask` in this process
+and writes its record(s) - an episode, or a whole clutter run of attempts on one pile that
+ends by `clutter_run_status` - turning any exception inside a trial (building its scenario
+or scene, simulating, settling the pile left for the next attempt) into a
+"simulation-error" record with its reason and stage. Each worker process caches what does
+not change between trials (the object library and its meshes, the CNN) and builds only the
+plant per trial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import traceback
+
+import numpy as np
+
+from drake_grasp.evaluation.experiments import (CNN_POLICIES, Condition, Experiment,
+                                                condition_scenario, trial_scenario, trial_seed)
+from drake_grasp.evaluation.run_folder import config_hash
+from drake_grasp.evaluation.trial_plan import TrialTask, task_condition, task_experiment
+from drake_grasp.core.provenance import code_version
+
+# A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
+MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
+# No clutter run goes beyond this many attempts (the paper: 74 CTR attempts in 10 runs).
+MAX_ATTEMPTS_PER_RUN = 60
+# A clutter run ends when no object is left within +-15 cm (x and y) of the pile's centre:
+# what the wrist camera sees from its start pose (0.3 m above the table, 55 degrees of
+# vertical field of view: +-0.156 m).
+IN_VIEW_HALF_EXTENT_M = 0.15
+
+
+_WORKER_CACHE: dict = {}
+
+
+def _cached(key, make):
+    if key not in _WORKER_CACHE:
+        _WORKER_CACHE[key] = make()
+    return _WORKER_CACHE[key]
+
+
+def _library(objects_dir):
+    from drake_grasp.objects import load_library
+
+    return _cached(("library", objects_dir), lambda: load_library(objects_dir))
+
+
+def _model(weights: str, threads: int = 1):
+    from drake_grasp.policies.evaluator import load_cnn
+
+    return _cached(("cnn", weights, threads), lambda: load_cnn(weights, threads=threads))
+
+
+def _condition_hash(task: TrialTask, condition: Condition, objects_dir) -> str:
+    """config_hash of the condition's shared scenario ("unresolved" when it cannot be built)."""
+    from drake_grasp.config.scenario import dump_scenario
+
+    try:
+        experiment = task_experiment(task)
+        return config_hash(dump_scenario(
+            condition_scenario(experiment, condition, objects_dir=objects_dir)))
+    except Exception:  # noqa: BLE001 - the trial records its own error
+        return "unresolved"
+
+
+def _forced(fail_trials, trial_id: str, stage: str | None = None) -> None:
+    """Raises where `fail_trials` asks for it (see `run_task`)."""
+    if (f"{trial_id}:{stage}" if stage else trial_id) in fail_trials:
+        raise RuntimeError(f"forced failure (test) in {stage or 'simulation'}")
+
+
+def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
+                error: BaseException | None = None, wall: float = 0.0, run_index=None,
+                attempt_index=None, trial_id=None, extra=None, objects_dir=None,
+                stage: str = "simulation"):
+    """The record of a finished trial (`result`) or of one that raised (`error`, raised
+    in `stage`: "scene", "simulation" or "settle"). `scenario` is None when the trial's
+    scenario could not be built; the record then has an empty scenario_yaml and the
+    trial's seed."""
+    from drake_grasp.evaluation.records import TrialRecord, classify_failure
+    from drake_grasp.config.scenario import dump_scenario
+
+    yaml = dump_scenario(scenario) if scenario is not None else ""
+    seed = int(scenario.seed) if scenario is not None else trial_seed(task.base_seed, task.index)
+    chash = _condition_hash(task, condition, objects_dir)
+    if result is None:
+        reason = f"simulation error: {type(error).__name__}: {error}"
+        return TrialRecord(
+            trial_id=trial_id or task.trial_id, experiment=task.experiment,
+            condition=task.condition, policy=condition.policy, noise=condition.noise,
+            noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
+            offset_m=condition.offset_m, disturbance={"kind": condition.disturbance},
+            scenario_name=task_experiment(task).scenario, scenario_yaml=yaml,
+            seed=seed, config_hash=chash, code_version=code_version(),
+            success=False, failure_class=classify_failure(False, reason, exception=error),
+            failure_reason=reason, final_distance_m=None, sim_time_s=0.0, wall_time_s=wall,
+            control_steps=0, object_ids=[], grasped_object_id=None, run_index=run_index,
+            attempt_index=attempt_index,
+            extra={"traceback": "".join(traceback.format_exception(error))[-4000:],
+                   "error_stage": stage, **(extra or {})})
+    r = result
+    return TrialRecord(
+        trial_id=trial_id or task.trial_id, experiment=task.experiment,
+        condition=task.condition, policy=condition.policy, noise=condition.noise,
+        noise_scale=condition.noise_scale, depth_noise=condition.depth_noise > 0,
+        offset_m=condition.offset_m, disturbance=r.disturbance,
+        scenario_name=task_experiment(task).scenario, scenario_yaml=yaml,
+        seed=seed, config_hash=chash, code_version=code_version(),
+        success=bool(r.success),
+        failure_class=classify_failure(r.success, r.failure_reason, disturbance=r.disturbance),
+        failure_reason=r.failure_reason, final_distance_m=r.final_distance_m,
+        sim_time_s=r.sim_time_s, wall_time_s=wall, control_steps=r.control_steps,
+        object_ids=r.object_ids, grasped_object_id=r.details.get("grasped_object_id"),
+        run_index=run_index, attempt_index=attempt_index,
+        extra={"stop_reason": r.details.get("stop_reason"),
+               "decision_time_s": r.details.get("decision_time_s"),
+               "decisions": r.details.get("decisions", 0),
+               # Where the hand closed (None when it never closed).
+               "hand_at_close_xy_yaw": (r.details.get("hand_at_close_xy_yaw")
+                                        if r.details.get("gripper_closed") else None),
+               **({"policy_inputs": r.details["policy_inputs"]}
+                  if "policy_inputs" in r.details else {}),
+               **({"gpd_detection": r.details["gpd_detection"]}
+                  if "gpd_detection" in r.details else {}),
+               **(extra or {})})
+
+
+def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
+             fail_trials: tuple = ()) -> list[dict]:
+    """Runs one task in this process and writes its record(s); returns them as dicts.
+
+    `fail_trials` (for testing the error path): "<trial id>" makes that trial's (or clutter
+    attempt's) simulation raise; "<trial id>:scene" makes building its scenario and scene
+    raise (for a clutter run: the run's trial id, e.g. "clutter/ctr/0000:scene");
+    "<attempt id>:settle" makes settling the pile that clutter attempt leaves raise.
+    """
+    from drake_grasp.evaluation.records import write_record
+
+    experiment = task_experiment(task)
+    condition = task_condition(task, experiment)
+    library = _library(objects_dir)
+    if experiment.kind == "clutter-runs":
+        records = _run_clutter(task, experiment, condition, out, objects_dir, library,
+                               tuple(fail_trials))
+    else:
+        records = [_run_episode_task(task, experiment, condition, objects_dir, library,
+                                     tuple(fail_trials))]
+        write_record(out, records[0])
+    return [r.to_dict() for r in records]
+
+
+def _simulate(scenario, library, *, scene=None):
+    from drake_grasp.evaluation.episode import simulate_episode
+
+    model = (_model(scenario.controller.weights, scenario.controller.torch_threads)
+             if scenario.policy in CNN_POLICIES else None)
+    return simulate_episode(scenario, library=library, scene=scene, record_depth=False,
+                            visualize=False, model=model)
+
+
+def _run_episode_task(task, experiment, condition, objects_dir, library, fail_trials):
+    t0 = time.perf_counter()
+    scenario = None
+    stage = "scene"
+    try:
+        _forced(fail_trials, task.trial_id, "scene")
+        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
+                                  objects_dir=objects_dir, library=library)
+        stage = "simulation"
+        _forced(fail_trials, task.trial_id)
+        run = _simulate(scenario, library)
+        return _record_for(task, condition, scenario, run.result, objects_dir=objects_dir,
+                           wall=time.perf_counter() - t0)
+    except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
+        return _record_for(task, condition, scenario, error=e, objects_dir=objects_dir,
+                           stage=stage, wall=time.perf_counter() - t0)
+
+
+def _objects_in_view(scene, half_extent_m: float = IN_VIEW_HALF_EXTENT_M) -> bool:
+    c = np.asarray(scene.center_xy_m)
+    return any(np.all(np.abs(np.asarray(o.xyz[:2]) - c) < half_extent_m) and o.xyz[2] > -0.01
+               for o in scene.objects)
+
+
+def clutter_run_status(records, experiment: Experiment) -> str | None:
+    """Why a clutter run has ended, from its attempt records; None while it goes on.
+
+    The one rule, used both to run (`_run_clutter`) and to decide on resume which runs
+    are finished:
+
+    - a run whose scene (scenario, poured and settled pile) could not be built ends with
+      its first record, a simulation error ("scene could not be built");
+    - simulation errors (failure_class "simulation-error") neither count towards nor reset
+      the run of consecutive failed grasps: they are failures of the simulator, not of the
+      policy, and the attempt is retried on the same pile (with the next attempt's seed);
+    - the run ends after `experiment.max_consecutive_failures` failed grasps in a row;
+    - so that a pile on which every attempt raises cannot loop for ever, it ends after
+      `MAX_CONSECUTIVE_SIMULATION_ERRORS` (3) simulation errors in a row;
+    - it ends when no object is left, or none is left in view;
+    - a successful grasp that left the pile as large as it was (the judge named an object
+      that the pile does not hold) ends it, since the next attempt would face the same
+      pile; and no run goes beyond `MAX_ATTEMPTS_PER_RUN` attempts.
+
+    Args:
+        records: The run's attempt records (any order).
+        experiment: The experiment.
+    """
+    from drake_grasp.world.scene import SceneSpec
+
+    records = sorted(records, key=lambda r: r.attempt_index)
+    if not records:
+        return None
+    failures = errors = 0
+    for r in records:
+        if r.failure_class == "simulation-error":
+            errors += 1
+        else:
+            errors = 0
+            failures = 0 if r.success else failures + 1
+    nxt = records[-1].extra.get("next_scene")
+    if nxt is None:
+        return "scene could not be built"
+    if failures >= experiment.max_consecutive_failures:
+        return f"{experiment.max_consecutive_failures} consecutive failed grasps"
+    if errors >= MAX_CONSECUTIVE_SIMULATION_ERRORS:
+        return f"{MAX_CONSECUTIVE_SIMULATION_ERRORS} consecutive simulation errors"
+    if len(records) >= MAX_ATTEMPTS_PER_RUN:
+        return f"{MAX_ATTEMPTS_PER_RUN} attempts (the cap per run)"
+    last = records[-1]
+    if last.success and "scene" in last.extra and (
+            len(nxt.get("objects", [])) >= len(last.extra["scene"].get("objects", []))):
+        return (f"a successful grasp removed no object from the pile (grasped object "
+                f"{last.grasped_object_id!r})")
+    nxt = SceneSpec.from_dict(nxt)
+    if not nxt.objects:
+        return "no objects left"
+    if not _objects_in_view(nxt):
+        return "no objects left in view"
+    return None
+
+
+def failed_closings(records) -> list[float]:
+    """The hand's poses (x, y, yaw_deg, flat) where a clutter run's earlier attempts
+    closed the gripper and held nothing: what `FailureMemoryConfig` remembers. Attempts
+    that never closed (no detection, a simulation error) leave nothing."""
+    out: list[float] = []
+    for r in sorted(records, key=lambda r: r.attempt_index):
+        pose = r.extra.get("hand_at_close_xy_yaw")
+        if not r.success and r.failure_class != "simulation-error" and pose is not None:
+            out += [float(v) for v in pose]
+    return out
+
+
+def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_trials):
+    """One clutter run: attempts on one pile, each grasped object removed, until
+    `clutter_run_status` says it has ended (its docstring has the rule). Resumes after the
+    last recorded attempt (each record carries the scene left for the next one). Building
+    the scenario and pile, every attempt and the settling of the pile it leaves run inside
+    the error capture: an exception becomes a "simulation-error" record. The record that
+    ends the run has the reason in `extra["run_end"]`."""
+    from drake_grasp.evaluation.records import load_records, write_record
+    from drake_grasp.world.scene import SceneSpec, scenario_scene, settle_options, settle_scene
+
+    prefix = f"{task.trial_id}/attempt"
+    records = sorted((r for r in load_records(out)
+                      if r.trial_id.startswith(prefix)), key=lambda r: r.attempt_index)
+    status = clutter_run_status(records, experiment)
+    if status is not None:
+        return records
+    attempt = len(records)
+
+    def finish(rec):
+        nonlocal status
+        status = clutter_run_status(records + [rec], experiment)
+        if status is not None:
+            rec.extra["run_end"] = status
+        write_record(out, rec)
+        records.append(rec)
+
+    t0 = time.perf_counter()
+    scenario = None
+    try:
+        if not records:
+            _forced(fail_trials, task.trial_id, "scene")
+        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
+                                  objects_dir=objects_dir, library=library)
+        if records:
+            scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
+        else:
+            scene = scenario_scene(scenario, library)
+    except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
+        finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
+                           run_index=task.index, attempt_index=attempt,
+                           trial_id=f"{prefix}{attempt:02d}", objects_dir=objects_dir,
+                           stage="scene", extra={"scene": None, "next_scene": None}))
+        return records
+
+    while status is None:
+        t0 = time.perf_counter()
+        attempt_scenario = dataclasses.replace(scenario, seed=scenario.seed + 1000 * attempt)
+        if scenario.failure_memory.radius_m > 0.0:
+            attempt_scenario.failure_memory = dataclasses.replace(
+                scenario.failure_memory, failed_xy_yaw=failed_closings(records))
+        trial_id = f"{prefix}{attempt:02d}"
+        stage = "simulation"
+        try:
+            _forced(fail_trials, trial_id)
+            run = _simulate(attempt_scenario, library, scene=scene)
+            remaining = run.final_scene
+            grasped = run.result.details.get("grasped_object_id") if run.result.success else None
+            objects = [o for o in remaining.objects
+                       if o.object_id != grasped and o.xyz[2] > -0.05]
+            stage = "settle"
+            _forced(fail_trials, trial_id, "settle")
+            next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
+                                      plant_config=scenario.plant,
+                                      physics=scenario.physics,
+                                      sheet_moves=scenario.sheet_moves,
+                                      **settle_options(scenario.scene)) if objects else \
+                dataclasses.replace(remaining, objects=[], settled=True)
+            rec = _record_for(task, condition, attempt_scenario, run.result,
+                              wall=time.perf_counter() - t0, run_index=task.index,
+                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
+                              extra={"next_scene": next_scene.to_dict(),
+                                     "scene": scene.to_dict()})
+        except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
+            next_scene = scene  # the pile is as it was; try again
+            rec = _record_for(task, condition, attempt_scenario, error=e, stage=stage,
+                              wall=time.perf_counter() - t0, run_index=task.index,
+                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
+                              extra={"next_scene": scene.to_dict(), "scene": scene.to_dict()})
+        finish(rec)
+        scene = next_scene
+        attempt += 1
+    return records
+
