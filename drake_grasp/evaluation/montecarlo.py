@@ -62,24 +62,8 @@ class TrialTask:
     # `experiments.EXTRA_POLICIES` the experiment does not list, when `condition` is one
     # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
     policy_spec: str = ""
-    # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
-    cnn_weights: str = ""
-    # The GPD classifier's weights file of the gpd conditions (`Experiment.gpd_weights`).
-    gpd_weights: str = ""
-    # `Experiment.cnn_mirror_average`.
-    cnn_mirror_average: bool = False
-    # `Experiment.ctr_converge_iterations`.
-    ctr_converge_iterations: int = -1
-    # `Experiment.judge_distance_samples`.
-    judge_distance_samples: int = 0
-    # `Experiment.ctr_hand_check`.
-    ctr_hand_check: bool = False
-    # `Experiment.ctr_controller_text`.
-    ctr_controller_text: str = ""
-    # `Experiment.failure_memory_m`.
-    failure_memory_m: float = 0.0
-    # `Experiment.gpd_fallback_best` (None: the scenario's).
-    gpd_fallback_best: bool | None = None
+    # `Experiment.patches`: the settings its condition runs with (weights, options).
+    patches: tuple = ()
 
     @property
     def trial_id(self) -> str:
@@ -92,27 +76,8 @@ def task_experiment(task: TrialTask) -> Experiment:
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
-    if task.cnn_weights:
-        experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
-    if task.gpd_weights:
-        experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
-    if task.cnn_mirror_average:
-        experiment = dataclasses.replace(experiment, cnn_mirror_average=True)
-    if task.ctr_converge_iterations >= 0:
-        experiment = dataclasses.replace(
-            experiment, ctr_converge_iterations=task.ctr_converge_iterations)
-    if task.judge_distance_samples > 0:
-        experiment = dataclasses.replace(
-            experiment, judge_distance_samples=task.judge_distance_samples)
-    if task.ctr_hand_check:
-        experiment = dataclasses.replace(experiment, ctr_hand_check=True)
-    if task.ctr_controller_text:
-        experiment = dataclasses.replace(experiment,
-                                         ctr_controller_text=task.ctr_controller_text)
-    if task.failure_memory_m > 0:
-        experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
-    if task.gpd_fallback_best is not None:
-        experiment = dataclasses.replace(experiment, gpd_fallback_best=task.gpd_fallback_best)
+    if task.patches:
+        experiment = dataclasses.replace(experiment, patches=tuple(task.patches))
     return experiment
 
 
@@ -142,11 +107,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
-                      experiment.cnn_weights, experiment.gpd_weights,
-                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
-                      experiment.judge_distance_samples, experiment.ctr_hand_check,
-                      experiment.ctr_controller_text, experiment.failure_memory_m,
-                      experiment.gpd_fallback_best)
+                      experiment.patches)
             for i in range(n) for c, spec in asked]
 
 
@@ -693,11 +654,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
-             physics_profile: str = "", weights: str = "", gpd_weights: str = "",
-             mirror_average: bool = False, converge_iterations: int = -1,
-             distance_samples: int = 0, hand_check: bool = False,
-             ctr_text: str = "", failure_memory_m: float = 0.0,
-             gpd_fallback: bool | None = None) -> dict:
+             physics_profile: str = "", patches=()) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -729,38 +686,12 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             ... next to it (or the one already holding this run: see `choose_folder`).
         physics_profile: A `scenario.PHYSICS_PROFILES` name every trial runs with; ""
             keeps the scenarios' (the default profile).
-        weights: A distance-CNN weights file (safetensors or ONNX) for the conditions
-            whose policy uses the CNN; "" keeps the shipped weights. Its sha256 is part of
-            the run's identity, as the shipped file's is.
-        gpd_weights: A GPD grasp classifier weights file (safetensors from
-            `drake-grasp gpd-train`) for the `gpd` conditions; "" keeps the shipped
-            weights. Its sha256 is part of the run's identity, as the shipped file's is.
-        mirror_average: The CNN conditions score with `controller.mirror_average` on (the
-            mean over the wrist image and its mirror image); part of the run's identity
-            through the conditions' scenarios.
-        converge_iterations: >= 0: the closed-loop conditions (ctr, cnn-ctr) servo on for
-            up to this many iterations at the height where the stop rule fired
-            (`controller.converge_iterations`); -1 keeps the scenarios'. Part of the run's
-            identity through the conditions' scenarios.
-        distance_samples: > 0: every trial's final distance is measured against a
-            ground-truth search of this many surface points (`judge.distance_grasp_samples`;
-            the scenarios' 400 otherwise). Part of the run's identity.
-        hand_check: The closed-loop conditions (ctr, cnn-ctr) run with
-            `controller.hand_check` on (while servoing at the stop height, follow the
-            best candidate whose open hand comes down clear of the surfaces seen under
-            it); part of the run's identity through the conditions' scenarios.
-        ctr_text: A YAML mapping of controller settings for the closed-loop conditions
-            (`Experiment.ctr_controller_text`, e.g. "{stop_distance_m: 0.2}"), applied
-            last; part of the run's identity through the conditions' scenarios.
-        failure_memory_m: > 0: every condition runs with `failure_memory.radius_m` so
-            (in a clutter run the policy avoids, within this radius, the grasps of its
-            earlier attempts that held nothing; not in the paper); part of the run's
-            identity through the conditions' scenarios.
-        gpd_fallback: True / False: the gpd conditions run with `gpd.fallback_best` so
-            (True: when no candidate reaches the classifier's threshold, the best-ranked
-            one is taken; False: GPD detects nothing then, as in the records before it
-            was the default); None keeps the scenario's (on). Part of the run's identity
-            through the conditions' scenarios.
+        patches: `experiments.ScenarioPatch`es every trial of their groups runs with,
+            after the experiment's own: other CNN or GPD weights, controller settings of
+            the closed-loop conditions, the judge's search, the failure memory
+            (`experiments.option_patches` makes them of the command's options). They are
+            part of the run's identity through the conditions' resolved scenarios (and
+            the weights files' sha256).
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -778,46 +709,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     exp = get_experiment(experiment)
     if physics_profile:
         exp = dataclasses.replace(exp, physics_profile=physics_profile)
-    if weights:
-        from drake_grasp.policies.evaluator import weights_files
-
-        try:
-            files = weights_files(weights)
-        except ValueError as e:
-            raise ValueError(f"--weights {weights}: {e}") from None
-        for f in files:
-            if not Path(f).is_file():
-                raise ValueError(f"--weights {weights}: {f}: no such file (expected CNN weights: "
-                                 "*.safetensors from `drake-grasp train`, or *.onnx; several "
-                                 "separated by commas for an ensemble)")
-        exp = dataclasses.replace(exp, cnn_weights=str(weights))
-    if gpd_weights:
-        if not Path(gpd_weights).is_file():
-            raise ValueError(f"--gpd-weights {gpd_weights}: no such file (expected GPD "
-                             "classifier weights: *.safetensors from `drake-grasp gpd-train`)")
-        exp = dataclasses.replace(exp, gpd_weights=str(gpd_weights))
-    if mirror_average:
-        exp = dataclasses.replace(exp, cnn_mirror_average=True)
-    if converge_iterations >= 0:
-        exp = dataclasses.replace(exp, ctr_converge_iterations=int(converge_iterations))
-    elif converge_iterations != -1:
-        raise ValueError(f"--converge: expected >= 0 iterations, got {converge_iterations}")
-    if distance_samples > 0:
-        exp = dataclasses.replace(exp, judge_distance_samples=int(distance_samples))
-    elif distance_samples != 0:
-        raise ValueError(f"--distance-samples: expected a positive number of surface points, "
-                         f"got {distance_samples}")
-    if hand_check:
-        exp = dataclasses.replace(exp, ctr_hand_check=True)
-    if ctr_text and ctr_text.strip():
-        exp = dataclasses.replace(exp, ctr_controller_text=ctr_text)
-    if failure_memory_m:
-        if not 0.0 < failure_memory_m <= 0.1:
-            raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
-                             f"{failure_memory_m}")
-        exp = dataclasses.replace(exp, failure_memory_m=float(failure_memory_m))
-    if gpd_fallback is not None:
-        exp = dataclasses.replace(exp, gpd_fallback_best=bool(gpd_fallback))
+    if patches:
+        exp = dataclasses.replace(exp, patches=exp.patches + tuple(patches))
     tasks = plan_tasks(exp, trials=trials, seed=seed, conditions=conditions)
     identity = run_identity(exp, seed=seed, objects_dir=objects_dir)
     specs = list(dict.fromkeys(t.policy_spec for t in tasks if t.policy_spec))
