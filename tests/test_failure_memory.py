@@ -13,6 +13,7 @@ import drake_grasp.evaluation.trial_plan as trial_plan
 import drake_grasp.evaluation.trial_worker as trial_worker
 from drake_grasp.policies.gpd_ranking import Detections
 from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.evaluation.experiments import option_patches
 from drake_grasp.policies.decisions import memory_penalty
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.config.scenario import load_scenario
@@ -84,7 +85,7 @@ def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, mon
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
     monkeypatch.setattr(trial_worker, "_simulate", simulate)
     evaluate(experiment="clutter", out=tmp_path / "c", trials=1, workers=1, seed=0,
-             progress=False, conditions=["ctr"], failure_memory_m=0.02, report=False)
+             progress=False, conditions=["ctr"], patches=option_patches(failure_memory_m=0.02), report=False)
     first = [0.5, 0.0, 0.0]
     fifth = [0.5, 0.04, 40.0]
     assert seen == [[], first, first, first, first, first + fifth,
@@ -106,7 +107,7 @@ def test_failure_memory_settings_are_checked(tmp_path):
         load_scenario(scenario_name="clutter",
                       scenario_text="{failure_memory: {failed_xy_yaw: [0.5, 0.0]}}")
     with pytest.raises(ValueError, match=r"--failure-memory: expected a radius in \(0, 0.1\] m"):
-        evaluate(experiment="clutter", out=tmp_path / "r", trials=1, failure_memory_m=0.5,
+        evaluate(experiment="clutter", out=tmp_path / "r", trials=1, patches=option_patches(failure_memory_m=0.5),
                  progress=False)
     assert not (tmp_path / "r").exists()
 
@@ -122,10 +123,10 @@ def test_the_options_reach_their_conditions_and_the_runs_identity():
     base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["clutter"], seed=0)["conditions"]}
     assert base["gpd"]["scenario"]["gpd"]["fallback_best"] is True
     # Asking for the default changes nothing.
-    on = dataclasses.replace(EXPERIMENTS["clutter"], gpd_fallback_best=True)
+    on = dataclasses.replace(EXPERIMENTS["clutter"], patches=option_patches(gpd_fallback=True))
     assert run_folder.run_identity(on, seed=0)["conditions"] == run_folder.run_identity(
         EXPERIMENTS["clutter"], seed=0)["conditions"]
-    exp = dataclasses.replace(EXPERIMENTS["clutter"], failure_memory_m=0.02, gpd_fallback_best=False)
+    exp = dataclasses.replace(EXPERIMENTS["clutter"], patches=option_patches(failure_memory_m=0.02, gpd_fallback=False))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     assert ident["ctr"]["config_hash"] != base["ctr"]["config_hash"]
     assert ident["gpd"]["config_hash"] != base["gpd"]["config_hash"]

@@ -17,7 +17,7 @@ import drake_grasp.evaluation.montecarlo as m
 import drake_grasp.evaluation.run_folder as run_folder
 import drake_grasp.evaluation.trial_plan as trial_plan
 import drake_grasp.evaluation.trial_worker as trial_worker
-from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment
+from drake_grasp.evaluation.experiments import EXPERIMENTS, Condition, Experiment, option_patches
 from drake_grasp.evaluation.montecarlo import evaluate
 from drake_grasp.evaluation.run_folder import config_hash
 from drake_grasp.core.provenance import code_version, file_sha256
@@ -426,7 +426,7 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
     shipped = models_dir() / "cnn" / "weights.safetensors"
     other = tmp_path / "other.safetensors"
     shutil.copy(shipped, other)  # same tensors, another path
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=str(other))
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(weights=str(other)))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert ident["ctr"]["scenario"]["controller"]["weights"] == str(other)
@@ -443,7 +443,8 @@ def test_weights_option_sets_the_cnn_conditions_weights_and_their_identity(tmp_p
         assert run_folder.weights_path(s) == (str(other) if task.condition == "ctr" else None)
     with pytest.raises(ValueError, match="--weights .*nope.safetensors: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
-                 weights=str(tmp_path / "nope.safetensors"), progress=False)
+                 patches=option_patches(weights=str(tmp_path / "nope.safetensors")),
+                 progress=False)
     assert not (tmp_path / "run").exists()
 
 
@@ -454,17 +455,17 @@ def test_weights_option_takes_an_ensemble_and_records_every_members_sha256(tmp_p
 
     grid = models_dir() / "cnn-grid" / "weights.safetensors"
     paper = models_dir() / "cnn" / "weights.safetensors"
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_weights=f"{grid},{paper}")
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(weights=f"{grid},{paper}"))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     assert ident["ctr"]["weights_sha256"] == f"{file_sha256(grid)},{file_sha256(paper)}"
     assert ident["gpd"]["weights_sha256"] is None
     missing = tmp_path / "nope.safetensors"
     with pytest.raises(ValueError, match=f"--weights .*: {missing}: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
-                 weights=f"{grid},{missing}", progress=False)
+                 patches=option_patches(weights=f"{grid},{missing}"), progress=False)
     with pytest.raises(ValueError, match="--weights .*empty item"):
         evaluate(experiment="isolation", out=tmp_path / "run", trials=1,
-                 weights=f"{grid},", progress=False)
+                 patches=option_patches(weights=f"{grid},"), progress=False)
     assert not (tmp_path / "run").exists()
 
 
@@ -480,7 +481,7 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     shipped = default_weights_path()
     other = tmp_path / "gpd.safetensors"
     shutil.copy(shipped, other)
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], gpd_weights=str(other))
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(gpd_weights=str(other)))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert base["gpd"]["gpd_weights_sha256"] == file_sha256(shipped)
@@ -509,7 +510,7 @@ def test_gpd_weights_option_sets_the_gpd_conditions_classifier_and_its_identity(
     assert conflict is not None and "gpd_weights_sha256" in conflict
     with pytest.raises(ValueError, match="--gpd-weights .*nope.safetensors: no such file"):
         evaluate(experiment="isolation", out=tmp_path / "run2", trials=1,
-                 gpd_weights=str(tmp_path / "nope.safetensors"), progress=False)
+                 patches=option_patches(gpd_weights=str(tmp_path / "nope.safetensors")), progress=False)
     assert not (tmp_path / "run2").exists()
 
 
@@ -536,7 +537,7 @@ def test_mirror_average_option_reaches_the_cnn_conditions_and_their_identity(tmp
     """`evaluate --mirror-average`: the CNN conditions' trials score with
     controller.mirror_average on, the run's identity differs (a resume without the flag
     is refused), the other conditions are unchanged."""
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], cnn_mirror_average=True)
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(mirror_average=True))
     _check_controller_option(exp, "mirror_average")
     out = tmp_path / "run"
     out.mkdir()
@@ -552,7 +553,7 @@ def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path)
     unchanged; a negative N is refused before anything is written."""
     from drake_grasp.evaluation.experiments import trial_scenario
 
-    exp = dataclasses.replace(EXPERIMENTS["isolation"], ctr_converge_iterations=0)
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(converge_iterations=0))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["isolation"], seed=0)["conditions"]}
     assert ident["ctr"]["scenario"]["controller"]["converge_iterations"] == 0
@@ -565,7 +566,7 @@ def test_converge_option_reaches_the_ctr_conditions_and_their_identity(tmp_path)
         s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.controller.converge_iterations == (0 if task.condition == "ctr" else 20)
     with pytest.raises(ValueError, match="--converge: expected >= 0 iterations, got -2"):
-        evaluate(experiment="isolation", out=tmp_path / "run", trials=1, converge_iterations=-2,
+        evaluate(experiment="isolation", out=tmp_path / "run", trials=1, patches=option_patches(converge_iterations=-2),
                  progress=False)
     assert not (tmp_path / "run").exists()
 
@@ -576,7 +577,7 @@ def test_distance_samples_option_reaches_every_condition_and_the_identity(tmp_pa
     than the 0 that keeps the scenarios' is refused before anything is written."""
     from drake_grasp.evaluation.experiments import trial_scenario
 
-    exp = dataclasses.replace(EXPERIMENTS["sim-distance"], judge_distance_samples=1600)
+    exp = dataclasses.replace(EXPERIMENTS["sim-distance"], patches=option_patches(distance_samples=1600))
     ident = {c["name"]: c for c in run_folder.run_identity(exp, seed=0)["conditions"]}
     base = {c["name"]: c for c in run_folder.run_identity(EXPERIMENTS["sim-distance"], seed=0)["conditions"]}
     for name in ("init", "ctr", "ctr_noise", "gpd", "gpd_noise"):
@@ -588,7 +589,7 @@ def test_distance_samples_option_reaches_every_condition_and_the_identity(tmp_pa
         s = trial_scenario(run_exp, trial_plan.task_condition(task, run_exp), task.index, base_seed=0)
         assert s.judge.distance_grasp_samples == 1600
     with pytest.raises(ValueError, match="--distance-samples: expected a positive number"):
-        evaluate(experiment="sim-distance", out=tmp_path / "run", trials=1, distance_samples=-5,
+        evaluate(experiment="sim-distance", out=tmp_path / "run", trials=1, patches=option_patches(distance_samples=-5),
                  progress=False)
     assert not (tmp_path / "run").exists()
 
@@ -670,7 +671,7 @@ def test_hand_check_option_reaches_the_closed_loop_conditions_and_their_identity
     controller.hand_check on, the run's identity differs, the others are unchanged."""
     from drake_grasp.cli.main import build_parser
 
-    _check_controller_option(dataclasses.replace(EXPERIMENTS["isolation"], ctr_hand_check=True),
+    _check_controller_option(dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(hand_check=True)),
                              "hand_check")
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
                                       "--hand-check"])
@@ -683,22 +684,47 @@ def test_ctr_text_option_sets_controller_settings_of_the_closed_loop_conditions(
     key or a value out of range is refused by name before anything is written."""
     from drake_grasp.cli.main import build_parser
 
-    exp = dataclasses.replace(EXPERIMENTS["isolation"],
-                              ctr_controller_text="{stop_distance_m: 0.2}")
+    exp = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(ctr_text="{stop_distance_m: 0.2}"))
     _check_controller_option(exp, "stop_distance_m", on=0.2, off=0.14)
     _check_controller_option(dataclasses.replace(  # the test-time views of the grid net
-        EXPERIMENTS["isolation"], ctr_controller_text="{view_average: d4}"),
+        EXPERIMENTS["isolation"], patches=option_patches(ctr_text="{view_average: d4}")),
         "view_average", on="d4", off="none")
     for text, message in [("{stop_distanc_m: 0.2}", "unknown key 'controller.stop_distanc_m'"),
                           ("{end_camera_height_m: 0.5}", "controller.end_camera_height_m: got 0.5"),
                           ("[0.2]", "expected a mapping of controller settings")]:
         with pytest.raises(ValueError, match=re.escape(message)):
-            evaluate(experiment="isolation", out=tmp_path / "run", trials=1, ctr_text=text,
+            evaluate(experiment="isolation", out=tmp_path / "run", trials=1, patches=option_patches(ctr_text=text),
                      progress=False)
     assert not (tmp_path / "run").exists()
     args = build_parser().parse_args(["evaluate", "--experiment", "clutter", "--out", "x",
                                       "--ctr-text", "{stop_distance_m: 0.2}"])
     assert args.ctr_text == "{stop_distance_m: 0.2}"
+
+
+def test_a_patch_is_the_general_form_of_the_evaluate_options(tmp_path, capsys):
+    """`evaluate --patch GROUP=YAML`: a scenario patch of one group of conditions; the
+    options are patches of the same kind (`--hand-check` is the closed-loop patch
+    `{controller: {hand_check: true}}`: the same identity); an unknown group or key is
+    refused by name before anything is written."""
+    from drake_grasp.cli.main import main
+    from drake_grasp.evaluation.experiments import ScenarioPatch
+
+    patch = ScenarioPatch("closed-loop", "{controller: {hand_check: true}}")
+    by_patch = dataclasses.replace(EXPERIMENTS["isolation"], patches=(patch,))
+    by_flag = dataclasses.replace(EXPERIMENTS["isolation"], patches=option_patches(hand_check=True))
+    ident, flag, base = (
+        {c["name"]: c["config_hash"] for c in run_folder.run_identity(e, seed=0)["conditions"]}
+        for e in (by_patch, by_flag, EXPERIMENTS["isolation"]))
+    assert ident == flag
+    assert ident["ctr"] != base["ctr"] and ident["gpd"] == base["gpd"]
+    _check_controller_option(by_patch, "hand_check")
+    with pytest.raises(ValueError, match=r"scenario patch group: expected one of \['all', "):
+        ScenarioPatch("ctr", "{controller: {hand_check: true}}")
+    rc = main(["evaluate", "--experiment", "isolation", "--trials", "1", "--out",
+               str(tmp_path / "run"), "--patch", "closed-loop={controller: {hand_chek: true}}"])
+    assert rc != 0
+    assert re.search(r"--patch .*unknown key 'controller.hand_chek'", capsys.readouterr().err)
+    assert not (tmp_path / "run").exists()
 
 
 def test_sensor_policies_are_every_builtin_policy_but_scripted():
@@ -721,8 +747,7 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
     clutter condition shares (robot profile) and the closed-loop options; run.json records
     its identity; a listed name stays the experiment's own condition; an unknown name is
     refused naming what is allowed."""
-    exp = dataclasses.replace(EXPERIMENTS["clutter"],
-                              ctr_controller_text="{converge_step_ratio: 0.2}")
+    exp = dataclasses.replace(EXPERIMENTS["clutter"], patches=option_patches(ctr_text="{converge_step_ratio: 0.2}"))
     tasks = trial_plan.plan_tasks(exp, trials=2, seed=5, conditions=["ctr", "cnn-ctr"])
     assert [(t.condition, t.index, t.policy_spec) for t in tasks] == [
         ("ctr", 0, ""), ("cnn-ctr", 0, "cnn-ctr"), ("ctr", 1, ""), ("cnn-ctr", 1, "cnn-ctr")]
@@ -762,7 +787,7 @@ def test_a_builtin_policy_the_experiment_does_not_list_runs_as_an_extra_conditio
     shutil.copy(ROOT / "models" / "cnn" / "weights.safetensors",
                 other)
     with pytest.raises(ValueError, match=r"plugin_conditions.cnn-only.scenario.controller.weights"):
-        m.evaluate(conditions=["cnn-only"], weights=str(other), **kw)
+        m.evaluate(conditions=["cnn-only"], patches=option_patches(weights=str(other)), **kw)
 
 
 def test_the_replay_command_notes_a_record_from_another_machine(reference, tmp_path, capsys):

@@ -9,20 +9,25 @@ from pathlib import Path
 
 
 def _cmd_evaluate(args) -> int:
+    from drake_grasp.evaluation.experiments import ScenarioPatch, option_patches
     from drake_grasp.evaluation.montecarlo import evaluate
 
+    patches = option_patches(
+        weights=args.weights or "", gpd_weights=args.gpd_weights or "",
+        mirror_average=args.mirror_average,
+        converge_iterations=-1 if args.converge is None else args.converge,
+        distance_samples=0 if args.distance_samples is None else args.distance_samples,
+        hand_check=args.hand_check, ctr_text=args.ctr_text or "",
+        failure_memory_m=args.failure_memory, gpd_fallback=args.gpd_fallback)
+    for given in args.patch or []:
+        group, _, text = given.partition("=")
+        patches += (ScenarioPatch(group.strip(), text, source=f"--patch {given!r}"),)
     result = evaluate(experiment=args.experiment, out=args.out, trials=args.trials,
                       workers=args.workers, scheduler=args.scheduler, seed=args.seed,
                       objects_dir=args.objects,
                       conditions=[c for c in args.conditions.split(",") if c] or None,
                       force_new=args.force_new, physics_profile=args.physics_profile,
-                      weights=args.weights or "", gpd_weights=args.gpd_weights or "",
-                      mirror_average=args.mirror_average,
-                      converge_iterations=-1 if args.converge is None else args.converge,
-                      distance_samples=0 if args.distance_samples is None
-                      else args.distance_samples, hand_check=args.hand_check,
-                      ctr_text=args.ctr_text or "", failure_memory_m=args.failure_memory,
-                      gpd_fallback=args.gpd_fallback)
+                      patches=patches)
     if result["new_folder_because"]:
         print(f"--force-new: {args.out} holds another run ({result['new_folder_because']}); "
               f"this run is in {result['out']}", file=sys.stderr)
@@ -132,6 +137,13 @@ def _parser_evaluate(sub) -> None:
                    help="controller settings for the closed-loop conditions (ctr, cnn-ctr), "
                         "a YAML mapping of controller.* keys applied after the experiment's "
                         "(e.g. '{stop_distance_m: 0.2, end_camera_height_m: 0.21}'); part of "
+                        "the run's identity")
+    p.add_argument("--patch", action="append", metavar="GROUP=YAML",
+                   help="scenario settings for one group of conditions: GROUP is all, cnn "
+                        "(ctr, cnn-only, cnn-ctr), closed-loop (ctr, cnn-ctr) or gpd; YAML a "
+                        "mapping of scenario keys, e.g. "
+                        "'closed-loop={controller: {stop_distance_m: 0.2}}'; repeatable, applied "
+                        "in order after the other options (which are patches too); part of "
                         "the run's identity")
     p.add_argument("--failure-memory", type=float, default=0.0, metavar="M",
                    help="in clutter runs every policy avoids, within M metres of the grasp "

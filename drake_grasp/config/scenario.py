@@ -469,31 +469,50 @@ def _apply_override(scenario: Scenario, override, text: str, where: str) -> Scen
     return _apply_profile_given(override, scenario, where)
 
 
-def apply_controller_text(scenario: Scenario, text: str) -> Scenario:
-    """`scenario` with the controller settings of `text`, a YAML mapping of
-    `ControllerConfig` fields (e.g. ``{stop_distance_m: 0.2}``), checked and validated as
-    `load_scenario`'s override text is (a ``profile`` key applies that controller profile
-    first). Blank text changes nothing.
+def apply_scenario_text(scenario: Scenario, text: str, *, section: str = "",
+                        where: str = "") -> Scenario:
+    """`scenario` with the settings of `text`, a YAML mapping of scenario keys (with
+    `section`, e.g. "controller", of that section's keys), checked and validated as
+    `load_scenario`'s override text is (a ``profile`` key applies that profile first).
+    Blank text changes nothing. `where` names the text in messages (default: the text).
 
     Raises:
         ValueError: not a YAML mapping, an unknown key, a value of the wrong type or out of
             range; the message names the text, the dotted key and what was expected.
     """
-    shown = text if len(text) <= 80 else text[:77] + "..."
-    where = f"--ctr-text {shown!r}"
+    if not where:
+        shown = text if len(text) <= 80 else text[:77] + "..."
+        where = f"scenario patch {shown!r}"
     mapping = _parse_yaml(text, where)
     if mapping is None:
         return scenario
     if not isinstance(mapping, dict):
-        raise ValueError(f"{where}: expected a mapping of controller settings, e.g. "
-                         f"'{{stop_distance_m: 0.2}}', got {_describe(mapping)}")
-    override = {"controller": mapping}
+        what = f"{section} settings" if section else "scenario settings"
+        example = "'{stop_distance_m: 0.2}'" if section == "controller" else \
+            "'{controller: {stop_distance_m: 0.2}}'"
+        raise ValueError(f"{where}: expected a mapping of {what}, e.g. {example}, "
+                         f"got {_describe(mapping)}")
+    override = {section: mapping} if section else mapping
     out = _apply_override(scenario, override, json.dumps(override), where)  # JSON is YAML
     try:
         out.validate()
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
     return out
+
+
+def apply_controller_text(scenario: Scenario, text: str) -> Scenario:
+    """`scenario` with the controller settings of `text`, a YAML mapping of
+    `ControllerConfig` fields (e.g. ``{stop_distance_m: 0.2}``): `apply_scenario_text` of
+    the controller section, named ``--ctr-text`` in messages. Blank text changes nothing.
+
+    Raises:
+        ValueError: not a YAML mapping, an unknown key, a value of the wrong type or out of
+            range; the message names the text, the dotted key and what was expected.
+    """
+    shown = text if len(text) <= 80 else text[:77] + "..."
+    return apply_scenario_text(scenario, text, section="controller",
+                               where=f"--ctr-text {shown!r}")
 
 
 def dump_scenario(scenario: Scenario) -> str:

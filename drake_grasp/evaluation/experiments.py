@@ -17,11 +17,43 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drake_grasp.policies.decisions import CLOSED_LOOP_POLICIES, SENSOR_POLICIES
-from drake_grasp.config.scenario import Scenario, apply_controller_text, load_scenario
+from drake_grasp.config.scenario import Scenario, apply_scenario_text, load_scenario
 
 
 # Policies that run the distance CNN (and so depend on its weights file).
 CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
+# The groups of conditions a scenario patch names (`ScenarioPatch.group`), by policy:
+# every condition, those that run the distance CNN, the closed-loop ones, GPD.
+PATCH_GROUPS = {"all": None, "cnn": CNN_POLICIES, "closed-loop": CLOSED_LOOP_POLICIES,
+                "gpd": ("gpd",)}
+
+
+@dataclass(frozen=True)
+class ScenarioPatch:
+    """Settings that a group of an experiment's conditions run with: `text`, a YAML mapping
+    of scenario keys (of the `section`'s keys when one is named), applied to the resolved
+    scenario of every condition whose policy is in `PATCH_GROUPS[group]`, checked by the
+    typed loader (`scenario.apply_scenario_text`). `source` names it in messages (the
+    command-line option it came from). The one way an experiment's settings change:
+    `evaluate`'s options (--weights, --converge, --ctr-text, ...) are patches."""
+
+    group: str
+    text: str
+    section: str = ""
+    source: str = ""
+
+    def __post_init__(self):
+        if self.group not in PATCH_GROUPS:
+            raise ValueError(f"scenario patch group: expected one of {list(PATCH_GROUPS)}, "
+                             f"got {self.group!r}")
+
+    def applies_to(self, policy: str) -> bool:
+        policies = PATCH_GROUPS[self.group]
+        return policies is None or policy in policies
+
+    def apply(self, scenario: Scenario) -> Scenario:
+        return apply_scenario_text(scenario, self.text, section=self.section,
+                                   where=self.source)
 
 
 @dataclass(frozen=True)
@@ -77,38 +109,9 @@ class Experiment:
     # The contact-simulation settings (scenario.PHYSICS_PROFILES); "" keeps the named
     # scenario's (the default profile). `evaluate --physics-profile` sets it.
     physics_profile: str = ""
-    # The distance CNN's weights file for the conditions whose policy uses it; "" keeps
-    # the scenario's (the shipped weights). `evaluate --weights` sets it.
-    cnn_weights: str = ""
-    # The GPD grasp classifier's weights file for the `gpd` conditions; "" keeps the
-    # scenario's (the shipped models/gpd weights). `evaluate --gpd-weights` sets it.
-    gpd_weights: str = ""
-    # True: the conditions whose policy uses the CNN score with `controller.mirror_average`
-    # on; False keeps the scenario's. `evaluate --mirror-average` sets it.
-    cnn_mirror_average: bool = False
-    # >= 0: the closed-loop conditions (ctr, cnn-ctr) run with this
-    # `controller.converge_iterations`; -1 keeps the scenario's. `evaluate --converge` sets it.
-    ctr_converge_iterations: int = -1
-    # True: the closed-loop conditions (ctr, cnn-ctr) run with `controller.hand_check`
-    # on; False keeps the scenario's. `evaluate --hand-check` sets it.
-    ctr_hand_check: bool = False
-    # A YAML mapping of controller settings (`ControllerConfig` fields, e.g.
-    # "{stop_distance_m: 0.2}") for the closed-loop conditions (ctr, cnn-ctr), applied
-    # after everything above (`scenario.apply_controller_text`); "" changes nothing.
-    # `evaluate --ctr-text` sets it.
-    ctr_controller_text: str = ""
-    # > 0: every condition's judge measures the final distance against a ground-truth
-    # search of this many surface points (`judge.distance_grasp_samples`); 0 keeps the
-    # scenario's. `evaluate --distance-samples` sets it.
-    judge_distance_samples: int = 0
-    # > 0: every condition runs with `failure_memory.radius_m` set so (a clutter run's
-    # policy avoids its own earlier failed grasps; not in the paper); 0 keeps the
-    # scenario's (off). `evaluate --failure-memory` sets it.
-    failure_memory_m: float = 0.0
-    # True / False: the gpd conditions run with `gpd.fallback_best` so (True: no
-    # detection over the classifier's threshold takes the best-ranked candidate anyway);
-    # None keeps the scenario's (on). `evaluate --gpd-fallback / --no-gpd-fallback`.
-    gpd_fallback_best: bool | None = None
+    # Scenario patches applied, in order, to the conditions of their groups after the
+    # profiles (`ScenarioPatch`; `option_patches` makes them of `evaluate`'s options).
+    patches: tuple[ScenarioPatch, ...] = ()
 
 
 def _sweep(name: str, values, make) -> tuple[Condition, ...]:
@@ -299,27 +302,9 @@ def condition_scenario(experiment: Experiment, condition: Condition, *,
                       or experiment.controller_profile,
                       physics_profile=experiment.physics_profile)
     s = dataclasses.replace(s, seed=0, policy=condition.policy)
-    if experiment.cnn_weights and condition.policy in CNN_POLICIES:
-        s.controller = dataclasses.replace(s.controller, weights=experiment.cnn_weights)
-    if experiment.cnn_mirror_average and condition.policy in CNN_POLICIES:
-        s.controller = dataclasses.replace(s.controller, mirror_average=True)
-    if experiment.ctr_converge_iterations >= 0 and condition.policy in CLOSED_LOOP_POLICIES:
-        s.controller = dataclasses.replace(
-            s.controller, converge_iterations=experiment.ctr_converge_iterations)
-    if experiment.ctr_hand_check and condition.policy in CLOSED_LOOP_POLICIES:
-        s.controller = dataclasses.replace(s.controller, hand_check=True)
-    if experiment.ctr_controller_text and condition.policy in CLOSED_LOOP_POLICIES:
-        s = apply_controller_text(s, experiment.ctr_controller_text)
-    if experiment.gpd_weights and condition.policy == "gpd":
-        s.gpd = dataclasses.replace(s.gpd, weights=experiment.gpd_weights)
-    if experiment.gpd_fallback_best is not None and condition.policy == "gpd":
-        s.gpd = dataclasses.replace(s.gpd, fallback_best=bool(experiment.gpd_fallback_best))
-    if experiment.judge_distance_samples > 0:
-        s.judge = dataclasses.replace(
-            s.judge, distance_grasp_samples=experiment.judge_distance_samples)
-    if experiment.failure_memory_m > 0:
-        s.failure_memory = dataclasses.replace(s.failure_memory,
-                                               radius_m=experiment.failure_memory_m)
+    for patch in experiment.patches:
+        if patch.applies_to(condition.policy):
+            s = patch.apply(s)
     if objects_dir:
         s = dataclasses.replace(s, objects_dir=str(objects_dir))
     s.noise = dataclasses.replace(s.noise, kind=condition.noise,
@@ -384,3 +369,79 @@ def _one_per_category(ids: list[str]) -> list[str]:
             seen.add(cat)
             out.append(i)
     return out if len(out) > 1 else list(ids)
+
+
+def option_patches(*, weights: str = "", gpd_weights: str = "", mirror_average: bool = False,
+                   converge_iterations: int = -1, distance_samples: int = 0,
+                   hand_check: bool = False, ctr_text: str = "", failure_memory_m: float = 0.0,
+                   gpd_fallback: bool | None = None) -> tuple[ScenarioPatch, ...]:
+    """The scenario patches of `evaluate`'s options, checked here so that a bad value is
+    refused, naming its option, before any folder is made (the defaults make none).
+
+    weights: distance-CNN weights (FILE or FILE,FILE,... for an ensemble) of the CNN
+    conditions; gpd_weights: the GPD classifier's of the gpd conditions; mirror_average:
+    the CNN conditions score with `controller.mirror_average`; converge_iterations >= 0:
+    the closed-loop conditions' `controller.converge_iterations` (-1: unchanged);
+    distance_samples > 0: every judge's `distance_grasp_samples`; hand_check: the
+    closed-loop conditions' `controller.hand_check`; ctr_text: a YAML mapping of controller
+    settings for the closed-loop conditions, applied after those; failure_memory_m in
+    (0, 0.1]: every condition's `failure_memory.radius_m`; gpd_fallback: the gpd
+    conditions' `gpd.fallback_best` (None: unchanged).
+
+    Raises:
+        ValueError: a weights file that does not exist, or a value out of range.
+    """
+    import json
+    from pathlib import Path
+
+    if weights:
+        from drake_grasp.policies.evaluator import weights_files
+
+        try:
+            files = weights_files(weights)
+        except ValueError as e:
+            raise ValueError(f"--weights {weights}: {e}") from None
+        for f in files:
+            if not Path(f).is_file():
+                raise ValueError(f"--weights {weights}: {f}: no such file (expected CNN weights: "
+                                 "*.safetensors from `drake-grasp train`, or *.onnx; several "
+                                 "separated by commas for an ensemble)")
+    if gpd_weights and not Path(gpd_weights).is_file():
+        raise ValueError(f"--gpd-weights {gpd_weights}: no such file (expected GPD "
+                         "classifier weights: *.safetensors from `drake-grasp gpd-train`)")
+    if converge_iterations < -1:
+        raise ValueError(f"--converge: expected >= 0 iterations, got {converge_iterations}")
+    if distance_samples < 0:
+        raise ValueError(f"--distance-samples: expected a positive number of surface points, "
+                         f"got {distance_samples}")
+    if failure_memory_m and not 0.0 < failure_memory_m <= 0.1:
+        raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
+                         f"{failure_memory_m}")
+
+    def patch(group: str, option: str, section: str, **values) -> ScenarioPatch:
+        return ScenarioPatch(group, json.dumps(values), section, option)  # JSON is YAML
+
+    out = []
+    if weights:
+        out.append(patch("cnn", f"--weights {weights}", "controller", weights=str(weights)))
+    if mirror_average:
+        out.append(patch("cnn", "--mirror-average", "controller", mirror_average=True))
+    if converge_iterations >= 0:
+        out.append(patch("closed-loop", f"--converge {converge_iterations}", "controller",
+                         converge_iterations=int(converge_iterations)))
+    if hand_check:
+        out.append(patch("closed-loop", "--hand-check", "controller", hand_check=True))
+    if ctr_text and ctr_text.strip():
+        shown = ctr_text if len(ctr_text) <= 80 else ctr_text[:77] + "..."
+        out.append(ScenarioPatch("closed-loop", ctr_text, "controller", f"--ctr-text {shown!r}"))
+    if gpd_weights:
+        out.append(patch("gpd", f"--gpd-weights {gpd_weights}", "gpd", weights=str(gpd_weights)))
+    if gpd_fallback is not None:
+        out.append(patch("gpd", "--gpd-fallback", "gpd", fallback_best=bool(gpd_fallback)))
+    if distance_samples > 0:
+        out.append(patch("all", f"--distance-samples {distance_samples}", "judge",
+                         distance_grasp_samples=int(distance_samples)))
+    if failure_memory_m:
+        out.append(patch("all", f"--failure-memory {failure_memory_m}", "failure_memory",
+                         radius_m=float(failure_memory_m)))
+    return tuple(out)

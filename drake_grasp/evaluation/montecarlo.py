@@ -35,11 +35,7 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
              scheduler: str | None = None, seed: int = 0, objects_dir: str | None = None,
              conditions: list[str] | None = None, progress: bool = True, report: bool = True,
              fail_trials: tuple = (), force_new: bool = False,
-             physics_profile: str = "", weights: str = "", gpd_weights: str = "",
-             mirror_average: bool = False, converge_iterations: int = -1,
-             distance_samples: int = 0, hand_check: bool = False,
-             ctr_text: str = "", failure_memory_m: float = 0.0,
-             gpd_fallback: bool | None = None) -> dict:
+             physics_profile: str = "", patches=()) -> dict:
     """Runs (or resumes) an experiment into `out` and writes its report.
 
     A folder holds one run: before anything is added, `run_identity` of this call is
@@ -71,38 +67,12 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             ... next to it (or the one already holding this run: see `choose_folder`).
         physics_profile: A `scenario.PHYSICS_PROFILES` name every trial runs with; ""
             keeps the scenarios' (the default profile).
-        weights: A distance-CNN weights file (safetensors or ONNX) for the conditions
-            whose policy uses the CNN; "" keeps the shipped weights. Its sha256 is part of
-            the run's identity, as the shipped file's is.
-        gpd_weights: A GPD grasp classifier weights file (safetensors from
-            `drake-grasp gpd-train`) for the `gpd` conditions; "" keeps the shipped
-            weights. Its sha256 is part of the run's identity, as the shipped file's is.
-        mirror_average: The CNN conditions score with `controller.mirror_average` on (the
-            mean over the wrist image and its mirror image); part of the run's identity
-            through the conditions' scenarios.
-        converge_iterations: >= 0: the closed-loop conditions (ctr, cnn-ctr) servo on for
-            up to this many iterations at the height where the stop rule fired
-            (`controller.converge_iterations`); -1 keeps the scenarios'. Part of the run's
-            identity through the conditions' scenarios.
-        distance_samples: > 0: every trial's final distance is measured against a
-            ground-truth search of this many surface points (`judge.distance_grasp_samples`;
-            the scenarios' 400 otherwise). Part of the run's identity.
-        hand_check: The closed-loop conditions (ctr, cnn-ctr) run with
-            `controller.hand_check` on (while servoing at the stop height, follow the
-            best candidate whose open hand comes down clear of the surfaces seen under
-            it); part of the run's identity through the conditions' scenarios.
-        ctr_text: A YAML mapping of controller settings for the closed-loop conditions
-            (`Experiment.ctr_controller_text`, e.g. "{stop_distance_m: 0.2}"), applied
-            last; part of the run's identity through the conditions' scenarios.
-        failure_memory_m: > 0: every condition runs with `failure_memory.radius_m` so
-            (in a clutter run the policy avoids, within this radius, the grasps of its
-            earlier attempts that held nothing; not in the paper); part of the run's
-            identity through the conditions' scenarios.
-        gpd_fallback: True / False: the gpd conditions run with `gpd.fallback_best` so
-            (True: when no candidate reaches the classifier's threshold, the best-ranked
-            one is taken; False: GPD detects nothing then, as in the records before it
-            was the default); None keeps the scenario's (on). Part of the run's identity
-            through the conditions' scenarios.
+        patches: `experiments.ScenarioPatch`es every trial of their groups runs with,
+            after the experiment's own: other CNN or GPD weights, controller settings of
+            the closed-loop conditions, the judge's search, the failure memory
+            (`experiments.option_patches` makes them of the command's options, checking
+            each). They are part of the run's identity through the conditions' resolved
+            scenarios (and the weights files' sha256).
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -115,12 +85,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             holds another run and not `force_new` (the message names the first differing
             key).
     """
-    exp = _configured_experiment(
-        get_experiment(experiment), physics_profile=physics_profile, weights=weights,
-        gpd_weights=gpd_weights, mirror_average=mirror_average,
-        converge_iterations=converge_iterations, distance_samples=distance_samples,
-        hand_check=hand_check, ctr_text=ctr_text, failure_memory_m=failure_memory_m,
-        gpd_fallback=gpd_fallback)
+    exp = get_experiment(experiment)
+    if physics_profile:
+        exp = dataclasses.replace(exp, physics_profile=physics_profile)
+    if patches:
+        exp = dataclasses.replace(exp, patches=exp.patches + tuple(patches))
     tasks, identity = _planned_run(exp, trials=trials, seed=seed, conditions=conditions,
                                    objects_dir=objects_dir)
     out, replaced = choose_folder(Path(out), identity, force_new=force_new)
@@ -130,61 +99,6 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
                  objects_dir=objects_dir, progress=progress, fail_trials=fail_trials,
                  total=len(tasks))
     return _result(out, tasks, todo, replaced, report)
-
-
-def _configured_experiment(exp: Experiment, *, physics_profile, weights, gpd_weights,
-                           mirror_average, converge_iterations, distance_samples, hand_check,
-                           ctr_text, failure_memory_m, gpd_fallback) -> Experiment:
-    """`exp` with the settings of an `evaluate` call, each checked (ValueError naming its
-    command-line option)."""
-    if physics_profile:
-        exp = dataclasses.replace(exp, physics_profile=physics_profile)
-    if weights:
-        exp = _with_cnn_weights(exp, weights)
-    if gpd_weights:
-        if not Path(gpd_weights).is_file():
-            raise ValueError(f"--gpd-weights {gpd_weights}: no such file (expected GPD "
-                             "classifier weights: *.safetensors from `drake-grasp gpd-train`)")
-        exp = dataclasses.replace(exp, gpd_weights=str(gpd_weights))
-    if mirror_average:
-        exp = dataclasses.replace(exp, cnn_mirror_average=True)
-    if converge_iterations >= 0:
-        exp = dataclasses.replace(exp, ctr_converge_iterations=int(converge_iterations))
-    elif converge_iterations != -1:
-        raise ValueError(f"--converge: expected >= 0 iterations, got {converge_iterations}")
-    if distance_samples > 0:
-        exp = dataclasses.replace(exp, judge_distance_samples=int(distance_samples))
-    elif distance_samples != 0:
-        raise ValueError(f"--distance-samples: expected a positive number of surface points, "
-                         f"got {distance_samples}")
-    if hand_check:
-        exp = dataclasses.replace(exp, ctr_hand_check=True)
-    if ctr_text and ctr_text.strip():
-        exp = dataclasses.replace(exp, ctr_controller_text=ctr_text)
-    if failure_memory_m:
-        if not 0.0 < failure_memory_m <= 0.1:
-            raise ValueError(f"--failure-memory: expected a radius in (0, 0.1] m, got "
-                             f"{failure_memory_m}")
-        exp = dataclasses.replace(exp, failure_memory_m=float(failure_memory_m))
-    if gpd_fallback is not None:
-        exp = dataclasses.replace(exp, gpd_fallback_best=bool(gpd_fallback))
-    return exp
-
-
-def _with_cnn_weights(exp: Experiment, weights: str) -> Experiment:
-    """`exp` with the CNN weights file(s) `weights` (`--weights`), each checked to exist."""
-    from drake_grasp.policies.evaluator import weights_files
-
-    try:
-        files = weights_files(weights)
-    except ValueError as e:
-        raise ValueError(f"--weights {weights}: {e}") from None
-    for f in files:
-        if not Path(f).is_file():
-            raise ValueError(f"--weights {weights}: {f}: no such file (expected CNN weights: "
-                             "*.safetensors from `drake-grasp train`, or *.onnx; several "
-                             "separated by commas for an ensemble)")
-    return dataclasses.replace(exp, cnn_weights=str(weights))
 
 
 def _planned_run(exp: Experiment, *, trials, seed, conditions, objects_dir) -> tuple:

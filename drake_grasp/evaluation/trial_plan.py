@@ -29,24 +29,8 @@ class TrialTask:
     # `experiments.EXTRA_POLICIES` the experiment does not list, when `condition` is one
     # (its condition is `experiments.plugin_condition`); "" for the experiment's own.
     policy_spec: str = ""
-    # The CNN weights file of the CNN conditions (`Experiment.cnn_weights`); "" = shipped.
-    cnn_weights: str = ""
-    # The GPD classifier's weights file of the gpd conditions (`Experiment.gpd_weights`).
-    gpd_weights: str = ""
-    # `Experiment.cnn_mirror_average`.
-    cnn_mirror_average: bool = False
-    # `Experiment.ctr_converge_iterations`.
-    ctr_converge_iterations: int = -1
-    # `Experiment.judge_distance_samples`.
-    judge_distance_samples: int = 0
-    # `Experiment.ctr_hand_check`.
-    ctr_hand_check: bool = False
-    # `Experiment.ctr_controller_text`.
-    ctr_controller_text: str = ""
-    # `Experiment.failure_memory_m`.
-    failure_memory_m: float = 0.0
-    # `Experiment.gpd_fallback_best` (None: the scenario's).
-    gpd_fallback_best: bool | None = None
+    # `Experiment.patches`: the settings its condition runs with (weights, options).
+    patches: tuple = ()
 
     @property
     def trial_id(self) -> str:
@@ -55,31 +39,12 @@ class TrialTask:
 
 def task_experiment(task: TrialTask) -> Experiment:
     """The experiment a task belongs to, with the settings the task carries (physics
-    profile, CNN and GPD weights, the closed-loop options, the failure memory)."""
+    profile and scenario patches: CNN and GPD weights, the closed-loop options, ...)."""
     experiment = get_experiment(task.experiment)
     if task.physics_profile:
         experiment = dataclasses.replace(experiment, physics_profile=task.physics_profile)
-    if task.cnn_weights:
-        experiment = dataclasses.replace(experiment, cnn_weights=task.cnn_weights)
-    if task.gpd_weights:
-        experiment = dataclasses.replace(experiment, gpd_weights=task.gpd_weights)
-    if task.cnn_mirror_average:
-        experiment = dataclasses.replace(experiment, cnn_mirror_average=True)
-    if task.ctr_converge_iterations >= 0:
-        experiment = dataclasses.replace(
-            experiment, ctr_converge_iterations=task.ctr_converge_iterations)
-    if task.judge_distance_samples > 0:
-        experiment = dataclasses.replace(
-            experiment, judge_distance_samples=task.judge_distance_samples)
-    if task.ctr_hand_check:
-        experiment = dataclasses.replace(experiment, ctr_hand_check=True)
-    if task.ctr_controller_text:
-        experiment = dataclasses.replace(experiment,
-                                         ctr_controller_text=task.ctr_controller_text)
-    if task.failure_memory_m > 0:
-        experiment = dataclasses.replace(experiment, failure_memory_m=task.failure_memory_m)
-    if task.gpd_fallback_best is not None:
-        experiment = dataclasses.replace(experiment, gpd_fallback_best=task.gpd_fallback_best)
+    if task.patches:
+        experiment = dataclasses.replace(experiment, patches=tuple(task.patches))
     return experiment
 
 
@@ -109,11 +74,7 @@ def plan_tasks(experiment: Experiment, *, trials: int | None, seed: int,
         names = [c for c in names if c in conditions]
     asked = [(c, "") for c in names] + [(plugin_condition(experiment, s).name, s) for s in specs]
     return [TrialTask(experiment.name, c, i, int(seed), experiment.physics_profile, spec,
-                      experiment.cnn_weights, experiment.gpd_weights,
-                      experiment.cnn_mirror_average, experiment.ctr_converge_iterations,
-                      experiment.judge_distance_samples, experiment.ctr_hand_check,
-                      experiment.ctr_controller_text, experiment.failure_memory_m,
-                      experiment.gpd_fallback_best)
+                      experiment.patches)
             for i in range(n) for c, spec in asked]
 
 
