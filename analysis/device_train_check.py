@@ -84,7 +84,7 @@ def small_copy(labels: Path, out: Path, n: int) -> Path:
 
 
 def weight_diff(a_path: Path, b_path: Path) -> dict:
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     a, _ = load_weights(a_path)
     b, _ = load_weights(b_path)
@@ -140,7 +140,8 @@ def throughput(folders, work: Path, *, device: str, batch: int, threads: int,
 def step_alone(folder: Path, *, device: str, batch: int, steps: int) -> dict:
     """Forward, backward and Adam on one resident batch, `steps` times after 5 warm-ups."""
     from drake_grasp.learning.dense_training import BatchNormTrunk, LabelStore, batch_tensors
-    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.cnn.net_config import NetworkConfig
+    from drake_grasp.cnn.network import DistanceCNN
     from drake_grasp.world.station import gripper_frame_offsets
 
     cfg = NetworkConfig.from_dict(json.loads((folder / "config.json").read_text()))

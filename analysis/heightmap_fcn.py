@@ -312,7 +312,7 @@ def compare_grasp_head(fcn: str, test: dict, val: dict) -> dict:
 
 
 def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarray:
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     net = load_weights(weights)[0].eval()
     out = []

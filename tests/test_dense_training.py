@@ -100,7 +100,7 @@ def test_a_grid_net_with_another_trunk_trains_saves_and_scores(tmp_path, capsys)
     import numpy as np
 
     from drake_grasp.cli.main import main
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.policies.evaluator import score_candidates
 
     _shard(tmp_path / "data", scenes=2, images=4)
@@ -183,7 +183,7 @@ def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
     """`device`: the checkpoint moves between devices; the GPU's float32 arithmetic
     differs from the CPU's in the last bits, so the weights agree to a tolerance (with
     TF32 convolutions they did not: 1.1e-4 apart on an H200; 1.7e-6 in full float32)."""
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -217,7 +217,8 @@ def test_a_moved_label_folder_resumes_its_run(tmp_path):
 def _labels_and_a_grid_net(tmp_path):
     """Dense labels of a small dataset in tmp_path/grid, and a random grid net to start
     from (its weights file, returned)."""
-    from drake_grasp.cnn.network import DistanceCNN, save_weights
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.cnn.weights_io import save_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -234,7 +235,8 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
     init net); a killed run resumes to the unbroken one's weights; it is another run."""
     from drake_grasp.cli.main import main
     from drake_grasp.learning.dense_training import BatchNormTrunk
-    from drake_grasp.cnn.network import DistanceCNN, load_weights
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.cnn.weights_io import load_weights
 
     gen = torch.Generator().manual_seed(3)
     net = DistanceCNN(GRID_CONFIG, generator=gen).double()
@@ -331,7 +333,7 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
     end; within an epoch it says how far the run got."""
     from drake_grasp.cli.main import main
     from drake_grasp.learning.dense_training import export_checkpoint_weights
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     init = _labels_and_a_grid_net(tmp_path)
     kw = dict(test_data=None, init=str(init), epochs=1, batch=4, lr=1e-3, threads=1,
@@ -366,7 +368,7 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
 
 
 def _assert_same_weights(path_a, path_b):
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     a, _ = load_weights(path_a)
     b, _ = load_weights(path_b)

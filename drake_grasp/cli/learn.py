@@ -55,7 +55,7 @@ def _cmd_train(args) -> int:
         print("--context-side: needs --action-fusion window", file=sys.stderr)
         return 2
     if args.action_fusion == "window":
-        from drake_grasp.cnn.network import NetworkConfig
+        from drake_grasp.cnn.net_config import NetworkConfig
         try:
             network = NetworkConfig(theta_unit="deg", action_fusion="window",
                                     context_side_m=args.context_side)

@@ -34,8 +34,10 @@ import torch
 import torch.nn.functional as F
 
 from drake_grasp.geometry.grasps import ANGLE_WEIGHT_M_PER_DEG
-from drake_grasp.cnn.network import (DistanceCNN, NetworkConfig, grid_view_mask, load_weights,
-                                  save_weights)
+from drake_grasp.cnn.grid_head import grid_view_mask
+from drake_grasp.cnn.net_config import NetworkConfig
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights, save_weights
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
 from drake_grasp.learning.common import full_float32
 
@@ -428,7 +430,7 @@ def _fingerprint(folder) -> str:
 def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
               seed, batch_norm=False, stream_shards=None, augment="none",
               rank=None) -> dict:
-    from drake_grasp.cnn.network import tensors_sha256
+    from drake_grasp.cnn.weights_io import tensors_sha256
 
     init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
     return {"labels": [_fingerprint(f) for f in folders], "images": int(n_images),

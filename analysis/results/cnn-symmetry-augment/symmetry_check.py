@@ -19,7 +19,7 @@ import torch
 
 from drake_grasp.learning.dense_training import load_labels
 from drake_grasp.cnn.views import turn_images
-from drake_grasp.cnn.network import load_weights
+from drake_grasp.cnn.weights_io import load_weights
 
 
 def main() -> None:
