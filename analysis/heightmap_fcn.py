@@ -51,7 +51,7 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drake_grasp.learning.dense_training import (  # noqa: E402
+from drake_grasp.learning.dense_labels import (  # noqa: E402
     GRID_CONFIG, grid_node_actions, load_labels, view_masks)
 
 from drake_grasp.cnn import fcn  # noqa: E402

@@ -9,8 +9,10 @@ import torch
 
 from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.learning.dataset import SceneSamples, shard_name, write_shard
-from drake_grasp.learning.dense_training import (GRID_CONFIG, augment_batch, build_labels,
-    grid_node_actions, load_labels, nearest_grasp_tree, train, tree_distances, view_masks)
+from drake_grasp.learning.dense_labels import (GRID_CONFIG, build_labels, grid_node_actions,
+                                               load_labels, nearest_grasp_tree, tree_distances,
+                                               view_masks)
+from drake_grasp.learning.dense_training import augment_batch, train
 from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images
 from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 from drake_grasp.world.station import gripper_frame_offsets
@@ -391,7 +393,7 @@ def test_streamed_epochs_take_every_image_once_and_hold_at_most_two_groups(tmp_p
     each group of G parts contiguous in it; what a batch takes equals the in-memory
     labels at those indices; while the batches go through the epoch no more than the
     parts of two groups are held."""
-    from drake_grasp.learning.dense_training import LabelStore
+    from drake_grasp.learning.dense_labels import LabelStore
 
     folders = _label_folders(tmp_path, n=5, images=3)  # 5 parts of 6 images
     whole = load_labels(folders)

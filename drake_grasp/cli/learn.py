@@ -70,7 +70,7 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_dense_labels(args) -> int:
-    from drake_grasp.learning.dense_training import build_labels
+    from drake_grasp.learning.dense_labels import build_labels
 
     images = build_labels(args.data, args.out, workers=args.workers)
     print(json.dumps({"out": str(args.out), "images_labelled_now": images}))

@@ -19,8 +19,9 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.learning.dense_training import (LabelStore, batch_tensors, pairwise_rank_loss,
-                                        rank_pair_gaps, rank_pairs)
+from drake_grasp.learning.dense_labels import LabelStore
+from drake_grasp.learning.dense_training import (batch_tensors, pairwise_rank_loss,
+                                                 rank_pair_gaps, rank_pairs)
 from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.world.station import gripper_frame_offsets
 
