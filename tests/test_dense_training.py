@@ -652,7 +652,7 @@ def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
 
 
 def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
-    from drake_grasp.learning.dense_training import RANK_REACH_CELLS, rank_pairs
+    from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, rank_pairs
 
     shape = GRID_CONFIG.grid_shape()
     t_bins, n, _ = shape
@@ -676,7 +676,7 @@ def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
 
 
 def test_pairwise_rank_loss_is_the_logistic_loss_of_the_counted_pairs():
-    from drake_grasp.learning.dense_training import pairwise_rank_loss
+    from drake_grasp.learning.dense_rank import pairwise_rank_loss
 
     rng = np.random.default_rng(0)
     shape = (2, 3, 3, 3)

@@ -39,6 +39,7 @@ from drake_grasp.cnn.weights_io import load_weights, save_weights
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
 from drake_grasp.learning.common import full_float32
 from drake_grasp.learning.dense_labels import LabelStore, build_labels, view_masks
+from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, pairwise_rank_loss, rank_pairs
 
 
 def augment_batch(data: dict, augment: str, rng: np.random.Generator) -> dict:
@@ -239,67 +240,6 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     return metadata
 
 
-# The controller picks the lowest-scored of candidates near the hand (within 4 cm and 45
-# degrees: `ControllerConfig.sample_xy_m`, `sample_theta_deg`), so what it needs of the net
-# is the order of nearby nodes. `rank_pairs` draws pairs of grid nodes that near each other
-# (4 cells = 4 cm in x and y, 4 bins = 40 degrees in theta, theta wrapping over 180).
-RANK_REACH_CELLS = 4
-
-
-def rank_pairs(grid_shape: tuple[int, int, int], images: int, pairs: int,
-               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """`pairs` pairs of nearby grid nodes per image, as flat node indices (images, pairs)
-    into a (theta, y, x) grid of `grid_shape`: an anchor anywhere on the grid and a
-    partner at most `RANK_REACH_CELLS` away along each axis (theta wrapping over 180
-    degrees), never the anchor itself. Partners off the grid in x or y get index -1."""
-    t_bins, n, _ = grid_shape
-    r = RANK_REACH_CELLS
-    anchor = np.stack([rng.integers(0, t_bins, (images, pairs)),
-                       rng.integers(0, n, (images, pairs)),
-                       rng.integers(0, n, (images, pairs))])
-    step = rng.integers(-r, r + 1, (3, images, pairs))
-    still = (step == 0).all(axis=0)
-    step[2][still] = rng.choice([-1, 1], int(still.sum()))  # never the anchor itself
-    t = np.mod(anchor[0] + step[0], t_bins)
-    y, x = anchor[1] + step[1], anchor[2] + step[2]
-    first = (anchor[0] * n + anchor[1]) * n + anchor[2]
-    second = np.where((y >= 0) & (y < n) & (x >= 0) & (x < n), (t * n + y) * n + x, -1)
-    return first, second
-
-
-def pairwise_rank_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                       first: np.ndarray, second: np.ndarray, *, scale_m: float,
-                       margin_m: float) -> torch.Tensor:
-    """The mean logistic loss of ordering pairs of grid nodes of each image as their
-    labels do: for nodes i, j of one image with labels t_i < t_j - `margin_m`, both counted
-    by `mask`, softplus(-(p_j - p_i) / `scale_m`) (RankNet's loss on the predicted
-    distances p). `first`, `second`: (images, pairs) flat node indices (`rank_pairs`; -1
-    = no partner). 0 when no pair counts. Added to the L1 by `train(rank_weight=...)`:
-    the L1 asks every node for its distance, this asks only that nearby nodes come in the
-    order of their distances, which is all the controller's choice uses."""
-    pred_gap, label_gap, valid = rank_pair_gaps(pred, target, mask, first, second,
-                                                margin_m=margin_m)
-    if not bool(valid.any()):
-        return pred.sum() * 0.0
-    z = torch.sign(label_gap) * pred_gap / scale_m
-    return F.softplus(-z)[valid].mean()
-
-
-def rank_pair_gaps(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                   first: np.ndarray, second: np.ndarray, *, margin_m: float) -> tuple:
-    """For the pairs (`first`, `second`) of `rank_pairs`: the predicted gaps p_j - p_i,
-    the label gaps t_j - t_i, and which pairs count (both nodes counted by `mask`, a
-    partner on the grid, labels more than `margin_m` apart); each (images, pairs)."""
-    b = pred.shape[0]
-    p, t, m = pred.reshape(b, -1), target.reshape(b, -1), mask.reshape(b, -1)
-    i = torch.from_numpy(first).to(pred.device)
-    j_raw = torch.from_numpy(second).to(pred.device)
-    j = j_raw.clamp(min=0)
-    label_gap = t.gather(1, j) - t.gather(1, i)
-    valid = m.gather(1, i) & m.gather(1, j) & (j_raw >= 0) & (label_gap.abs() > margin_m)
-    return p.gather(1, j) - p.gather(1, i), label_gap, valid
-
-
 def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device):
     """A batch of `LabelStore.take` on `device`: the normalized images, the label grids,
     and the mask of the nodes the loss counts (in the camera's view at the image's
@@ -309,6 +249,131 @@ def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device
     mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
     mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
     return images, target, mask & torch.isfinite(target)
+
+
+def _rank_settings(augment: str, rank_weight: float, rank_pairs_per_image: int,
+                   rank_scale_m: float, rank_margin_m: float) -> dict | None:
+    """`train`'s augmentation and rank-loss arguments checked; the rank loss's settings
+    as the run's identity records them, None without a rank loss."""
+    if augment not in AUGMENTATIONS:
+        raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
+    if not (rank_weight >= 0.0 and math.isfinite(rank_weight)):
+        raise ValueError(f"rank_weight: expected a finite number >= 0, got {rank_weight!r}")
+    if rank_weight > 0 and not (rank_pairs_per_image >= 1 and rank_scale_m > 0
+                                and rank_margin_m >= 0):
+        raise ValueError("rank loss: expected rank_pairs_per_image >= 1, rank_scale_m > 0 "
+                         f"and rank_margin_m >= 0, got {rank_pairs_per_image!r}, "
+                         f"{rank_scale_m!r}, {rank_margin_m!r}")
+    return ({"weight": float(rank_weight), "pairs_per_image": int(rank_pairs_per_image),
+             "scale_m": float(rank_scale_m), "margin_m": float(rank_margin_m),
+             "reach_cells": RANK_REACH_CELLS} if rank_weight > 0 else None)
+
+
+def _run_config(labels_dir, trunk) -> tuple[list, NetworkConfig]:
+    """The label folders of a `train` run and its net's config: the folders' grid, with
+    `trunk` (conv1 filters, conv2 filters, ip1 width) in place of theirs if given."""
+    folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
+    for f in folders:
+        if not (Path(f) / "config.json").is_file():
+            raise ValueError(f"{f}: not a dense-labels folder (no config.json; run "
+                             "`drake-grasp dense-labels` first)")
+    configs = [json.loads((Path(f) / "config.json").read_text()) for f in folders]
+    if any(c != configs[0] for c in configs):
+        raise ValueError(f"{folders}: label folders made for different grids")
+    cfg = NetworkConfig.from_dict(configs[0])
+    if trunk is not None:
+        if len(trunk) != 3:
+            raise ValueError(f"trunk: expected (conv1 filters, conv2 filters, ip1 width), "
+                             f"got {trunk!r}")
+        cfg = dataclasses.replace(cfg, conv1_channels=int(trunk[0]),
+                                  conv2_channels=int(trunk[1]), ip1=int(trunk[2]))
+    return folders, cfg
+
+
+def _init_net(init, cfg: NetworkConfig) -> DistanceCNN | None:
+    """The net `init` names (None for none), checked to have the run's trunk."""
+    init_net = load_weights(init)[0] if init else None
+    if init_net is not None:
+        have = _trunk(init_net.config)
+        if have != _trunk(cfg):
+            raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
+                             f"{_trunk(cfg)}; start a run with another trunk from scratch")
+    return init_net
+
+
+def _start_state(model, net: DistanceCNN, ckpt: dict | None, identity: dict, out: Path,
+                 init_net: DistanceCNN | None, cfg: NetworkConfig, *, batch_norm: bool,
+                 seed: int, store: LabelStore) -> tuple:
+    """Where a `train` run starts: resumed from its checkpoint `ckpt` (which must be this
+    run's), else the model started from `init_net` if given. Returns (epoch, batch_index,
+    total, count, rank_total, metrics)."""
+    n_images = store.n_images
+    epoch, batch_index, total, count, rank_total = 0, 0, 0.0, 0, 0.0
+    metrics = {"identity": identity, "epochs": []}
+    if ckpt is not None:
+        if ckpt["identity"] != identity:
+            diff = sorted(k for k in {**ckpt["identity"], **identity}
+                          if ckpt["identity"].get(k) != identity.get(k))
+            raise ValueError(f"{out}: holds another training run (differs in {diff}); "
+                             "use another out folder")
+        model.load_state_dict(ckpt["model"])
+        epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
+        total, count = ckpt["total"], ckpt["count"]
+        rank_total = ckpt.get("rank_total", 0.0)
+        metrics = json.loads(ckpt["metrics"])
+    elif init_net is not None:
+        if init_net.config == cfg:  # a grid net: go on training it
+            net.load_state_dict(init_net.state_dict())
+        else:
+            init_from_tiled(net, init_net)
+        if batch_norm:
+            sample = np.sort(np.random.default_rng([seed, 1]).choice(
+                n_images, min(n_images, 1000), replace=False))
+            depth = store.take(sample, keys=("depth",))["depth"]
+            model.start_as_identity(model.preprocess(depth.astype(np.float32)))
+    return epoch, batch_index, total, count, rank_total, metrics
+
+
+def _batch_objective(model, data: dict, cfg: NetworkConfig, camera_z: float, device,
+                     rank_terms: tuple | None, images_n: int, rank_rng) -> tuple:
+    """One batch's masked L1 `loss`, the `objective` to minimise (the L1 plus the
+    weighted rank loss if `rank_terms` = (weight, pairs per image, scale_m, margin_m),
+    its pairs drawn from `rank_rng`) and the rank loss (None without one)."""
+    images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
+    pred = model.image_features(images)
+    loss = (pred - target).abs()[mask].mean()
+    objective = loss
+    rank_loss = None
+    if rank_terms is not None:
+        rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m = rank_terms
+        first, second = rank_pairs(cfg.grid_shape(), images_n, rank_pairs_per_image, rank_rng)
+        rank_loss = pairwise_rank_loss(pred, target, mask, first, second,
+                                       scale_m=rank_scale_m, margin_m=rank_margin_m)
+        objective = loss + rank_weight * rank_loss
+    return loss, objective, rank_loss
+
+
+def _end_epoch(model, sched, out: Path, identity: dict, test_data, *, epoch: int, lr: float,
+               lr_decay: float, total: float, count: int, rank_total: float,
+               rank: dict | None) -> dict:
+    """The end of epoch `epoch` (0-based) of a `train` run: the schedule stepped, the
+    epoch's weights file written and the test metrics; returns the epoch's metrics row."""
+    with warnings.catch_warnings():
+        # A run resumed right at an epoch's end steps the schedule without an
+        # optimizer step in this process; the schedule is still the unbroken run's.
+        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step",
+                                category=UserWarning)
+        sched.step()
+    row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
+           "lr": lr * lr_decay ** epoch,
+           **({"train_rank_loss": rank_total / max(count, 1)} if rank is not None else {})}
+    trained = _plain_net(model).cpu()
+    save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
+                 metadata={"trainer": "dense_training", "epoch": epoch + 1,
+                           "identity": identity})
+    if test_data:
+        row.update(evaluate(trained, test_data))
+    return row
 
 
 @full_float32()
@@ -352,43 +417,16 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     from drake_grasp.world.station import gripper_frame_offsets
     from drake_grasp.learning.common import load_checkpoint, torch_device
 
-    if augment not in AUGMENTATIONS:
-        raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
-    if not (rank_weight >= 0.0 and math.isfinite(rank_weight)):
-        raise ValueError(f"rank_weight: expected a finite number >= 0, got {rank_weight!r}")
-    if rank_weight > 0 and not (rank_pairs_per_image >= 1 and rank_scale_m > 0
-                                and rank_margin_m >= 0):
-        raise ValueError("rank loss: expected rank_pairs_per_image >= 1, rank_scale_m > 0 "
-                         f"and rank_margin_m >= 0, got {rank_pairs_per_image!r}, "
-                         f"{rank_scale_m!r}, {rank_margin_m!r}")
-    rank = ({"weight": float(rank_weight), "pairs_per_image": int(rank_pairs_per_image),
-             "scale_m": float(rank_scale_m), "margin_m": float(rank_margin_m),
-             "reach_cells": RANK_REACH_CELLS} if rank_weight > 0 else None)
+    rank = _rank_settings(augment, rank_weight, rank_pairs_per_image, rank_scale_m,
+                          rank_margin_m)
+    rank_terms = ((rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m)
+                  if rank is not None else None)
     torch.set_num_threads(threads)
     device = torch_device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
-    for f in folders:
-        if not (Path(f) / "config.json").is_file():
-            raise ValueError(f"{f}: not a dense-labels folder (no config.json; run "
-                             "`drake-grasp dense-labels` first)")
-    configs = [json.loads((Path(f) / "config.json").read_text()) for f in folders]
-    if any(c != configs[0] for c in configs):
-        raise ValueError(f"{folders}: label folders made for different grids")
-    cfg = NetworkConfig.from_dict(configs[0])
-    if trunk is not None:
-        if len(trunk) != 3:
-            raise ValueError(f"trunk: expected (conv1 filters, conv2 filters, ip1 width), "
-                             f"got {trunk!r}")
-        cfg = dataclasses.replace(cfg, conv1_channels=int(trunk[0]),
-                                  conv2_channels=int(trunk[1]), ip1=int(trunk[2]))
-    init_net = load_weights(init)[0] if init else None
-    if init_net is not None:
-        have = _trunk(init_net.config)
-        if have != _trunk(cfg):
-            raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
-                             f"{_trunk(cfg)}; start a run with another trunk from scratch")
+    folders, cfg = _run_config(labels_dir, trunk)
+    init_net = _init_net(init, cfg)
     store = LabelStore(folders, stream_shards)
     n_images = store.n_images
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
@@ -397,30 +435,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt_path = out / "checkpoint.pt"
-    epoch, batch_index, total, count, rank_total = 0, 0, 0.0, 0, 0.0
-    metrics = {"identity": identity, "epochs": []}
     ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
-    if ckpt is not None:
-        if ckpt["identity"] != identity:
-            diff = sorted(k for k in {**ckpt["identity"], **identity}
-                          if ckpt["identity"].get(k) != identity.get(k))
-            raise ValueError(f"{out}: holds another training run (differs in {diff}); "
-                             "use another out folder")
-        model.load_state_dict(ckpt["model"])
-        epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
-        total, count = ckpt["total"], ckpt["count"]
-        rank_total = ckpt.get("rank_total", 0.0)
-        metrics = json.loads(ckpt["metrics"])
-    elif init_net is not None:
-        if init_net.config == cfg:  # a grid net: go on training it
-            net.load_state_dict(init_net.state_dict())
-        else:
-            init_from_tiled(net, init_net)
-        if batch_norm:
-            sample = np.sort(np.random.default_rng([seed, 1]).choice(
-                n_images, min(n_images, 1000), replace=False))
-            depth = store.take(sample, keys=("depth",))["depth"]
-            model.start_as_identity(model.preprocess(depth.astype(np.float32)))
+    epoch, batch_index, total, count, rank_total, metrics = _start_state(
+        model, net, ckpt, identity, out, init_net, cfg, batch_norm=batch_norm, seed=seed,
+        store=store)
     # The optimizer is made (and its state loaded) after the move, so that its state
     # lives where the parameters do.
     model.to(device)
@@ -454,16 +472,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             if augment != "none":
                 data = augment_batch(data, augment,
                                      np.random.default_rng([seed, 3, epoch, batch_index]))
-            images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
-            pred = model.image_features(images)
-            loss = (pred - target).abs()[mask].mean()
-            objective = loss
+            loss, objective, rank_loss = _batch_objective(
+                model, data, cfg, camera_z, device, rank_terms, len(idx),
+                np.random.default_rng([seed, 4, epoch, batch_index]) if rank is not None else None)
             if rank is not None:
-                first, second = rank_pairs(cfg.grid_shape(), len(idx), rank_pairs_per_image,
-                                           np.random.default_rng([seed, 4, epoch, batch_index]))
-                rank_loss = pairwise_rank_loss(pred, target, mask, first, second,
-                                               scale_m=rank_scale_m, margin_m=rank_margin_m)
-                objective = loss + rank_weight * rank_loss
                 rank_total += float(rank_loss.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
             objective.backward()
@@ -482,21 +494,9 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                 bar.close()
                 return metrics  # a simulated kill (tests)
         bar.close()
-        with warnings.catch_warnings():
-            # A run resumed right at an epoch's end steps the schedule without an
-            # optimizer step in this process; the schedule is still the unbroken run's.
-            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step",
-                                    category=UserWarning)
-            sched.step()
-        row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
-               "lr": lr * lr_decay ** epoch,
-               **({"train_rank_loss": rank_total / max(count, 1)} if rank is not None else {})}
-        trained = _plain_net(model).cpu()
-        save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
-                     metadata={"trainer": "dense_training", "epoch": epoch + 1,
-                               "identity": identity})
-        if test_data:
-            row.update(evaluate(trained, test_data))
+        row = _end_epoch(model, sched, out, identity, test_data, epoch=epoch, lr=lr,
+                         lr_decay=lr_decay, total=total, count=count, rank_total=rank_total,
+                         rank=rank)
         metrics["epochs"].append(row)
         epoch, batch_index, total, count, rank_total = epoch + 1, 0, 0.0, 0, 0.0
         checkpoint()
