@@ -22,7 +22,8 @@ import torch
 from torch import nn
 
 from drake_grasp.learning.cnn_metrics import l1_by_label, ranking_metrics
-from drake_grasp.cnn.network import MirrorAveragedCNN, load_weights
+from drake_grasp.cnn.mirror import MirrorAveragedCNN
+from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.learning.common import ChunkCache, ShardSet
 
 

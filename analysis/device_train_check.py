@@ -84,7 +84,7 @@ def small_copy(labels: Path, out: Path, n: int) -> Path:
 
 
 def weight_diff(a_path: Path, b_path: Path) -> dict:
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     a, _ = load_weights(a_path)
     b, _ = load_weights(b_path)
@@ -139,8 +139,10 @@ def throughput(folders, work: Path, *, device: str, batch: int, threads: int,
 
 def step_alone(folder: Path, *, device: str, batch: int, steps: int) -> dict:
     """Forward, backward and Adam on one resident batch, `steps` times after 5 warm-ups."""
-    from drake_grasp.learning.dense_training import BatchNormTrunk, LabelStore, batch_tensors
-    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.learning.dense_labels import LabelStore
+    from drake_grasp.learning.dense_training import BatchNormTrunk, batch_tensors
+    from drake_grasp.cnn.net_config import NetworkConfig
+    from drake_grasp.cnn.network import DistanceCNN
     from drake_grasp.world.station import gripper_frame_offsets
 
     cfg = NetworkConfig.from_dict(json.loads((folder / "config.json").read_text()))
@@ -209,7 +211,7 @@ def main(argv=None) -> int:
            "drake_stand_in": stand_in_for_drake(args.camera_z), "camera_z_G_m": args.camera_z,
            "cudnn_allow_tf32": torch.backends.cudnn.allow_tf32,
            "matmul_allow_tf32": torch.backends.cuda.matmul.allow_tf32}
-    from drake_grasp.learning.dense_training import LabelStore
+    from drake_grasp.learning.dense_labels import LabelStore
 
     n_images = LabelStore([labels]).n_images
     out["label_images"] = n_images

@@ -18,8 +18,10 @@ PyTorch's default initialisation) and `deep` (Conv1 32@5x5, pool, Conv 64@3x3, C
 """
 import argparse, glob, json, time, math
 import numpy as np, torch, torch.nn as nn, torch.nn.functional as F
-from drake_grasp.cnn.network import DistanceCNN, load_weights, normalize_depth
-from drake_grasp.learning.dense_training import view_masks, GRID_CONFIG
+from drake_grasp.cnn.net_config import normalize_depth
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights
+from drake_grasp.learning.dense_labels import view_masks, GRID_CONFIG
 from drake_grasp.world.station import gripper_frame_offsets
 from drake_grasp.learning.cnn_metrics import spearman
 

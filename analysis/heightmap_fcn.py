@@ -51,7 +51,7 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drake_grasp.learning.dense_training import (  # noqa: E402
+from drake_grasp.learning.dense_labels import (  # noqa: E402
     GRID_CONFIG, grid_node_actions, load_labels, view_masks)
 
 from drake_grasp.cnn import fcn  # noqa: E402
@@ -312,7 +312,7 @@ def compare_grasp_head(fcn: str, test: dict, val: dict) -> dict:
 
 
 def predict_grid_net(weights: str, data: dict, *, batch: int = 200) -> np.ndarray:
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     net = load_weights(weights)[0].eval()
     out = []

@@ -19,7 +19,7 @@ resumes where it stopped. `score` ranks those candidates with other scorers (the
 of `controller.view_average`, other weights) and reports, per scorer, the within-decision
 Spearman, regret and top-1 within 1 cm over all decisions and split by the hand's height,
 by the best candidate's true distance, and by the attempt's outcome. `labels` labels every
-grid node of the kept images against the kept grasps (`dense_training.label_grids`) into
+grid node of the kept images against the kept grasps (`dense_labels.label_grids`) into
 a folder `train-grid --labels` takes: training on the closed loop's own states.
 `--only` / `--exclude` select attempts by their results folder's name (a split by seed).
 
@@ -138,12 +138,12 @@ def attempt_files(folder: Path, only=(), exclude=()) -> list[Path]:
 
 
 def build_labels(folder: Path, out: Path, *, only=(), exclude=()) -> dict:
-    """Dense labels of every kept decision image (`dense_training.label_grids` against the
+    """Dense labels of every kept decision image (`dense_labels.label_grids` against the
     attempt's starting pile's grasps), one `shard-<attempt>.npz` per attempt in `out`,
-    the format of `dense_training.build_labels` (`train-grid --labels out`). Attempts
+    the format of `dense_labels.build_labels` (`train-grid --labels out`). Attempts
     not reproduced or without a true grasp are left out; files already written are
     skipped."""
-    from drake_grasp.learning.dense_training import GRID_CONFIG, label_grids
+    from drake_grasp.learning.dense_labels import GRID_CONFIG, label_grids
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(GRID_CONFIG.to_dict(), indent=1))

@@ -219,7 +219,7 @@ def _weights_variants(src: bytes) -> dict[str, bytes]:
 @pytest.mark.parametrize("variant", ["truncated", "flipped byte", "wrong metadata"])
 def test_corrupt_or_tampered_weights_file(tmp_path, capsys, variant):
     from drake_grasp.core.assets import models_dir
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     data, expected = _weights_variants((models_dir() / "cnn" / "weights.safetensors").read_bytes())[variant]
     path = tmp_path / "weights.safetensors"

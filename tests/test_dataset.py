@@ -457,7 +457,8 @@ def test_ranking_metrics_on_a_generated_set(reference):
     import torch
 
     from drake_grasp.learning.cnn_metrics import ranking_metrics
-    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.cnn.net_config import NetworkConfig
+    from drake_grasp.cnn.network import DistanceCNN
 
     model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(0))
     out, _ = reference
@@ -476,7 +477,7 @@ def test_cnn_eval_script_scores_weights_on_a_generated_set(reference, tmp_path, 
     import torch
 
     from drake_grasp.learning.cnn_metrics import ranking_metrics
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.learning.training import evaluate_l1
     from drake_grasp.learning.common import ChunkCache, ShardSet
 
@@ -498,7 +499,7 @@ def test_cnn_eval_script_scores_several_weights_as_their_mean(reference, tmp_pat
     `controller.weights: A,B` scores in an episode); an empty item is refused."""
     import torch
 
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.learning.common import ChunkCache, ShardSet
 
     out, _ = reference
@@ -546,7 +547,7 @@ def test_cnn_eval_views_average_the_grid_over_the_turned_views(reference, tmp_pa
     import torch
 
     from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.learning.common import ChunkCache, ShardSet
 
     out, _ = reference

@@ -10,8 +10,10 @@ import torch
 from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.learning.dataset import SceneSamples
 from drake_grasp.learning.dataset_shards import shard_name, write_shard
-from drake_grasp.learning.dense_training import (GRID_CONFIG, augment_batch, build_labels,
-    grid_node_actions, load_labels, nearest_grasp_tree, train, tree_distances, view_masks)
+from drake_grasp.learning.dense_labels import (GRID_CONFIG, build_labels, grid_node_actions,
+                                               load_labels, nearest_grasp_tree, tree_distances,
+                                               view_masks)
+from drake_grasp.learning.dense_training import augment_batch, train
 from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images
 from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 from drake_grasp.world.station import gripper_frame_offsets
@@ -101,7 +103,7 @@ def test_a_grid_net_with_another_trunk_trains_saves_and_scores(tmp_path, capsys)
     import numpy as np
 
     from drake_grasp.cli.main import main
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.policies.evaluator import score_candidates
 
     _shard(tmp_path / "data", scenes=2, images=4)
@@ -184,7 +186,7 @@ def test_a_run_started_on_the_cpu_resumes_on_the_gpu(tmp_path):
     """`device`: the checkpoint moves between devices; the GPU's float32 arithmetic
     differs from the CPU's in the last bits, so the weights agree to a tolerance (with
     TF32 convolutions they did not: 1.1e-4 apart on an H200; 1.7e-6 in full float32)."""
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -218,7 +220,8 @@ def test_a_moved_label_folder_resumes_its_run(tmp_path):
 def _labels_and_a_grid_net(tmp_path):
     """Dense labels of a small dataset in tmp_path/grid, and a random grid net to start
     from (its weights file, returned)."""
-    from drake_grasp.cnn.network import DistanceCNN, save_weights
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.cnn.weights_io import save_weights
 
     _shard(tmp_path / "data", scenes=2, images=6)
     build_labels(tmp_path / "data", tmp_path / "grid", workers=1, progress=False)
@@ -235,7 +238,8 @@ def test_batch_norm_folds_into_a_plain_grid_net_and_starts_as_the_identity(tmp_p
     init net); a killed run resumes to the unbroken one's weights; it is another run."""
     from drake_grasp.cli.main import main
     from drake_grasp.learning.dense_training import BatchNormTrunk
-    from drake_grasp.cnn.network import DistanceCNN, load_weights
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.cnn.weights_io import load_weights
 
     gen = torch.Generator().manual_seed(3)
     net = DistanceCNN(GRID_CONFIG, generator=gen).double()
@@ -332,7 +336,7 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
     end; within an epoch it says how far the run got."""
     from drake_grasp.cli.main import main
     from drake_grasp.learning.dense_training import export_checkpoint_weights
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     init = _labels_and_a_grid_net(tmp_path)
     kw = dict(test_data=None, init=str(init), epochs=1, batch=4, lr=1e-3, threads=1,
@@ -367,7 +371,7 @@ def test_checkpoint_weights_reads_a_grid_run_mid_epoch_and_at_its_end(tmp_path, 
 
 
 def _assert_same_weights(path_a, path_b):
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     a, _ = load_weights(path_a)
     b, _ = load_weights(path_b)
@@ -390,7 +394,7 @@ def test_streamed_epochs_take_every_image_once_and_hold_at_most_two_groups(tmp_p
     each group of G parts contiguous in it; what a batch takes equals the in-memory
     labels at those indices; while the batches go through the epoch no more than the
     parts of two groups are held."""
-    from drake_grasp.learning.dense_training import LabelStore
+    from drake_grasp.learning.dense_labels import LabelStore
 
     folders = _label_folders(tmp_path, n=5, images=3)  # 5 parts of 6 images
     whole = load_labels(folders)
@@ -649,7 +653,7 @@ def test_an_augmented_run_resumes_to_the_uninterrupted_weights(tmp_path):
 
 
 def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
-    from drake_grasp.learning.dense_training import RANK_REACH_CELLS, rank_pairs
+    from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, rank_pairs
 
     shape = GRID_CONFIG.grid_shape()
     t_bins, n, _ = shape
@@ -673,7 +677,7 @@ def test_rank_pairs_are_nearby_distinct_nodes_of_the_grid():
 
 
 def test_pairwise_rank_loss_is_the_logistic_loss_of_the_counted_pairs():
-    from drake_grasp.learning.dense_training import pairwise_rank_loss
+    from drake_grasp.learning.dense_rank import pairwise_rank_loss
 
     rng = np.random.default_rng(0)
     shape = (2, 3, 3, 3)

@@ -12,7 +12,7 @@ import torch
 
 from drake_grasp.cnn import fcn
 from drake_grasp.core.assets import models_dir
-from drake_grasp.learning.dense_training import GRID_CONFIG, grid_node_actions
+from drake_grasp.learning.dense_labels import GRID_CONFIG, grid_node_actions
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.policies.evaluator import (FCN_WEIGHTS, load_cnn, needs_camera_height,
                                            score_candidates)

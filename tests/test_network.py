@@ -13,18 +13,10 @@ import safetensors.torch
 import torch
 
 import drake_grasp
-from drake_grasp.cnn.network import (
-    DistanceCNN,
-    MirrorAveragedCNN,
-    NetworkConfig,
-    action_features,
-    load_weights,
-    mirror_actions,
-    mirror_images,
-    normalize_depth,
-    save_weights,
-    tensors_sha256,
-)
+from drake_grasp.cnn.mirror import MirrorAveragedCNN, mirror_actions, mirror_images
+from drake_grasp.cnn.net_config import NetworkConfig, action_features, normalize_depth
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights, save_weights, tensors_sha256
 
 CFG = NetworkConfig()
 
@@ -701,7 +693,8 @@ def test_view_averaged_scores_interpolate_the_grid_averaged_over_the_turned_view
 
     from drake_grasp.core.assets import models_dir
     from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
-    from drake_grasp.cnn.network import action_features, grid_scores
+    from drake_grasp.cnn.grid_head import grid_scores
+    from drake_grasp.cnn.net_config import action_features
     from drake_grasp.policies.evaluator import DistanceEvaluator, load_cnn, score_candidates
 
     net = load_cnn("")

@@ -18,8 +18,10 @@ from pydrake.systems.sensors import ImageDepth32F
 
 from drake_grasp.core.assets import models_dir
 from drake_grasp.cli.main import main
-from drake_grasp.cnn.network import (DistanceCNN, MirrorAveragedCNN, NetworkConfig,
-                                  normalize_depth, save_weights)
+from drake_grasp.cnn.mirror import MirrorAveragedCNN
+from drake_grasp.cnn.net_config import NetworkConfig, normalize_depth
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import save_weights
 from drake_grasp.cnn.onnx_export import SHIPPED_WEIGHTS, export_onnx
 from drake_grasp.cnn.onnx_runtime import OnnxDistanceModel, head_path, random_check_inputs
 from drake_grasp.cnn.onnx_runtime import normalize_depth as normalize_depth_np

@@ -52,8 +52,9 @@ def test_heldout_l1_is_the_training_loss_over_the_labelled_view(analysis_script,
     import torch
 
     H = analysis_script("results/cnn-onpolicy-finetune/heldout_l1")
-    from drake_grasp.learning.dense_training import GRID_CONFIG, label_grids
-    from drake_grasp.cnn.network import DistanceCNN, save_weights
+    from drake_grasp.learning.dense_labels import GRID_CONFIG, label_grids
+    from drake_grasp.cnn.network import DistanceCNN
+    from drake_grasp.cnn.weights_io import save_weights
 
     rng = np.random.default_rng(2)
     hand = np.column_stack([rng.uniform(-0.05, 0.05, (3, 2)), [0.2, 0.1, 0.05], [0, 30, -60]])

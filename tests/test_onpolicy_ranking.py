@@ -99,7 +99,7 @@ def test_labels_label_every_kept_image_as_the_dataset_and_train_grid_reads_them(
     folder name are refused by name; a re-run skips what is written."""
     O = analysis_script("onpolicy_ranking")
     from drake_grasp.geometry.actions import apply_actions
-    from drake_grasp.learning.dense_training import GRID_CONFIG, LabelStore, grid_node_actions
+    from drake_grasp.learning.dense_labels import GRID_CONFIG, LabelStore, grid_node_actions
     from drake_grasp.geometry.grasps import distance_to_nearest_grasp
 
     rng = np.random.default_rng(5)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from drake_grasp.core.assets import models_dir
-from drake_grasp.cnn.network import load_weights
+from drake_grasp.cnn.weights_io import load_weights
 
 CNN = models_dir() / "cnn"
 

@@ -130,7 +130,8 @@ def test_distance_evaluator_alone_matches_the_direct_form():
     import torch
     from pydrake.systems.sensors import ImageDepth32F
 
-    from drake_grasp.cnn.network import DistanceCNN, NetworkConfig
+    from drake_grasp.cnn.net_config import NetworkConfig
+    from drake_grasp.cnn.network import DistanceCNN
     from drake_grasp.policies.evaluator import DistanceEvaluator
 
     model = DistanceCNN(NetworkConfig(theta_unit="deg"), generator=torch.Generator().manual_seed(4))

@@ -84,7 +84,7 @@ def test_init_weights_start_from_a_trained_net(data, tmp_path):
         cold = train(data=data, out=tmp_path / "c", config=_config(1, **still), progress=False)
     assert warm["test_l1_m"] == pytest.approx(trained["test_l1_m"], rel=1e-4)
     assert cold["test_l1_m"] > 1.5 * warm["test_l1_m"]
-    from drake_grasp.cnn.network import load_weights, tensors_sha256
+    from drake_grasp.cnn.weights_io import load_weights, tensors_sha256
 
     net, _ = load_weights(tmp_path / "a" / "weights.safetensors")
     config = json.loads((tmp_path / "b" / "train_config.json").read_text())
@@ -101,7 +101,7 @@ def test_the_window_fusion_trains_from_the_cli(data, tmp_path, capsys):
     distances in the image plane, which the window reads where the candidate is) and
     writes a window net; the default run's identity and weights stay tiled."""
     from drake_grasp.cli.main import main
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     args = _cli_args(data)
     with torch.random.fork_rng():

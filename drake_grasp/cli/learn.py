@@ -56,7 +56,7 @@ def _cmd_train(args) -> int:
         print("--context-side: needs --action-fusion window", file=sys.stderr)
         return 2
     if args.action_fusion == "window":
-        from drake_grasp.cnn.network import NetworkConfig
+        from drake_grasp.cnn.net_config import NetworkConfig
         try:
             network = NetworkConfig(theta_unit="deg", action_fusion="window",
                                     context_side_m=args.context_side)
@@ -71,7 +71,7 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_dense_labels(args) -> int:
-    from drake_grasp.learning.dense_training import build_labels
+    from drake_grasp.learning.dense_labels import build_labels
 
     images = build_labels(args.data, args.out, workers=args.workers)
     print(json.dumps({"out": str(args.out), "images_labelled_now": images}))

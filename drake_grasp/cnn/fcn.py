@@ -8,8 +8,8 @@ their neighbours, a second channel marking the camera's footprint). The camera's
 above the table is the hand's own (proprioception: the controller's believed pose, the
 `camera_height` port of `GraspController`), not something the image gives. A residual
 net of dilated 3x3 convolutions maps the map to the grid head's 18 x 33 x 33 distances
-(theta bins x y x x nodes, 1 cm and 10 degrees apart; `network.NetworkConfig`'s grid),
-and a candidate's distance is the trilinear interpolation there (`network.grid_scores`).
+(theta bins x y x x nodes, 1 cm and 10 degrees apart; `net_config.NetworkConfig`'s grid),
+and a candidate's distance is the trilinear interpolation there (`grid_head.grid_scores`).
 
 With a grasp head (a second output per node: "a true grasp lies within half a cell's
 diagonal") and `FcnConfig.grasp_threshold` > 0, a node's distance is the smaller of the
@@ -41,8 +41,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 import drake_grasp
-from drake_grasp.cnn.network import (NetworkConfig, action_features, grid_scores, grid_view_mask,
-                                  tensors_sha256)
+from drake_grasp.cnn.grid_head import grid_scores, grid_view_mask
+from drake_grasp.cnn.net_config import NetworkConfig, action_features
+from drake_grasp.cnn.weights_io import tensors_sha256
 
 FCN_FORMAT = "drake_grasp.HeightmapFCN/1"
 _KEYS = ("format", "config", "code_version", "tensors_sha256", "user_metadata")

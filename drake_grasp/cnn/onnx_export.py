@@ -32,7 +32,8 @@ from torch import nn
 import drake_grasp
 from drake_grasp.core.assets import models_dir
 from drake_grasp.cnn.fcn import FCN_FORMAT, weights_format
-from drake_grasp.cnn.network import DistanceCNN, load_weights, tensors_sha256
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights, tensors_sha256
 from drake_grasp.cnn.onnx_runtime import ONNX_FORMAT, OnnxDistanceModel, head_path, probe_inputs
 from drake_grasp.core.provenance import file_sha256
 
@@ -163,7 +164,7 @@ def export_onnx(
 
     Args:
         out: Destination of the image part; must end in ``.onnx``.
-        weights: A safetensors weights file (`drake_grasp.cnn.network.save_weights`);
+        weights: A safetensors weights file (`drake_grasp.cnn.weights_io.save_weights`);
             "" = the shipped paper net ``models/cnn/weights.safetensors`` (not the
             episode's default grid head, which the export does not cover). Exported in
             float32.

@@ -67,7 +67,7 @@ def head_path(path: Union[str, os.PathLike]) -> Path:
 
 
 def normalize_depth(depth: Any, config: Mapping[str, Any]) -> np.ndarray:
-    """numpy twin of `drake_grasp.cnn.network.normalize_depth`, bit for bit in float32.
+    """numpy twin of `drake_grasp.cnn.net_config.normalize_depth`, bit for bit in float32.
 
     Args:
         depth: Depth [m], shape (H, W), (B, H, W) or (B, 1, H, W). +inf is clipped to

@@ -287,7 +287,7 @@ class ControllerConfig:
     # CPU threads for the CNN (1 suits one simulation per core).
     torch_threads: int = 1
     # Score each candidate as the mean of the CNN on the image and on its mirror image
-    # with the mirrored action (`network.mirror_actions`: the wrist camera, the gripper
+    # with the mirrored action (`mirror.mirror_actions`: the wrist camera, the gripper
     # and physics share that symmetry); twice the CNN's cost.
     mirror_average: bool = False
     # Grid-head nets: "mirror" or "d4" scores the candidates on the distance grid averaged

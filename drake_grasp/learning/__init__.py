@@ -1,5 +1,5 @@
 """Learning the distance CNN and GPD's classifier from simulated data: datasets
-(`dataset`, `gpd_training`), the two CNN training loops (`training`, `dense_training`)
+(`dataset`, `gpd_training`), the two CNN training loops (`training`, `dense_training` on `dense_labels`)
 and what they share (`common`), ranking metrics (`cnn_metrics`), dataset pictures
 (`datavis`).
 

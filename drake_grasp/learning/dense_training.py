@@ -8,7 +8,7 @@ distance from the hand pose it leads to, to the nearest ground-truth grasp of th
 (the dataset's own label function, `grasps.distance_to_nearest_grasp`), and the shards
 store each scene's grasps. A k-d tree over a scene's grasps in the metric's coordinates
 (x, y, 0.001 m/deg x theta, theta periodic over 180 degrees) gives those distances
-exactly (to float rounding) and fast.
+exactly (to float rounding) and fast (`drake_grasp.learning.dense_labels`).
 
     python -m drake_grasp.learning.dense_training labels --data data/ft_dense --out data/ft_dense_grid
     python -m drake_grasp.learning.dense_training train --labels data/ft_dense_grid \
@@ -33,16 +33,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from drake_grasp.geometry.grasps import ANGLE_WEIGHT_M_PER_DEG
-from drake_grasp.cnn.network import (DistanceCNN, NetworkConfig, grid_view_mask, load_weights,
-                                  save_weights)
+from drake_grasp.cnn.net_config import NetworkConfig
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights, save_weights
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
 from drake_grasp.learning.common import full_float32
-
-GRID_CONFIG = NetworkConfig(theta_unit="deg", action_fusion="grid")
-_THETA_PERIOD_M = 180.0 * ANGLE_WEIGHT_M_PER_DEG
-_SHIFT_M = 50.0  # x, y moved into the k-d tree's positive box
-_BOX_M = 1000.0
+from drake_grasp.learning.dense_labels import LabelStore, build_labels, view_masks
+from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, pairwise_rank_loss, rank_pairs
 
 
 def augment_batch(data: dict, augment: str, rng: np.random.Generator) -> dict:
@@ -60,258 +57,6 @@ def augment_batch(data: dict, augment: str, rng: np.random.Generator) -> dict:
             depth[rows] = turn_images(depth[rows], k, flip)
             grid[rows] = turn_grids(grid[rows], k, flip)
     return {**data, "depth": depth, "grid": grid}
-
-
-def grid_node_actions(cfg: NetworkConfig) -> np.ndarray:
-    """The grid head's node actions (T * N * N, 3) = (x [m], y [m], theta [deg]) in the
-    order of its output (theta, y, x)."""
-    t_bins, n, _ = cfg.grid_shape()
-    half = (n - 1) // 2
-    xs = cfg.camera_x_G_m + (np.arange(n) - half) * cfg.grid_step_m
-    ys = cfg.camera_y_G_m + (np.arange(n) - half) * cfg.grid_step_m
-    ts = -90.0 + np.arange(t_bins) * cfg.grid_theta_step_deg
-    T, Y, X = np.meshgrid(ts, ys, xs, indexing="ij")
-    return np.stack([X.ravel(), Y.ravel(), T.ravel()], axis=1)
-
-
-def _tree_coords(xy_theta: np.ndarray) -> np.ndarray:
-    return np.column_stack([xy_theta[:, 0] + _SHIFT_M, xy_theta[:, 1] + _SHIFT_M,
-                            np.mod(xy_theta[:, 2], 180.0) * ANGLE_WEIGHT_M_PER_DEG])
-
-
-def nearest_grasp_tree(grasps_xy_theta: np.ndarray):
-    """A k-d tree for `distance_to_nearest_grasp` against these grasps (N >= 1)."""
-    from scipy.spatial import cKDTree
-
-    # The periodic box wraps theta; x and y never come near their (huge) box's edge.
-    return cKDTree(_tree_coords(np.asarray(grasps_xy_theta, float)),
-                   boxsize=[_BOX_M, _BOX_M, _THETA_PERIOD_M])
-
-
-def tree_distances(tree, poses_xy_theta: np.ndarray) -> np.ndarray:
-    """Distances from planar poses (M, 3) to the nearest grasp of `tree` [m]."""
-    return tree.query(_tree_coords(np.asarray(poses_xy_theta, float)))[0]
-
-
-def _label_shard(path: str, cfg_dict: dict) -> dict:
-    """Dense labels of one shard's images (float16 grids), with what training needs."""
-    import h5py
-
-    cfg = NetworkConfig.from_dict(cfg_dict)
-    with h5py.File(path, "r") as f:
-        depth = f["depth"][:]
-        hand = f["hand_pose"][:]
-        image_scene = f["image_scene"][:]
-        grasp_scene = f["grasp_scene"][:]
-        grasps = f["grasp_xy_theta"][:]
-    grids = np.full((len(depth), *cfg.grid_shape()), np.nan, np.float16)
-    keep = np.ones(len(depth), bool)
-    for scene in np.unique(image_scene):
-        rows = np.flatnonzero(image_scene == scene)
-        g = grasps[grasp_scene == scene]
-        if len(g) == 0:
-            keep[rows] = False
-            continue
-        grids[rows] = label_grids(hand[rows], g, cfg)
-    return {"depth": depth[keep].astype(np.float16), "grid": grids[keep],
-            "hand_z": hand[keep, 2].astype(np.float32)}
-
-
-def label_grids(hand: np.ndarray, grasps_xy_theta: np.ndarray,
-                cfg: NetworkConfig = GRID_CONFIG) -> np.ndarray:
-    """The dense labels of images taken at hand poses `hand` (N, 4) = (x, y, z, theta
-    [deg]) over one scene whose ground-truth grasps are `grasps_xy_theta` (G >= 1, 3):
-    (N, T, n, n) float16 grids, the distance from each node's moved hand pose to the
-    nearest grasp. Only the nodes in the image's view are labelled (the loss uses no
-    others), NaN elsewhere; the view is taken a hair wider than the loss takes it."""
-    from drake_grasp.geometry.actions import apply_actions
-    from drake_grasp.world.station import gripper_frame_offsets
-
-    hand = np.asarray(hand, float).reshape(-1, 4)
-    if len(grasps_xy_theta) == 0:
-        raise ValueError("label_grids: the scene has no ground-truth grasp to label against")
-    nodes = grid_node_actions(cfg)
-    camera_z = float(gripper_frame_offsets()[2].translation()[2])
-    grids = np.full((len(hand), *cfg.grid_shape()), np.nan, np.float16)
-    in_view = view_masks(hand[:, 2], cfg, camera_z, slack_m=1e-6)
-    tree = nearest_grasp_tree(grasps_xy_theta)
-    for i in range(len(hand)):
-        inside = in_view[i]
-        node_in = (inside[None, :, None] & inside[None, None, :]).repeat(
-            cfg.grid_shape()[0], axis=0).ravel()
-        moved = apply_actions(hand[i, [0, 1, 3]], nodes[node_in])
-        grids[i].reshape(-1)[node_in] = tree_distances(tree, moved)
-    return grids
-
-
-def build_labels(data_dir: str | Path, out: str | Path, *, cfg: NetworkConfig = GRID_CONFIG,
-                 workers: int = 2, progress: bool = True) -> int:
-    """Dense labels of every shard of `data_dir` into `out`/<shard>.npz (one file per
-    shard, written atomically; a re-run skips the shards already done). Returns the
-    number of images."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm import tqdm
-
-    data_dir, out = Path(data_dir), Path(out)
-    shards = sorted(data_dir.glob("shard-*.h5"))
-    if not shards:
-        raise ValueError(f"{data_dir}: no shard-*.h5 files (a `drake-grasp generate` folder?)")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
-    todo = [s for s in shards if not (out / f"{s.stem}.npz").exists()]
-    images = 0
-    with ProcessPoolExecutor(max_workers=workers) as pool, \
-            tqdm(total=len(shards), initial=len(shards) - len(todo), disable=not progress,
-                 desc="dense labels", unit="shard") as bar:
-        futures = {pool.submit(_label_shard, str(s), cfg.to_dict()): s for s in todo}
-        for fut, shard in futures.items():
-            part = fut.result()
-            tmp = out / f"{shard.stem}.tmp.npz"
-            np.savez(tmp, **part)
-            tmp.replace(out / f"{shard.stem}.npz")
-            images += len(part["depth"])
-            bar.update(1)
-    return images
-
-
-def _label_parts(folders) -> list[Path]:
-    """The shard files of one or more `build_labels` folders, in order."""
-    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
-    parts = []
-    for folder in folders:
-        # A write killed midway leaves its temporary file (`*.tmp.npz`): not a part.
-        found = sorted(p for p in Path(folder).glob("shard-*.npz")
-                       if not p.name.endswith(".tmp.npz"))
-        if not found:
-            raise ValueError(f"{folder}: no shard-*.npz label files (run `labels` first)")
-        parts += found
-    return parts
-
-
-def load_labels(folders) -> dict:
-    """All parts of one or more `build_labels` folders, concatenated."""
-    parts = _label_parts(folders)
-    # Filled in place: concatenating lists of parts would hold every label twice at the
-    # peak (300,000 images, float16 depth and grids, take 14 GB).
-    counts = []
-    for p in parts:
-        with np.load(p) as z:
-            counts.append(len(z["hand_z"]))
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    data = None
-    for p, lo, hi in zip(parts, offsets[:-1], offsets[1:]):
-        with np.load(p) as z:
-            if data is None:
-                data = {k: np.empty((offsets[-1], *z[k].shape[1:]), z[k].dtype)
-                        for k in ("depth", "grid", "hand_z")}
-            for k in data:
-                part = z[k]
-                if part.shape[1:] != data[k].shape[1:] or len(part) != hi - lo:
-                    raise ValueError(f"{p}: '{k}' has shape {part.shape}, expected "
-                                     f"({hi - lo}, {', '.join(map(str, data[k].shape[1:]))})")
-                data[k][lo:hi] = part
-    return data
-
-
-class LabelStore:
-    """The training images of one or more `build_labels` folders, and the order an epoch
-    takes them in.
-
-    `stream_shards=None`: every label in memory (`load_labels`), each epoch a permutation
-    of all images seeded by (seed, epoch). 300,000 images take 14 GB that way, so the
-    paper's 500,000 would not fit a 24 GB machine. `stream_shards=G`: the parts stay on
-    disk; each epoch permutes the parts (seeded by (seed, epoch)), cuts them into groups
-    of G parts and permutes the images within each group, and only the parts of the one
-    or two groups a batch draws from are held (a part of `generate`'s default 4 scenes,
-    160 images, takes 7.5 MB). A batch then mixes the images of G parts instead of the
-    whole set.
-    """
-
-    KEYS = ("depth", "grid", "hand_z")
-
-    def __init__(self, folders, stream_shards: int | None = None):
-        if stream_shards is not None and stream_shards < 1:
-            raise ValueError(f"stream_shards: expected a positive number of parts per "
-                             f"group, got {stream_shards}")
-        self.stream_shards = stream_shards
-        self.parts = _label_parts(folders)
-        if stream_shards is None:
-            self._data = load_labels(folders)
-            self.n_images = len(self._data["hand_z"])
-            return
-        counts = []
-        for p in self.parts:
-            with np.load(p) as z:
-                counts.append(len(z["hand_z"]))
-        self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self.n_images = int(self.offsets[-1])
-        with np.load(self.parts[0]) as z:
-            self._shapes = {k: (z[k].shape[1:], z[k].dtype) for k in self.KEYS}
-        self._held: dict[int, dict] = {}
-        self._group_of = np.zeros(len(self.parts), np.int64)
-
-    def epoch_order(self, seed: int, epoch: int) -> np.ndarray:
-        """The image indices of epoch `epoch` in the order its batches take them."""
-        rng = np.random.default_rng([seed, epoch])
-        if self.stream_shards is None:
-            return rng.permutation(self.n_images)
-        shards = rng.permutation(len(self.parts))
-        order = []
-        for g, lo in enumerate(range(0, len(shards), self.stream_shards)):
-            group = shards[lo:lo + self.stream_shards]
-            self._group_of[group] = g
-            images = np.concatenate([np.arange(self.offsets[s], self.offsets[s + 1])
-                                     for s in group])
-            order.append(rng.permutation(images))
-        self._held.clear()
-        return np.concatenate(order)
-
-    def take(self, idx: np.ndarray, keys=KEYS) -> dict:
-        """`keys` of the images `idx` (sorted global indices)."""
-        if self.stream_shards is None:
-            return {k: self._data[k][idx] for k in keys}
-        shard = np.searchsorted(self.offsets, idx, side="right") - 1
-        out = {k: np.empty((len(idx), *self._shapes[k][0]), self._shapes[k][1]) for k in keys}
-        for s in np.unique(shard):
-            part = self._part(int(s), keys)
-            rows = shard == s
-            for k in keys:
-                out[k][rows] = part[k][idx[rows] - self.offsets[s]]
-        return out
-
-    def release_before(self, idx: np.ndarray) -> None:
-        """Drop the held parts of the groups before the first one `idx` draws from (the
-        epoch's order visits groups in turn)."""
-        if self.stream_shards is None or not self._held:
-            return
-        shard = np.searchsorted(self.offsets, idx, side="right") - 1
-        first = self._group_of[shard].min()
-        for s in [s for s in self._held if self._group_of[s] < first]:
-            del self._held[s]
-
-    def _part(self, s: int, keys) -> dict:
-        held = self._held.get(s)
-        if held is not None and all(k in held for k in keys):
-            return held
-        path, n = self.parts[s], int(self.offsets[s + 1] - self.offsets[s])
-        with np.load(path) as z:
-            part = {k: z[k] for k in keys}
-        for k in keys:
-            if part[k].shape != (n, *self._shapes[k][0]):
-                raise ValueError(f"{path}: '{k}' has shape {part[k].shape}, expected "
-                                 f"({n}, {', '.join(map(str, self._shapes[k][0]))})")
-        if tuple(keys) == self.KEYS:
-            self._held[s] = part
-        return part
-
-
-def view_masks(hand_z, cfg: NetworkConfig, camera_z_G_m: float, *,
-               slack_m: float = 1e-9) -> np.ndarray:
-    """(B, N) mask of the grid's x (and, by symmetry of the square view, y) nodes inside
-    the camera's footprint on the table at each image's camera height (hand heights
-    `hand_z`, (B,)), widened by `slack_m`."""
-    return grid_view_mask(np.asarray(hand_z, float) - camera_z_G_m, cfg, slack_m=slack_m)
 
 
 def init_from_tiled(grid_net: DistanceCNN, tiled: DistanceCNN) -> None:
@@ -428,7 +173,7 @@ def _fingerprint(folder) -> str:
 def _identity(folders, n_images, cfg, init_net: DistanceCNN | None, *, batch, lr, lr_decay,
               seed, batch_norm=False, stream_shards=None, augment="none",
               rank=None) -> dict:
-    from drake_grasp.cnn.network import tensors_sha256
+    from drake_grasp.cnn.weights_io import tensors_sha256
 
     init_sha = tensors_sha256(init_net.state_dict()) if init_net is not None else None
     return {"labels": [_fingerprint(f) for f in folders], "images": int(n_images),
@@ -495,67 +240,6 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     return metadata
 
 
-# The controller picks the lowest-scored of candidates near the hand (within 4 cm and 45
-# degrees: `ControllerConfig.sample_xy_m`, `sample_theta_deg`), so what it needs of the net
-# is the order of nearby nodes. `rank_pairs` draws pairs of grid nodes that near each other
-# (4 cells = 4 cm in x and y, 4 bins = 40 degrees in theta, theta wrapping over 180).
-RANK_REACH_CELLS = 4
-
-
-def rank_pairs(grid_shape: tuple[int, int, int], images: int, pairs: int,
-               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """`pairs` pairs of nearby grid nodes per image, as flat node indices (images, pairs)
-    into a (theta, y, x) grid of `grid_shape`: an anchor anywhere on the grid and a
-    partner at most `RANK_REACH_CELLS` away along each axis (theta wrapping over 180
-    degrees), never the anchor itself. Partners off the grid in x or y get index -1."""
-    t_bins, n, _ = grid_shape
-    r = RANK_REACH_CELLS
-    anchor = np.stack([rng.integers(0, t_bins, (images, pairs)),
-                       rng.integers(0, n, (images, pairs)),
-                       rng.integers(0, n, (images, pairs))])
-    step = rng.integers(-r, r + 1, (3, images, pairs))
-    still = (step == 0).all(axis=0)
-    step[2][still] = rng.choice([-1, 1], int(still.sum()))  # never the anchor itself
-    t = np.mod(anchor[0] + step[0], t_bins)
-    y, x = anchor[1] + step[1], anchor[2] + step[2]
-    first = (anchor[0] * n + anchor[1]) * n + anchor[2]
-    second = np.where((y >= 0) & (y < n) & (x >= 0) & (x < n), (t * n + y) * n + x, -1)
-    return first, second
-
-
-def pairwise_rank_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                       first: np.ndarray, second: np.ndarray, *, scale_m: float,
-                       margin_m: float) -> torch.Tensor:
-    """The mean logistic loss of ordering pairs of grid nodes of each image as their
-    labels do: for nodes i, j of one image with labels t_i < t_j - `margin_m`, both counted
-    by `mask`, softplus(-(p_j - p_i) / `scale_m`) (RankNet's loss on the predicted
-    distances p). `first`, `second`: (images, pairs) flat node indices (`rank_pairs`; -1
-    = no partner). 0 when no pair counts. Added to the L1 by `train(rank_weight=...)`:
-    the L1 asks every node for its distance, this asks only that nearby nodes come in the
-    order of their distances, which is all the controller's choice uses."""
-    pred_gap, label_gap, valid = rank_pair_gaps(pred, target, mask, first, second,
-                                                margin_m=margin_m)
-    if not bool(valid.any()):
-        return pred.sum() * 0.0
-    z = torch.sign(label_gap) * pred_gap / scale_m
-    return F.softplus(-z)[valid].mean()
-
-
-def rank_pair_gaps(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                   first: np.ndarray, second: np.ndarray, *, margin_m: float) -> tuple:
-    """For the pairs (`first`, `second`) of `rank_pairs`: the predicted gaps p_j - p_i,
-    the label gaps t_j - t_i, and which pairs count (both nodes counted by `mask`, a
-    partner on the grid, labels more than `margin_m` apart); each (images, pairs)."""
-    b = pred.shape[0]
-    p, t, m = pred.reshape(b, -1), target.reshape(b, -1), mask.reshape(b, -1)
-    i = torch.from_numpy(first).to(pred.device)
-    j_raw = torch.from_numpy(second).to(pred.device)
-    j = j_raw.clamp(min=0)
-    label_gap = t.gather(1, j) - t.gather(1, i)
-    valid = m.gather(1, i) & m.gather(1, j) & (j_raw >= 0) & (label_gap.abs() > margin_m)
-    return p.gather(1, j) - p.gather(1, i), label_gap, valid
-
-
 def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device):
     """A batch of `LabelStore.take` on `device`: the normalized images, the label grids,
     and the mask of the nodes the loss counts (in the camera's view at the image's
@@ -565,6 +249,131 @@ def batch_tensors(model, data: dict, cfg: NetworkConfig, camera_z: float, device
     mx = torch.from_numpy(view_masks(data["hand_z"], cfg, camera_z)).to(device)
     mask = (mx[:, None, :, None] & mx[:, None, None, :]).expand_as(target)
     return images, target, mask & torch.isfinite(target)
+
+
+def _rank_settings(augment: str, rank_weight: float, rank_pairs_per_image: int,
+                   rank_scale_m: float, rank_margin_m: float) -> dict | None:
+    """`train`'s augmentation and rank-loss arguments checked; the rank loss's settings
+    as the run's identity records them, None without a rank loss."""
+    if augment not in AUGMENTATIONS:
+        raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
+    if not (rank_weight >= 0.0 and math.isfinite(rank_weight)):
+        raise ValueError(f"rank_weight: expected a finite number >= 0, got {rank_weight!r}")
+    if rank_weight > 0 and not (rank_pairs_per_image >= 1 and rank_scale_m > 0
+                                and rank_margin_m >= 0):
+        raise ValueError("rank loss: expected rank_pairs_per_image >= 1, rank_scale_m > 0 "
+                         f"and rank_margin_m >= 0, got {rank_pairs_per_image!r}, "
+                         f"{rank_scale_m!r}, {rank_margin_m!r}")
+    return ({"weight": float(rank_weight), "pairs_per_image": int(rank_pairs_per_image),
+             "scale_m": float(rank_scale_m), "margin_m": float(rank_margin_m),
+             "reach_cells": RANK_REACH_CELLS} if rank_weight > 0 else None)
+
+
+def _run_config(labels_dir, trunk) -> tuple[list, NetworkConfig]:
+    """The label folders of a `train` run and its net's config: the folders' grid, with
+    `trunk` (conv1 filters, conv2 filters, ip1 width) in place of theirs if given."""
+    folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
+    for f in folders:
+        if not (Path(f) / "config.json").is_file():
+            raise ValueError(f"{f}: not a dense-labels folder (no config.json; run "
+                             "`drake-grasp dense-labels` first)")
+    configs = [json.loads((Path(f) / "config.json").read_text()) for f in folders]
+    if any(c != configs[0] for c in configs):
+        raise ValueError(f"{folders}: label folders made for different grids")
+    cfg = NetworkConfig.from_dict(configs[0])
+    if trunk is not None:
+        if len(trunk) != 3:
+            raise ValueError(f"trunk: expected (conv1 filters, conv2 filters, ip1 width), "
+                             f"got {trunk!r}")
+        cfg = dataclasses.replace(cfg, conv1_channels=int(trunk[0]),
+                                  conv2_channels=int(trunk[1]), ip1=int(trunk[2]))
+    return folders, cfg
+
+
+def _init_net(init, cfg: NetworkConfig) -> DistanceCNN | None:
+    """The net `init` names (None for none), checked to have the run's trunk."""
+    init_net = load_weights(init)[0] if init else None
+    if init_net is not None:
+        have = _trunk(init_net.config)
+        if have != _trunk(cfg):
+            raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
+                             f"{_trunk(cfg)}; start a run with another trunk from scratch")
+    return init_net
+
+
+def _start_state(model, net: DistanceCNN, ckpt: dict | None, identity: dict, out: Path,
+                 init_net: DistanceCNN | None, cfg: NetworkConfig, *, batch_norm: bool,
+                 seed: int, store: LabelStore) -> tuple:
+    """Where a `train` run starts: resumed from its checkpoint `ckpt` (which must be this
+    run's), else the model started from `init_net` if given. Returns (epoch, batch_index,
+    total, count, rank_total, metrics)."""
+    n_images = store.n_images
+    epoch, batch_index, total, count, rank_total = 0, 0, 0.0, 0, 0.0
+    metrics = {"identity": identity, "epochs": []}
+    if ckpt is not None:
+        if ckpt["identity"] != identity:
+            diff = sorted(k for k in {**ckpt["identity"], **identity}
+                          if ckpt["identity"].get(k) != identity.get(k))
+            raise ValueError(f"{out}: holds another training run (differs in {diff}); "
+                             "use another out folder")
+        model.load_state_dict(ckpt["model"])
+        epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
+        total, count = ckpt["total"], ckpt["count"]
+        rank_total = ckpt.get("rank_total", 0.0)
+        metrics = json.loads(ckpt["metrics"])
+    elif init_net is not None:
+        if init_net.config == cfg:  # a grid net: go on training it
+            net.load_state_dict(init_net.state_dict())
+        else:
+            init_from_tiled(net, init_net)
+        if batch_norm:
+            sample = np.sort(np.random.default_rng([seed, 1]).choice(
+                n_images, min(n_images, 1000), replace=False))
+            depth = store.take(sample, keys=("depth",))["depth"]
+            model.start_as_identity(model.preprocess(depth.astype(np.float32)))
+    return epoch, batch_index, total, count, rank_total, metrics
+
+
+def _batch_objective(model, data: dict, cfg: NetworkConfig, camera_z: float, device,
+                     rank_terms: tuple | None, images_n: int, rank_rng) -> tuple:
+    """One batch's masked L1 `loss`, the `objective` to minimise (the L1 plus the
+    weighted rank loss if `rank_terms` = (weight, pairs per image, scale_m, margin_m),
+    its pairs drawn from `rank_rng`) and the rank loss (None without one)."""
+    images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
+    pred = model.image_features(images)
+    loss = (pred - target).abs()[mask].mean()
+    objective = loss
+    rank_loss = None
+    if rank_terms is not None:
+        rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m = rank_terms
+        first, second = rank_pairs(cfg.grid_shape(), images_n, rank_pairs_per_image, rank_rng)
+        rank_loss = pairwise_rank_loss(pred, target, mask, first, second,
+                                       scale_m=rank_scale_m, margin_m=rank_margin_m)
+        objective = loss + rank_weight * rank_loss
+    return loss, objective, rank_loss
+
+
+def _end_epoch(model, sched, out: Path, identity: dict, test_data, *, epoch: int, lr: float,
+               lr_decay: float, total: float, count: int, rank_total: float,
+               rank: dict | None) -> dict:
+    """The end of epoch `epoch` (0-based) of a `train` run: the schedule stepped, the
+    epoch's weights file written and the test metrics; returns the epoch's metrics row."""
+    with warnings.catch_warnings():
+        # A run resumed right at an epoch's end steps the schedule without an
+        # optimizer step in this process; the schedule is still the unbroken run's.
+        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step",
+                                category=UserWarning)
+        sched.step()
+    row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
+           "lr": lr * lr_decay ** epoch,
+           **({"train_rank_loss": rank_total / max(count, 1)} if rank is not None else {})}
+    trained = _plain_net(model).cpu()
+    save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
+                 metadata={"trainer": "dense_training", "epoch": epoch + 1,
+                           "identity": identity})
+    if test_data:
+        row.update(evaluate(trained, test_data))
+    return row
 
 
 @full_float32()
@@ -608,43 +417,16 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     from drake_grasp.world.station import gripper_frame_offsets
     from drake_grasp.learning.common import load_checkpoint, torch_device
 
-    if augment not in AUGMENTATIONS:
-        raise ValueError(f"augment: expected one of {sorted(AUGMENTATIONS)}, got {augment!r}")
-    if not (rank_weight >= 0.0 and math.isfinite(rank_weight)):
-        raise ValueError(f"rank_weight: expected a finite number >= 0, got {rank_weight!r}")
-    if rank_weight > 0 and not (rank_pairs_per_image >= 1 and rank_scale_m > 0
-                                and rank_margin_m >= 0):
-        raise ValueError("rank loss: expected rank_pairs_per_image >= 1, rank_scale_m > 0 "
-                         f"and rank_margin_m >= 0, got {rank_pairs_per_image!r}, "
-                         f"{rank_scale_m!r}, {rank_margin_m!r}")
-    rank = ({"weight": float(rank_weight), "pairs_per_image": int(rank_pairs_per_image),
-             "scale_m": float(rank_scale_m), "margin_m": float(rank_margin_m),
-             "reach_cells": RANK_REACH_CELLS} if rank_weight > 0 else None)
+    rank = _rank_settings(augment, rank_weight, rank_pairs_per_image, rank_scale_m,
+                          rank_margin_m)
+    rank_terms = ((rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m)
+                  if rank is not None else None)
     torch.set_num_threads(threads)
     device = torch_device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    folders = [labels_dir] if isinstance(labels_dir, (str, Path)) else list(labels_dir)
-    for f in folders:
-        if not (Path(f) / "config.json").is_file():
-            raise ValueError(f"{f}: not a dense-labels folder (no config.json; run "
-                             "`drake-grasp dense-labels` first)")
-    configs = [json.loads((Path(f) / "config.json").read_text()) for f in folders]
-    if any(c != configs[0] for c in configs):
-        raise ValueError(f"{folders}: label folders made for different grids")
-    cfg = NetworkConfig.from_dict(configs[0])
-    if trunk is not None:
-        if len(trunk) != 3:
-            raise ValueError(f"trunk: expected (conv1 filters, conv2 filters, ip1 width), "
-                             f"got {trunk!r}")
-        cfg = dataclasses.replace(cfg, conv1_channels=int(trunk[0]),
-                                  conv2_channels=int(trunk[1]), ip1=int(trunk[2]))
-    init_net = load_weights(init)[0] if init else None
-    if init_net is not None:
-        have = _trunk(init_net.config)
-        if have != _trunk(cfg):
-            raise ValueError(f"{init}: its trunk (conv1, conv2, ip1) is {have}, this run's is "
-                             f"{_trunk(cfg)}; start a run with another trunk from scratch")
+    folders, cfg = _run_config(labels_dir, trunk)
+    init_net = _init_net(init, cfg)
     store = LabelStore(folders, stream_shards)
     n_images = store.n_images
     identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
@@ -653,30 +435,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt_path = out / "checkpoint.pt"
-    epoch, batch_index, total, count, rank_total = 0, 0, 0.0, 0, 0.0
-    metrics = {"identity": identity, "epochs": []}
     ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
-    if ckpt is not None:
-        if ckpt["identity"] != identity:
-            diff = sorted(k for k in {**ckpt["identity"], **identity}
-                          if ckpt["identity"].get(k) != identity.get(k))
-            raise ValueError(f"{out}: holds another training run (differs in {diff}); "
-                             "use another out folder")
-        model.load_state_dict(ckpt["model"])
-        epoch, batch_index = ckpt["epoch"], ckpt["batch_index"]
-        total, count = ckpt["total"], ckpt["count"]
-        rank_total = ckpt.get("rank_total", 0.0)
-        metrics = json.loads(ckpt["metrics"])
-    elif init_net is not None:
-        if init_net.config == cfg:  # a grid net: go on training it
-            net.load_state_dict(init_net.state_dict())
-        else:
-            init_from_tiled(net, init_net)
-        if batch_norm:
-            sample = np.sort(np.random.default_rng([seed, 1]).choice(
-                n_images, min(n_images, 1000), replace=False))
-            depth = store.take(sample, keys=("depth",))["depth"]
-            model.start_as_identity(model.preprocess(depth.astype(np.float32)))
+    epoch, batch_index, total, count, rank_total, metrics = _start_state(
+        model, net, ckpt, identity, out, init_net, cfg, batch_norm=batch_norm, seed=seed,
+        store=store)
     # The optimizer is made (and its state loaded) after the move, so that its state
     # lives where the parameters do.
     model.to(device)
@@ -710,16 +472,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             if augment != "none":
                 data = augment_batch(data, augment,
                                      np.random.default_rng([seed, 3, epoch, batch_index]))
-            images, target, mask = batch_tensors(model, data, cfg, camera_z, device)
-            pred = model.image_features(images)
-            loss = (pred - target).abs()[mask].mean()
-            objective = loss
+            loss, objective, rank_loss = _batch_objective(
+                model, data, cfg, camera_z, device, rank_terms, len(idx),
+                np.random.default_rng([seed, 4, epoch, batch_index]) if rank is not None else None)
             if rank is not None:
-                first, second = rank_pairs(cfg.grid_shape(), len(idx), rank_pairs_per_image,
-                                           np.random.default_rng([seed, 4, epoch, batch_index]))
-                rank_loss = pairwise_rank_loss(pred, target, mask, first, second,
-                                               scale_m=rank_scale_m, margin_m=rank_margin_m)
-                objective = loss + rank_weight * rank_loss
                 rank_total += float(rank_loss.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
             objective.backward()
@@ -738,21 +494,9 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
                 bar.close()
                 return metrics  # a simulated kill (tests)
         bar.close()
-        with warnings.catch_warnings():
-            # A run resumed right at an epoch's end steps the schedule without an
-            # optimizer step in this process; the schedule is still the unbroken run's.
-            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step",
-                                    category=UserWarning)
-            sched.step()
-        row = {"epoch": epoch + 1, "train_l1_m": total / max(count, 1), "images": count,
-               "lr": lr * lr_decay ** epoch,
-               **({"train_rank_loss": rank_total / max(count, 1)} if rank is not None else {})}
-        trained = _plain_net(model).cpu()
-        save_weights(trained, out / f"epoch{epoch + 1}.safetensors",
-                     metadata={"trainer": "dense_training", "epoch": epoch + 1,
-                               "identity": identity})
-        if test_data:
-            row.update(evaluate(trained, test_data))
+        row = _end_epoch(model, sched, out, identity, test_data, epoch=epoch, lr=lr,
+                         lr_decay=lr_decay, total=total, count=count, rank_total=rank_total,
+                         rank=rank)
         metrics["epochs"].append(row)
         epoch, batch_index, total, count, rank_total = epoch + 1, 0, 0.0, 0, 0.0
         checkpoint()

@@ -32,7 +32,7 @@ Output folder:
                          the test set (`cnn_metrics`), learning rate, timing, device, and
                          the final test_l1_m
     learning_curves.png  train and test L1 per epoch
-    weights.safetensors  final weights with metadata (network.save_weights); an
+    weights.safetensors  final weights with metadata (weights_io.save_weights); an
                          unfinished run's latest checkpoint as weights:
                          `export_checkpoint_weights` (`drake-grasp checkpoint-weights`)
     train_config.json    the resolved training configuration
@@ -56,13 +56,9 @@ from drake_grasp.learning.common import (ShardSet, full_float32, load_checkpoint
                                          resolve_data_dirs, torch_device)
 from drake_grasp.learning.folder_lock import GenerateLock, replace_durably
 from drake_grasp.core.native import load_llvm_users_first
-from drake_grasp.cnn.network import (
-    DistanceCNN,
-    NetworkConfig,
-    load_weights,
-    save_weights,
-    tensors_sha256,
-)
+from drake_grasp.cnn.net_config import NetworkConfig
+from drake_grasp.cnn.network import DistanceCNN
+from drake_grasp.cnn.weights_io import load_weights, save_weights, tensors_sha256
 from drake_grasp.core.provenance import code_version
 
 # Settings that say where and how fast a run computes, not what it computes: they may

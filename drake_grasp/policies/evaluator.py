@@ -100,7 +100,7 @@ def load_cnn(weights: str = "", *, threads: int = 1
 
     if weights_format(path) == FCN_FORMAT:
         return load_fcn(path)[0]
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.cnn.weights_io import load_weights
 
     model, _ = load_weights(path)
     return model.eval()
@@ -120,7 +120,7 @@ def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, F
     """Predicted distance [m] for each candidate action on one depth image (fast path).
 
     `mirror`: the mean of the scores on the image and on its mirror image with the
-    mirrored actions (`network.mirror_actions`; `controller.mirror_average`).
+    mirrored actions (`mirror.mirror_actions`; `controller.mirror_average`).
     `views` ("mirror" or "d4"; `controller.view_average`): a grid-head torch net's whole
     distance grid averaged over the image's symmetric views about the optical axis, each
     view's grid turned back (`dense_training.view_averaged_grids`), then interpolated at
@@ -135,7 +135,7 @@ def score_candidates(model: Union[DistanceCNN, OnnxDistanceModel, CnnEnsemble, F
     if views != "none":
         return _score_view_averaged(model, depth, actions, mirror=mirror, views=views)
     if mirror:
-        from drake_grasp.cnn.network import mirror_actions, mirror_images
+        from drake_grasp.cnn.mirror import mirror_actions, mirror_images
 
         return 0.5 * (score_candidates(model, depth, actions, camera_height_m=camera_height_m)
                       + score_candidates(model, mirror_images(np.asarray(depth)),
@@ -186,7 +186,8 @@ def _score_view_averaged(model, depth: np.ndarray, actions: np.ndarray, *, mirro
     import torch
 
     from drake_grasp.cnn.views import view_averaged_grids
-    from drake_grasp.cnn.network import action_features, grid_scores
+    from drake_grasp.cnn.grid_head import grid_scores
+    from drake_grasp.cnn.net_config import action_features
 
     with torch.inference_mode():
         images = model.preprocess(np.array(depth, np.float32))

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import torch
 from torch import nn
-from drake_grasp.cnn.network import load_weights
+from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.learning.cnn_metrics import ranking_metrics
 torch.set_num_threads(1)
 class Smoothed(nn.Module):

@@ -18,8 +18,9 @@ import torch
 def heldout_l1(labels: str, weights: str, batch: int = 200) -> float:
     """Mean absolute error [m] over every labelled in-view node of every image, as
     `dense_training.train`'s loss counts them."""
-    from drake_grasp.learning.dense_training import LabelStore, batch_tensors
-    from drake_grasp.cnn.network import load_weights
+    from drake_grasp.learning.dense_labels import LabelStore
+    from drake_grasp.learning.dense_training import batch_tensors
+    from drake_grasp.cnn.weights_io import load_weights
     from drake_grasp.world.station import gripper_frame_offsets
 
     net = load_weights(weights)[0].eval()

@@ -1,5 +1,5 @@
 """How well each net orders pairs of nearby grid nodes (the pairs `train-grid
---rank-weight` trains on: `dense_training.rank_pairs`) on dense-label folders - the
+--rank-weight` trains on: `dense_rank.rank_pairs`) on dense-label folders - the
 training piles and scenes, and the held-out piles - to tell a net that cannot fit the
 order from one that fits it and does not carry it to new piles.
 
@@ -19,9 +19,10 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.learning.dense_training import (LabelStore, batch_tensors, pairwise_rank_loss,
-                                        rank_pair_gaps, rank_pairs)
-from drake_grasp.cnn.network import load_weights
+from drake_grasp.learning.dense_labels import LabelStore
+from drake_grasp.learning.dense_rank import pairwise_rank_loss, rank_pair_gaps, rank_pairs
+from drake_grasp.learning.dense_training import batch_tensors
+from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.world.station import gripper_frame_offsets
 
 

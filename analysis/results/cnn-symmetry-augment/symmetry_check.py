@@ -17,9 +17,9 @@ import json
 import numpy as np
 import torch
 
-from drake_grasp.learning.dense_training import load_labels
+from drake_grasp.learning.dense_labels import load_labels
 from drake_grasp.cnn.views import turn_images
-from drake_grasp.cnn.network import load_weights
+from drake_grasp.cnn.weights_io import load_weights
 
 
 def main() -> None:
