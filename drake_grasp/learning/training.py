@@ -338,15 +338,7 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     """`train` once `out` is locked and the config validated."""
     from tqdm import tqdm
 
-    init = None
-    if config.init_weights:
-        path = Path(config.init_weights)
-        init, _ = load_weights(path)
-        if network is not None and network != init.config:
-            raise ValueError(f"init_weights {path}: its network config differs from the "
-                             "one asked for")
-        network = init.config
-    network = network or NetworkConfig(theta_unit="deg")
+    init, network = _initial_network(config, network)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     train_set, test_set, cache = open_training_sets(
@@ -354,21 +346,8 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
         batch_instances=config.batch_instances)
     images_per_batch = max(1, config.batch_instances // train_set.offsets_per_image)
     device = torch_device(config.device)
-    resolved = {"train": config.identity_dict(), "network": network.to_dict(),
-                "train_data": str(train_dir), "test_data": str(test_dir),
-                "train_manifest_sha256": train_set.manifest_sha256,
-                "test_manifest_sha256": test_set.manifest_sha256}
-    if init is not None:
-        resolved["init_weights_sha256"] = tensors_sha256(init.state_dict())
-    # The datasets are identified by their manifests' content, not by where they lie.
-    located = resolved
-    resolved = {k: v for k, v in located.items() if k not in ("train_data", "test_data")}
-    config_hash = _identity_hash(resolved, exclude=NOT_IDENTITY)
-    # Checkpoints that hashed the dataset paths as well resume where the paths match.
-    located_hash = _identity_hash(located, exclude=NOT_IDENTITY)
-    # Checkpoints written before device, threads and max_memory_gb left the identity
-    # hashed them too: such a checkpoint resumes when they are given as they were.
-    legacy_hash = _identity_hash(located, exclude=("epochs",))
+    located, hashes = _identity(config, network, train_dir, test_dir, train_set, test_set, init)
+    config_hash = hashes[0]
 
     generator = torch.Generator().manual_seed(config.seed)
     model = (init if init is not None
@@ -377,27 +356,13 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
     # Creating an optimizer loads triton's LLVM; keep it apart from a renderer's
     # (drake_grasp.core.native).
     load_llvm_users_first()
-    if config.optimizer == "sgd":
-        optimizer = torch.optim.SGD(model.parameters(), lr=config.learning_rate,
-                                    momentum=config.momentum)
-    else:
-        optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+    optimizer = _optimizer(model, config)
     metrics = {"epochs": [], "num_train_images": len(train_set),
                "num_test_images": len(test_set), "num_train_labels": train_set.num_labels,
                "num_test_labels": test_set.num_labels}
-    start_epoch, in_epoch = 1, None
     ckpt_path = out / "checkpoint.pt"
-    if ckpt_path.exists():
-        ckpt = load_checkpoint(ckpt_path)
-        if ckpt["config_hash"] not in (config_hash, located_hash, legacy_hash):
-            raise ValueError(f"{ckpt_path}: made with another configuration or dataset; "
-                             "use another --out")
-        model.load_state_dict(ckpt["model"])  # copies onto the model's device
-        optimizer.load_state_dict(ckpt["optimizer"])  # state follows the parameters
-        generator.set_state(ckpt["generator"])
-        metrics = json.loads(ckpt["metrics_json"])
-        start_epoch = int(ckpt["epoch"]) + 1
-        in_epoch = json.loads(ckpt.get("in_epoch_json", "null"))
+    metrics, start_epoch, in_epoch = _resume(ckpt_path, hashes, model, optimizer, generator,
+                                             metrics)
     metrics.update(device=str(device), code_version=code_version())
     (out / "train_config.json").write_text(json.dumps(located, indent=1))
 
@@ -430,43 +395,16 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
                 last_save = time.perf_counter()
             bar.update(1)
             idx = np.sort(order[start:start + images_per_batch])
-            depth, offsets, labels = train_set.gather(idx)
-            images = model.preprocess(depth).to(device)
-            actions = torch.as_tensor(offsets, device=device, dtype=model.dtype)
-            targets = torch.as_tensor(labels, device=device, dtype=model.dtype)
-            del depth, offsets, labels  # one batch at a time within --max-memory-gb
-            pred = model.forward_factored(images, actions)
-            loss = training_loss(pred, targets, config)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            # The running figure is the L1 [m] whatever the loss, comparable across runs.
-            l1 = loss if config.loss == "l1" else (pred.detach() - targets).abs().mean()
-            total += float(l1.detach()) * targets.numel()
-            count += targets.numel()
-            del images, actions, targets, loss, pred, l1
+            l1_sum, n = _train_batch(model, optimizer, train_set, idx, device, config)
+            total += l1_sum
+            count += n
             bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
         bar.close()
         train_seconds = done_seconds + time.perf_counter() - t0
-        test_l1 = evaluate_l1(model, test_set, device=device, batch_images=images_per_batch)
-        ranking = {}
-        if config.ranking_images:
-            ranking = ranking_metrics(model, test_dir, images=config.ranking_images,
-                                      seed=config.seed, device=device)
-        metrics["epochs"].append({"epoch": epoch, "train_l1_m": total / max(count, 1),
-                                  "test_l1_m": test_l1, "seconds": train_seconds,
-                                  "samples_per_s": count / train_seconds, "learning_rate": lr,
-                                  "iterations": epoch * len(batches), "ranking": ranking,
-                                  "device": str(device), "chunk_loads": cache.loads})
-        metrics["test_l1_m"] = test_l1
-        # What the data loader held (bytes); depends on --max-memory-gb, not the result.
-        metrics["loader"] = {"max_memory_bytes": int(config.max_memory_gb * 1e9),
-                             "batch_reserve_bytes": cache.reserved_bytes,
-                             "cache_budget_bytes": cache.budget_bytes,
-                             "cache_peak_bytes": cache.peak_bytes,
-                             "dataset_bytes": (len(train_set) + len(test_set))
-                             * train_set.bytes_per_image,
-                             "chunk_loads": cache.loads}
+        _end_epoch(model, optimizer, metrics, epoch=epoch, lr=lr, total=total, count=count,
+                   train_seconds=train_seconds, iterations=epoch * len(batches),
+                   test_set=test_set, test_dir=test_dir, train_set=train_set, cache=cache,
+                   config=config, device=device, images_per_batch=images_per_batch)
         _save_checkpoint(ckpt_path, model, optimizer, epoch, generator.get_state(), metrics,
                          config_hash)
         tmp = out / f"metrics.json.{os.getpid()}.tmp"
@@ -482,3 +420,106 @@ def _train_locked(*, train_dir: Path, test_dir: Path, out: Path, config: TrainCo
         "epochs": len(metrics["epochs"]), "test_l1_m": metrics.get("test_l1_m"),
         "num_train_labels": metrics["num_train_labels"]})
     return metrics
+
+
+def _initial_network(config: TrainConfig, network: NetworkConfig | None) -> tuple:
+    """(the model to start from or None, its network config): `init_weights`' model and
+    config (a different `network` asked for is refused), else `network` or the paper's."""
+    init = None
+    if config.init_weights:
+        path = Path(config.init_weights)
+        init, _ = load_weights(path)
+        if network is not None and network != init.config:
+            raise ValueError(f"init_weights {path}: its network config differs from the "
+                             "one asked for")
+        network = init.config
+    return init, network or NetworkConfig(theta_unit="deg")
+
+
+def _identity(config, network, train_dir, test_dir, train_set, test_set, init) -> tuple:
+    """(the resolved run config with the datasets' folders, the hashes a checkpoint may
+    carry to resume: this config's, the one with the folders, the legacy one)."""
+    resolved = {"train": config.identity_dict(), "network": network.to_dict(),
+                "train_data": str(train_dir), "test_data": str(test_dir),
+                "train_manifest_sha256": train_set.manifest_sha256,
+                "test_manifest_sha256": test_set.manifest_sha256}
+    if init is not None:
+        resolved["init_weights_sha256"] = tensors_sha256(init.state_dict())
+    # The datasets are identified by their manifests' content, not by where they lie.
+    located = resolved
+    resolved = {k: v for k, v in located.items() if k not in ("train_data", "test_data")}
+    config_hash = _identity_hash(resolved, exclude=NOT_IDENTITY)
+    # Checkpoints that hashed the dataset paths as well resume where the paths match.
+    located_hash = _identity_hash(located, exclude=NOT_IDENTITY)
+    # Checkpoints written before device, threads and max_memory_gb left the identity
+    # hashed them too: such a checkpoint resumes when they are given as they were.
+    legacy_hash = _identity_hash(located, exclude=("epochs",))
+    return located, (config_hash, located_hash, legacy_hash)
+
+
+def _optimizer(model, config: TrainConfig):
+    if config.optimizer == "sgd":
+        return torch.optim.SGD(model.parameters(), lr=config.learning_rate,
+                               momentum=config.momentum)
+    return torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+
+
+def _resume(ckpt_path: Path, hashes: tuple, model, optimizer, generator, metrics: dict) -> tuple:
+    """(metrics, first epoch to run, the unfinished epoch's state or None): from the
+    checkpoint when there is one (model, optimizer and generator restored), else as given."""
+    if not ckpt_path.exists():
+        return metrics, 1, None
+    ckpt = load_checkpoint(ckpt_path)
+    if ckpt["config_hash"] not in hashes:
+        raise ValueError(f"{ckpt_path}: made with another configuration or dataset; "
+                         "use another --out")
+    model.load_state_dict(ckpt["model"])  # copies onto the model's device
+    optimizer.load_state_dict(ckpt["optimizer"])  # state follows the parameters
+    generator.set_state(ckpt["generator"])
+    metrics = json.loads(ckpt["metrics_json"])
+    return (metrics, int(ckpt["epoch"]) + 1,
+            json.loads(ckpt.get("in_epoch_json", "null")))
+
+
+def _train_batch(model, optimizer, train_set, idx, device, config: TrainConfig) -> tuple:
+    """One optimizer step on the images `idx`: (their L1 [m] times their label count, the
+    label count)."""
+    depth, offsets, labels = train_set.gather(idx)
+    images = model.preprocess(depth).to(device)
+    actions = torch.as_tensor(offsets, device=device, dtype=model.dtype)
+    targets = torch.as_tensor(labels, device=device, dtype=model.dtype)
+    del depth, offsets, labels  # one batch at a time within --max-memory-gb
+    pred = model.forward_factored(images, actions)
+    loss = training_loss(pred, targets, config)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    # The running figure is the L1 [m] whatever the loss, comparable across runs.
+    l1 = loss if config.loss == "l1" else (pred.detach() - targets).abs().mean()
+    return float(l1.detach()) * targets.numel(), targets.numel()
+
+
+def _end_epoch(model, optimizer, metrics: dict, *, epoch, lr, total, count, train_seconds,
+               iterations, test_set, test_dir, train_set, cache, config, device,
+               images_per_batch) -> None:
+    """Adds the finished epoch's figures (test L1, ranking, what the loader held) to
+    `metrics`."""
+    test_l1 = evaluate_l1(model, test_set, device=device, batch_images=images_per_batch)
+    ranking = {}
+    if config.ranking_images:
+        ranking = ranking_metrics(model, test_dir, images=config.ranking_images,
+                                  seed=config.seed, device=device)
+    metrics["epochs"].append({"epoch": epoch, "train_l1_m": total / max(count, 1),
+                              "test_l1_m": test_l1, "seconds": train_seconds,
+                              "samples_per_s": count / train_seconds, "learning_rate": lr,
+                              "iterations": iterations, "ranking": ranking,
+                              "device": str(device), "chunk_loads": cache.loads})
+    metrics["test_l1_m"] = test_l1
+    # What the data loader held (bytes); depends on --max-memory-gb, not the result.
+    metrics["loader"] = {"max_memory_bytes": int(config.max_memory_gb * 1e9),
+                         "batch_reserve_bytes": cache.reserved_bytes,
+                         "cache_budget_bytes": cache.budget_bytes,
+                         "cache_peak_bytes": cache.peak_bytes,
+                         "dataset_bytes": (len(train_set) + len(test_set))
+                         * train_set.bytes_per_image,
+                         "chunk_loads": cache.loads}
