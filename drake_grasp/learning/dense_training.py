@@ -37,7 +37,8 @@ from drake_grasp.cnn.net_config import NetworkConfig
 from drake_grasp.cnn.network import DistanceCNN
 from drake_grasp.cnn.weights_io import load_weights, save_weights
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
-from drake_grasp.learning.common import full_float32
+from drake_grasp.core.files import atomic_write_text
+from drake_grasp.learning.common import full_float32, torch_device
 from drake_grasp.learning.dense_labels import LabelStore, build_labels, view_masks
 from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, pairwise_rank_loss, rank_pairs
 
@@ -377,6 +378,51 @@ def _end_epoch(model, sched, out: Path, identity: dict, test_data, *, epoch: int
 
 
 @full_float32()
+def _model_state(ckpt_path: Path, cfg: NetworkConfig, identity: dict, out: Path, init_net,
+                 store, *, batch_norm: bool, seed: int, device, lr: float,
+                 lr_decay: float) -> tuple:
+    """(model, Adam, its learning-rate schedule, the run's state: `_start_state`), from the
+    checkpoint when there is one. The optimizer is made (and its state loaded) after the
+    model's move to `device`, so that its state lives where the parameters do."""
+    from drake_grasp.learning.common import load_checkpoint
+
+    net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
+    model = BatchNormTrunk(net) if batch_norm else net
+    ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
+    state = _start_state(model, net, ckpt, identity, out, init_net, cfg,
+                         batch_norm=batch_norm, seed=seed, store=store)
+    model.to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay)
+    if ckpt is not None:
+        opt.load_state_dict(ckpt["opt"])
+        sched.load_state_dict(ckpt["sched"])
+        del ckpt  # its tensors are copied into the model and optimizer
+    return model, opt, sched, state
+
+
+def _train_batch(model, opt, store, rows, cfg: NetworkConfig, camera_z: float, device, *,
+                 augment: str, rank_terms, key: tuple) -> tuple:
+    """One Adam step on the images `rows` of the epoch's order (their augmentation and
+    rank pairs drawn from `key` = (seed, epoch, batch)): (their L1 times their count, the
+    rank loss times their count or None, their count)."""
+    seed, epoch, batch_index = key
+    idx = np.sort(rows)
+    store.release_before(idx)
+    data = store.take(idx)
+    if augment != "none":
+        data = augment_batch(data, augment,
+                             np.random.default_rng([seed, 3, epoch, batch_index]))
+    loss, objective, rank_loss = _batch_objective(
+        model, data, cfg, camera_z, device, rank_terms, len(idx),
+        np.random.default_rng([seed, 4, epoch, batch_index]) if rank_terms is not None else None)
+    rank_sum = float(rank_loss.detach()) * len(idx) if rank_terms is not None else None
+    opt.zero_grad(set_to_none=True)
+    objective.backward()
+    opt.step()
+    return float(loss.detach()) * len(idx), rank_sum, len(idx)
+
+
 def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
@@ -413,14 +459,10 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     """
     from tqdm import tqdm
 
-    from drake_grasp.core.files import atomic_write_text
     from drake_grasp.world.station import gripper_frame_offsets
-    from drake_grasp.learning.common import load_checkpoint, torch_device
 
-    rank = _rank_settings(augment, rank_weight, rank_pairs_per_image, rank_scale_m,
-                          rank_margin_m)
-    rank_terms = ((rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m)
-                  if rank is not None else None)
+    rank = _rank_settings(augment, rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m)
+    rank_terms = (rank_weight, rank_pairs_per_image, rank_scale_m, rank_margin_m) if rank else None
     torch.set_num_threads(threads)
     device = torch_device(device)
     out = Path(out)
@@ -428,26 +470,13 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
     folders, cfg = _run_config(labels_dir, trunk)
     init_net = _init_net(init, cfg)
     store = LabelStore(folders, stream_shards)
-    n_images = store.n_images
-    identity = _identity(folders, n_images, cfg, init_net, batch=batch, lr=lr, lr_decay=lr_decay,
-                         seed=seed, batch_norm=batch_norm, stream_shards=stream_shards,
-                         augment=augment, rank=rank)
-    net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
-    model = BatchNormTrunk(net) if batch_norm else net
+    identity = _identity(folders, store.n_images, cfg, init_net, batch=batch, lr=lr,
+                         lr_decay=lr_decay, seed=seed, batch_norm=batch_norm,
+                         stream_shards=stream_shards, augment=augment, rank=rank)
     ckpt_path = out / "checkpoint.pt"
-    ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
-    epoch, batch_index, total, count, rank_total, metrics = _start_state(
-        model, net, ckpt, identity, out, init_net, cfg, batch_norm=batch_norm, seed=seed,
-        store=store)
-    # The optimizer is made (and its state loaded) after the move, so that its state
-    # lives where the parameters do.
-    model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay)
-    if ckpt is not None:
-        opt.load_state_dict(ckpt["opt"])
-        sched.load_state_dict(ckpt["sched"])
-        del ckpt  # its tensors are copied into the model and optimizer
+    model, opt, sched, (epoch, batch_index, total, count, rank_total, metrics) = _model_state(
+        ckpt_path, cfg, identity, out, init_net, store, batch_norm=batch_norm, seed=seed,
+        device=device, lr=lr, lr_decay=lr_decay)
     camera_z = float(gripper_frame_offsets()[2].translation()[2])
 
     def checkpoint():
@@ -457,7 +486,7 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
             "metrics": json.dumps(metrics),
             "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict()})
 
-    starts = list(range(0, n_images, batch))
+    starts = list(range(0, store.n_images, batch))
     done_batches = 0
     last_ckpt = time.perf_counter()
     while epoch < epochs:
@@ -466,24 +495,13 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
         bar = tqdm(starts, initial=batch_index, total=len(starts), desc=f"epoch {epoch + 1}",
                    unit="batch", disable=not progress)
         for start in starts[batch_index:]:
-            idx = np.sort(order[start:start + batch])
-            store.release_before(idx)
-            data = store.take(idx)
-            if augment != "none":
-                data = augment_batch(data, augment,
-                                     np.random.default_rng([seed, 3, epoch, batch_index]))
-            loss, objective, rank_loss = _batch_objective(
-                model, data, cfg, camera_z, device, rank_terms, len(idx),
-                np.random.default_rng([seed, 4, epoch, batch_index]) if rank is not None else None)
+            loss_sum, rank_sum, n = _train_batch(
+                model, opt, store, order[start:start + batch], cfg, camera_z, device,
+                augment=augment, rank_terms=rank_terms, key=(seed, epoch, batch_index))
             if rank is not None:
-                rank_total += float(rank_loss.detach()) * len(idx)
-            opt.zero_grad(set_to_none=True)
-            objective.backward()
-            opt.step()
-            total += float(loss.detach()) * len(idx)
-            count += len(idx)
-            batch_index += 1
-            done_batches += 1
+                rank_total += rank_sum
+            total, count = total + loss_sum, count + n
+            batch_index, done_batches = batch_index + 1, done_batches + 1
             bar.update(1)
             bar.set_postfix(l1_mm=f"{1000 * total / count:.1f}")
             if time.perf_counter() - last_ckpt > 60 * checkpoint_minutes:
