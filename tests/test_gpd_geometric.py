@@ -11,15 +11,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from drake_grasp.policies.gpd_geometric import (
-    DetectedGrasps,
-    ScoreWeights,
-    best_grasp,
+from drake_grasp.policies.gpd_geometric import best_grasp, detect_grasps
+from drake_grasp.policies.gpd_geometric_cloud import (
     camera_intrinsics,
     depth_to_points,
-    detect_grasps,
     remove_table,
 )
+from drake_grasp.policies.gpd_geometric_results import DetectedGrasps, ScoreWeights
 from drake_grasp.geometry.grasps import (
     TABLE_TOP_Z_M,
     angle_difference_deg,
