@@ -12,7 +12,7 @@ from drake_grasp.learning.dataset import SceneSamples, shard_name, write_shard
 from drake_grasp.learning.dense_training import (GRID_CONFIG, augment_batch, build_labels,
     grid_node_actions, load_labels, nearest_grasp_tree, train, tree_distances, view_masks)
 from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images
-from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 from drake_grasp.world.station import gripper_frame_offsets
 
 CAMERA_Z = float(gripper_frame_offsets()[2].translation()[2])

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from drake_grasp.geometry.grasps import ANGLE_WEIGHT_M_PER_DEG
+from drake_grasp.geometry.grasp_metric import ANGLE_WEIGHT_M_PER_DEG
 from drake_grasp.cnn.network import (DistanceCNN, NetworkConfig, grid_view_mask, load_weights,
                                   save_weights)
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images

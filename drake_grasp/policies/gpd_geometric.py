@@ -83,9 +83,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from drake_grasp.geometry.grasps import (
-    FINGER_OUTER_X_M,
+from drake_grasp.geometry.contact_physics import force_closure
+from drake_grasp.geometry.hand_model import (
     FINGERTIP_Z_M,
+    FINGER_OUTER_X_M,
     HAND_FOOTPRINT_RADIUS_M,
     HOUSING_FRONT_Z_M,
     HOUSING_RADIUS_M,
@@ -95,7 +96,6 @@ from drake_grasp.geometry.grasps import (
     PALM_HALF_X_M,
     PALM_HALF_Y_M,
     STROKE_M,
-    force_closure,
     topdown_rotation,
 )
 
