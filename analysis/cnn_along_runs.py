@@ -34,7 +34,8 @@ def parse_seeds(text: str) -> list[int]:
 def run(seeds: list[int], *, weights: str = "", scenario_name: str = "isolation") -> dict:
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.evaluation.episode import simulate_episode
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.scene import scenario_scene

@@ -23,7 +23,8 @@ import sys
 from pathlib import Path
 
 from drake_grasp.evaluation.episode import simulate_episode
-from drake_grasp.geometry.grasps import FINGER_OUTER_X_M, FINGERTIP_Z_M, PAD_HALF_WIDTH_M, STROKE_M
+from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M, PAD_HALF_WIDTH_M,
+                                             STROKE_M)
 from drake_grasp.evaluation.replay import recorded_scenario
 from drake_grasp.policies.decisions import heights_in_hand_box, image_points_W
 from drake_grasp.evaluation.records import load_records

@@ -41,7 +41,8 @@ def _scene_task(index, seed, split, num_samples, candidates=128):
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.policies.decisions import sample_candidates
     from drake_grasp.learning.dataset import DatasetConfig, SceneSamples, generate_scene
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.scene import SceneSpec

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from drake_grasp.geometry.actions import apply_actions, hand_axes, view_half_extent_m
-from drake_grasp.geometry.grasps import grasp_distance
+from drake_grasp.geometry.grasp_metric import grasp_distance
 from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.config.scenario import Scenario
 from drake_grasp.world.station import gripper_frame_offsets

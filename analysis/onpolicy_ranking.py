@@ -53,7 +53,8 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     from drake_grasp.learning.dataset import DatasetConfig
     from drake_grasp.evaluation.episode import simulate_episode
     from drake_grasp.evaluation.episode_diagram import controller_class
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
     from drake_grasp.evaluation.replay import recorded_pile
     from drake_grasp.evaluation.trial_worker import _model
     from drake_grasp.objects import load_library

@@ -48,7 +48,7 @@ def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
     every decision (`phase` "all"), only in the descent ("descent": before the stop
     rule has fired) or only at the stop height ("stop": the decisions after it fired)."""
     from drake_grasp.geometry.actions import apply_actions
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
     from drake_grasp.policies.controller import GraspController
 
     class OracleController(GraspController):

@@ -25,7 +25,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from drake_grasp.geometry.grasps import topdown_rotation
+from drake_grasp.geometry.hand_model import topdown_rotation
 from drake_grasp.systems.supervisor import MOTION_PHASES
 
 LIFT = MOTION_PHASES.index("lift")

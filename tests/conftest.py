@@ -22,7 +22,7 @@ def across_can():
     the can's side along the closing direction."""
     from pydrake.math import RigidTransform, RotationMatrix
 
-    from drake_grasp.geometry.grasps import topdown_rotation
+    from drake_grasp.geometry.hand_model import topdown_rotation
     from drake_grasp.objects import visual_mesh
 
     def pose(scene, library, offset_m=0.0):

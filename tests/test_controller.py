@@ -31,7 +31,7 @@ class StandInEvaluator(LeafSystem):
                                        self._Calc)
 
     def _Calc(self, context, output):
-        from drake_grasp.geometry.grasps import grasp_distance
+        from drake_grasp.geometry.grasp_metric import grasp_distance
 
         actions = self.get_input_port(0).Eval(context)
         X = self.get_input_port(1).Eval(context)

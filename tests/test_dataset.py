@@ -99,7 +99,7 @@ def test_near_grasp_images_look_near_a_true_grasp_and_leave_the_others_unchanged
     true grasps (within the configured range, so their zero-offset label is at most
     the range's reach); the scenes, the other images and their labels are those of the
     plain dataset; the plain config's identity (and so its folders' hash) is unchanged."""
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 
     out, _ = reference
     cfg = DatasetConfig(**TINY, near_grasp_fraction=0.34)  # 1 of 3 images per scene
@@ -440,7 +440,7 @@ def test_the_ranking_metrics_true_distances_are_the_datasets_own_labels(referenc
     """cnn_metrics labels new candidates with the shard's grasps and the dataset's label
     function: on the stored offsets that gives the stored labels back."""
     from drake_grasp.geometry.actions import apply_actions
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 
     out, manifest = reference
     data = DepthGraspDataset(out)

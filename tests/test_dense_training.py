@@ -15,7 +15,7 @@ from drake_grasp.learning.dense_labels import (GRID_CONFIG, build_labels, grid_n
                                                view_masks)
 from drake_grasp.learning.dense_training import augment_batch, train
 from drake_grasp.cnn.views import AUGMENTATIONS, optical_axis_px, turn_grids, turn_images
-from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 from drake_grasp.world.station import gripper_frame_offsets
 
 CAMERA_Z = float(gripper_frame_offsets()[2].translation()[2])

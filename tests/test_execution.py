@@ -8,7 +8,7 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from drake_grasp.geometry.grasps import FINGERTIP_Z_M
+from drake_grasp.geometry.hand_model import FINGERTIP_Z_M
 from drake_grasp.policies.decisions import grasp_axis_pixel, grasp_height
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose

@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from drake_grasp.policies import gpd, gpd_ranking
-from drake_grasp.geometry.grasps import TABLE_TOP_Z_M, topdown_rotation
+from drake_grasp.geometry.hand_model import TABLE_TOP_Z_M, topdown_rotation
 
 
 def _view(height=0.6, xy=(0.5, 0.0)):

@@ -18,14 +18,11 @@ from drake_grasp.policies.gpd_geometric_cloud import (
     remove_table,
 )
 from drake_grasp.policies.gpd_geometric_results import DetectedGrasps, ScoreWeights
-from drake_grasp.geometry.grasps import (
-    TABLE_TOP_Z_M,
-    angle_difference_deg,
-    check_grasp_poses,
-    force_closure,
-    sample_scene_points,
-    topdown_rotation,
-)
+from drake_grasp.geometry.contact_physics import force_closure
+from drake_grasp.geometry.grasp_metric import angle_difference_deg
+from drake_grasp.geometry.hand_checks import check_grasp_poses
+from drake_grasp.geometry.hand_model import TABLE_TOP_Z_M, topdown_rotation
+from drake_grasp.geometry.scene_samples import sample_scene_points
 
 FOV_Y_DEG = 55.0
 SIZE = 64
@@ -317,7 +314,9 @@ def test_bad_arguments_are_named():
 def test_rendered_tetra_pak_best_detection_is_a_true_grasp(library):
     pytest.importorskip("pydrake")
     from drake_grasp.learning.dataset import SceneRenderer
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps, scene_meshes
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.geometry.scene_samples import scene_meshes
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.scene import build_scene_world, make_scene
     from drake_grasp.geometry.sensing import postprocess_depth

@@ -5,22 +5,24 @@ import numpy as np
 import pytest
 import trimesh
 
-from drake_grasp.geometry.grasps import (
+from drake_grasp.geometry.contact_physics import force_closure
+from drake_grasp.geometry.grasp_candidates import sample_grasp_candidates
+from drake_grasp.geometry.grasp_metric import (
+    angle_difference_deg,
+    distance_to_nearest_grasp,
+    grasp_distance,
+)
+from drake_grasp.geometry.grasps import GraspSet, find_grasps, find_grasps_in_meshes
+from drake_grasp.geometry.hand_checks import check_grasp_poses
+from drake_grasp.geometry.hand_model import (
     FINGERTIP_Z_M,
     PAD_HALF_WIDTH_M,
     TABLE_TOP_Z_M,
-    GraspSet,
-    angle_difference_deg,
-    check_grasp_poses,
-    distance_to_nearest_grasp,
-    find_grasps,
-    find_grasps_in_meshes,
-    force_closure,
-    grasp_distance,
-    sample_grasp_candidates,
+    topdown_rotation,
+)
+from drake_grasp.geometry.scene_samples import (
     sample_scene_points,
     scene_meshes,
-    topdown_rotation,
 )
 
 CLEARANCE = 0.002  # find_grasps_in_meshes' default table_clearance_m

@@ -51,9 +51,16 @@ def test_gravity_torque_ratio_of_an_off_centre_grasp():
     high) and the centre of mass (22 mm high)."""
     import trimesh
 
-    from drake_grasp.geometry.grasps import (
-        GRAVITY_M_S2, SHAKE_ACCELERATION_M_S2, ObjectMasses, check_grasp_poses,
-        sample_scene_points, topdown_rotation)
+    from drake_grasp.geometry.contact_physics import (
+        GRAVITY_M_S2,
+        SHAKE_ACCELERATION_M_S2,
+    )
+    from drake_grasp.geometry.hand_checks import check_grasp_poses
+    from drake_grasp.geometry.hand_model import topdown_rotation
+    from drake_grasp.geometry.scene_samples import (
+        ObjectMasses,
+        sample_scene_points,
+    )
 
     box = trimesh.creation.box((0.04, 0.20, 0.04))
     box.apply_translation([0.5, 0.0, 0.022])
@@ -107,7 +114,8 @@ def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
 
 
 def test_displaced_pose_has_the_asked_metric_distance():
-    from drake_grasp.geometry.grasps import grasp_distance, topdown_rotation
+    from drake_grasp.geometry.grasp_metric import grasp_distance
+    from drake_grasp.geometry.hand_model import topdown_rotation
     from drake_grasp.evaluation.tolerance import displaced_pose, random_offset
 
     X = np.eye(4)

@@ -67,7 +67,7 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
         assert z["depth"].shape == (meta["decisions"], 64, 64)
         assert np.isfinite(z["true"]).all() and (z["true"] >= 0).all()
         from drake_grasp.geometry.actions import apply_actions
-        from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+        from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 
         moved = apply_actions(z["hand"][0, [0, 1, 3]][None], z["actions"][0][None])[0]
         np.testing.assert_allclose(distance_to_nearest_grasp(moved, z["grasps"]), z["true"][0])
@@ -100,7 +100,7 @@ def test_labels_label_every_kept_image_as_the_dataset_and_train_grid_reads_them(
     O = analysis_script("onpolicy_ranking")
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.learning.dense_labels import GRID_CONFIG, LabelStore, grid_node_actions
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 
     rng = np.random.default_rng(5)
     col = tmp_path / "collect"

@@ -93,7 +93,7 @@ def test_gpd_viewpoint_sees_the_top_of_an_upright_hammer(library):
     builds of an upright hammer_000 (0.283 m tall) reaches to within 5 mm of its top."""
     from drake_grasp.policies import gpd
     from drake_grasp.learning.gpd_training import experiment_view
-    from drake_grasp.geometry.grasps import scene_meshes
+    from drake_grasp.geometry.scene_samples import scene_meshes
 
     # The isolation experiment's trial 26: "lying" turned this hammer onto its end.
     scenario = load_scenario(scenario_name="isolation", scenario_text=(

@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_grasp.geometry.grasps import (
+from drake_grasp.geometry.hand_model import (
     STROKE_M,
+    topdown_rotation,
+)
+from drake_grasp.geometry.topdown import (
     plan_topdown_grasp,
     points_between_pads,
-    topdown_rotation,
 )
 from drake_grasp.config.sections import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.gripper import GripperController, gripper_pd_target

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import sys
 
-from drake_grasp.cli.args import add_scenario_flags, load_scenario_from_args, positive_float, non_negative_float, positive_int, trunk_widths, add_torque_ratio_flag
+from drake_grasp.cli.args import (add_scenario_flags, load_scenario_from_args, positive_float,
+                                  non_negative_float, positive_int, trunk_widths,
+                                  add_torque_ratio_flag)
 
 
 def _cmd_generate(args) -> int:

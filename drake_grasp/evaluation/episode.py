@@ -78,7 +78,7 @@ def _pose_dict(X) -> dict:
 
 def _hand_xy_yaw(X_WG) -> np.ndarray:
     """[x, y, yaw_deg] of a grasp-frame pose (`grasps.planar_grasp_xy_yaw`)."""
-    from drake_grasp.geometry.grasps import planar_grasp_xy_yaw
+    from drake_grasp.geometry.grasp_metric import planar_grasp_xy_yaw
 
     return planar_grasp_xy_yaw(X_WG.GetAsMatrix4())
 
@@ -103,7 +103,8 @@ def final_distance(plant, plant_context, station, scene: SceneSpec, library, see
     nearest ground-truth grasp of the scene as it is now (objects where they are), the
     ground truth searched from `num_samples` surface points (`judge.distance_grasp_samples`;
     400 as in the dataset's labels)."""
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
 
     now = _scene_now(plant, plant_context, station, scene)
     grasps = find_grasps(now, library, np.random.default_rng([seed, 61]),

@@ -34,7 +34,8 @@ def plan_scripted_grasp(scene: SceneSpec, library: ObjectLibrary,
     centre is nearest that object's centre of mass (horizontally). Returns (object index,
     its surface points in the object frame, X_WG as a 4x4), with X_WG None when no object
     has a ground-truth grasp (the supervisor then plans with `plan_topdown_grasp`)."""
-    from drake_grasp.geometry.grasps import ObjectMasses, find_grasps
+    from drake_grasp.geometry.grasps import find_grasps
+    from drake_grasp.geometry.scene_samples import ObjectMasses
 
     grasps = find_grasps(scene, library, np.random.default_rng([int(seed), 67]))
     center = np.asarray(scene.center_xy_m, dtype=float)
@@ -55,7 +56,7 @@ def choose_scripted_target(scene: SceneSpec, library: ObjectLibrary) -> tuple[in
     """The object the scripted grasp goes for: the one nearest the workspace centre that
     a top-down grasp fits (else simply the nearest). Returns (index, surface points in
     the object frame)."""
-    from drake_grasp.geometry.grasps import plan_topdown_grasp
+    from drake_grasp.geometry.topdown import plan_topdown_grasp
 
     center = np.asarray(scene.center_xy_m, dtype=float)
     order = np.argsort([np.linalg.norm(np.asarray(o.xyz[:2]) - center) for o in scene.objects])

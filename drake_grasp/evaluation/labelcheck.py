@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.geometry.grasps import MAX_TORQUE_RATIO
+from drake_grasp.geometry.contact_physics import MAX_TORQUE_RATIO
 from drake_grasp.evaluation.records import wilson_interval
 from drake_grasp.core.files import atomic_write_bytes, atomic_write_text
 
@@ -325,7 +325,8 @@ def failure_picture(records: list[dict], path, *, library, max_panels: int = 16)
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
-    from drake_grasp.geometry.grasps import PAD_HALF_WIDTH_M, scene_meshes
+    from drake_grasp.geometry.hand_model import PAD_HALF_WIDTH_M
+    from drake_grasp.geometry.scene_samples import scene_meshes
     from drake_grasp.world.scene import SceneSpec
 
     fails = [(r, c) for r in records for c in r["checks"]

@@ -161,7 +161,8 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     """Re-runs one recorded trial exactly (its resolved scenario, and for clutter attempts
     the pile it started from) and writes its episode files with the replay page."""
     from drake_grasp.evaluation.episode import run_episode
-    from drake_grasp.evaluation.records import RUN_INFO_FILE, load_records, read_run_info, replay_path
+    from drake_grasp.evaluation.records import (RUN_INFO_FILE, load_records, read_run_info,
+                                                replay_path)
     from drake_grasp.world.scene import SceneSpec
 
     results_dir = Path(results_dir)

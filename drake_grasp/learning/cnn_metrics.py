@@ -32,7 +32,7 @@ import torch
 
 from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.learning.dataset_shards import DepthGraspDataset
-from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 from drake_grasp.cnn.network import DistanceCNN
 from drake_grasp.policies.decisions import sample_candidates
 

@@ -279,7 +279,8 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
     scene has no ground-truth grasp (nothing to learn from).
     """
     from drake_grasp.geometry.actions import apply_actions, sample_actions_in_view
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.world.scene import build_scene_world, settle_world
     from drake_grasp.geometry.sensing import frame_rng, postprocess_depth
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.geometry.grasps import ANGLE_WEIGHT_M_PER_DEG
+from drake_grasp.geometry.grasp_metric import ANGLE_WEIGHT_M_PER_DEG
 from drake_grasp.cnn.grid_head import grid_view_mask
 from drake_grasp.cnn.net_config import NetworkConfig
 

@@ -104,7 +104,7 @@ def _render_view(world, camera, X_WC: np.ndarray) -> np.ndarray:
 def view_pose(center_xy, camera_height_m: float, yaw_rad: float = 0.0) -> np.ndarray:
     """X_WC of a camera `camera_height_m` above the table over `center_xy`, looking down
     (Drake's camera frame: +z the optical axis)."""
-    from drake_grasp.geometry.grasps import topdown_rotation
+    from drake_grasp.geometry.hand_model import topdown_rotation
 
     X = np.eye(4)
     X[:3, :3] = topdown_rotation(yaw_rad)
@@ -120,7 +120,8 @@ def ground_truth_passes(settled, library, poses, rng: np.random.Generator,
     one object both its pads touch (index into the scene's objects; -1: none, or two
     different objects) from the first sampling that finds one. No pose: nothing is drawn
     from `rng`."""
-    from drake_grasp.geometry.grasps import ObjectMasses, check_grasp_poses, sample_scene_points, scene_meshes
+    from drake_grasp.geometry.hand_checks import check_grasp_poses
+    from drake_grasp.geometry.scene_samples import ObjectMasses, sample_scene_points, scene_meshes
 
     poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
     passes = np.zeros(len(poses), dtype=np.int64)

@@ -41,9 +41,9 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
 from drake_grasp.geometry.actions import action_between, apply_actions, sample_actions_in_view
-from drake_grasp.geometry.grasps import (
-    FINGER_OUTER_X_M,
+from drake_grasp.geometry.hand_model import (
     FINGERTIP_Z_M,
+    FINGER_OUTER_X_M,
     PAD_HALF_WIDTH_M,
     STROKE_M,
     topdown_rotation,

@@ -14,18 +14,10 @@ from __future__ import annotations
 import numpy as np
 
 from drake_grasp.geometry.camera import PinholeCamera
-from drake_grasp.geometry.grasps import (
-    FINGER_OUTER_X_M,
-    FINGERTIP_Z_M,
-    HOUSING_FRONT_Z_M,
-    HOUSING_RADIUS_M,
-    PAD_HALF_WIDTH_M,
-    PALM_FRONT_Z_M,
-    PALM_HALF_X_M,
-    PALM_HALF_Y_M,
-    STROKE_M,
-)
-from drake_grasp.geometry.grasps import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
+from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M, HOUSING_FRONT_Z_M,
+                                             HOUSING_RADIUS_M, PAD_HALF_WIDTH_M, PALM_FRONT_Z_M,
+                                             PALM_HALF_X_M, PALM_HALF_Y_M, STROKE_M)
+from drake_grasp.geometry.grasp_metric import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
 
 # The policies that decide at every control step (CTR, and CTR after a one-shot start).
 CLOSED_LOOP_POLICIES = ("ctr", "cnn-ctr")
@@ -75,7 +67,7 @@ def memory_penalty(hand_xy_yaw, actions: np.ndarray, failed_xy_yaw: np.ndarray,
     takes the hand [m] (0 outside; `scenario.FailureMemoryConfig`): added to the
     predicted distances, it fills the CNN's valley at a grasp that already failed."""
     from drake_grasp.geometry.actions import apply_actions
-    from drake_grasp.geometry.grasps import grasp_distance
+    from drake_grasp.geometry.grasp_metric import grasp_distance
 
     actions = np.asarray(actions, float)
     failed = np.asarray(failed_xy_yaw, float).reshape(-1, 3)

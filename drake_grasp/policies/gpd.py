@@ -55,14 +55,10 @@ import torch
 from torch import nn
 
 from drake_grasp.geometry.camera import PinholeCamera
-from drake_grasp.geometry.grasps import (
-    DEFAULT_DEPTHS_M,
-    STROKE_M,
-    TABLE_TOP_Z_M,
-    ScenePoints,
-    evaluate_hands,
-    evaluation_poses,
-)
+from drake_grasp.geometry.grasp_candidates import DEFAULT_DEPTHS_M
+from drake_grasp.geometry.hand_checks import evaluate_hands, evaluation_poses
+from drake_grasp.geometry.hand_model import STROKE_M, TABLE_TOP_Z_M
+from drake_grasp.geometry.scene_samples import ScenePoints
 from drake_grasp.policies.gpd_ranking import Detections, Selection, select
 
 # The weights files' format id (in their metadata; the shipped models/gpd/ carries it): a name,

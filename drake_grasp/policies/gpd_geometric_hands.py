@@ -21,20 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from drake_grasp.geometry.grasps import (
-    FINGER_OUTER_X_M,
-    FINGERTIP_Z_M,
-    HAND_FOOTPRINT_RADIUS_M,
-    HOUSING_FRONT_Z_M,
-    HOUSING_RADIUS_M,
-    PAD_HALF_LENGTH_M,
-    PAD_HALF_WIDTH_M,
-    PALM_FRONT_Z_M,
-    PALM_HALF_X_M,
-    PALM_HALF_Y_M,
-    STROKE_M,
-    force_closure,
-)
+from drake_grasp.geometry.contact_physics import force_closure
+from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M,
+                                             HAND_FOOTPRINT_RADIUS_M, HOUSING_FRONT_Z_M,
+                                             HOUSING_RADIUS_M, PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M,
+                                             PALM_FRONT_Z_M, PALM_HALF_X_M, PALM_HALF_Y_M, STROKE_M)
 from drake_grasp.policies.gpd_geometric_cloud import OrganizedCloud, _contact_normals
 
 HALF_STROKE_M = 0.5 * STROKE_M

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drake_grasp.geometry.grasps import topdown_rotation
+from drake_grasp.geometry.hand_model import topdown_rotation
 from drake_grasp.policies.gpd_geometric_checks import _finite
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drake_grasp.geometry.grasps import PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M
+from drake_grasp.geometry.hand_model import PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M
 from drake_grasp.policies.gpd_geometric_hands import (
     HALF_STROKE_M,
     HandSweep,

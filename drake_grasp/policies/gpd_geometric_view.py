@@ -13,17 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drake_grasp.geometry.grasps import (
-    FINGER_OUTER_X_M,
-    FINGERTIP_Z_M,
-    HOUSING_FRONT_Z_M,
-    HOUSING_RADIUS_M,
-    PAD_HALF_LENGTH_M,
-    PAD_HALF_WIDTH_M,
-    PALM_FRONT_Z_M,
-    PALM_HALF_X_M,
-    PALM_HALF_Y_M,
-)
+from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M, HOUSING_FRONT_Z_M,
+                                             HOUSING_RADIUS_M, PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M,
+                                             PALM_FRONT_Z_M, PALM_HALF_X_M, PALM_HALF_Y_M)
 from drake_grasp.policies.gpd_geometric_cloud import OrganizedCloud, camera_intrinsics
 from drake_grasp.policies.gpd_geometric_hands import HALF_STROKE_M
 

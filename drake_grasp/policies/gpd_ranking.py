@@ -98,7 +98,7 @@ class Detections:
         if not len(self.poses):
             return None
         if avoid_xy_yaw is not None and len(avoid_xy_yaw) and radius_m > 0.0:
-            from drake_grasp.geometry.grasps import grasp_distance, planar_grasp_xy_yaw
+            from drake_grasp.geometry.grasp_metric import grasp_distance, planar_grasp_xy_yaw
 
             planar = planar_grasp_xy_yaw(self.poses)
             near = grasp_distance(planar[:, None, :],

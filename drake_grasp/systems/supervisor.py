@@ -18,7 +18,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_grasp.geometry.grasps import plan_topdown_grasp
+from drake_grasp.geometry.topdown import plan_topdown_grasp
 from drake_grasp.config.sections import GripperConfig, ScriptedGraspConfig
 from drake_grasp.systems.state import shared_when_copied
 

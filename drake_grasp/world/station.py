@@ -61,7 +61,7 @@ from pydrake.systems.primitives import StateInterpolatorWithDiscreteDerivative
 from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
 from drake_grasp.core.assets import make_parser
-from drake_grasp.geometry.grasps import topdown_rotation
+from drake_grasp.geometry.hand_model import topdown_rotation
 from drake_grasp.core.native import load_llvm_users_first
 from drake_grasp.objects import ObjectLibrary
 from drake_grasp.config.physics import apply_hydroelastic_margin, sheet_collision, table_collision

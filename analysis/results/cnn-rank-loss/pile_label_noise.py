@@ -28,7 +28,8 @@ def main(argv=None) -> int:
 
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.learning.cnn_metrics import regret_m, spearman
-    from drake_grasp.geometry.grasps import distance_to_nearest_grasp, find_grasps
+    from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
+    from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.policies.decisions import sample_candidates
     from drake_grasp.core.files import print_json

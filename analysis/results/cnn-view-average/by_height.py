@@ -20,7 +20,7 @@ import torch
 from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.learning.cnn_metrics import regret_m, sample_image_indices, spearman
 from drake_grasp.learning.dataset_shards import DepthGraspDataset
-from drake_grasp.geometry.grasps import distance_to_nearest_grasp
+from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
 from drake_grasp.policies.decisions import sample_candidates
 from drake_grasp.core.files import print_json
 from drake_grasp.policies.evaluator import load_cnn, score_candidates
