@@ -14,7 +14,8 @@ from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.policies.decisions import displacement_norm, gaussian_noisy_displacement
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController, Phase, hand_to_pose
+from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controller_state import Phase, hand_to_pose
 from drake_grasp.policies.evaluator import ActionSampler
 
 GOAL = np.array([0.53, -0.02, 20.0])  # world [x, y, yaw_deg] the stand-in CNN points at

@@ -12,7 +12,8 @@ from drake_grasp.geometry.hand_model import FINGERTIP_Z_M
 from drake_grasp.policies.decisions import grasp_axis_pixel, grasp_height
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController, Phase
+from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controller_state import Phase
 
 START_CAMERA_HEIGHT_M = 0.3
 

@@ -17,7 +17,7 @@ from drake_grasp.evaluation.experiments import option_patches
 from drake_grasp.policies.decisions import memory_penalty
 from drake_grasp.evaluation.records import load_records
 from drake_grasp.config.scenario import load_scenario
-from drake_grasp.policies.controller import Phase, hand_to_pose
+from drake_grasp.policies.controller_state import Phase, hand_to_pose
 from test_hand_check import ctr_first_step
 from test_montecarlo import _pile, _scripted_simulate
 

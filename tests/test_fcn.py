@@ -197,7 +197,8 @@ def test_cnn_only_scores_its_global_candidates_with_the_start_camera_height():
     from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
     from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-    from drake_grasp.policies.controller import GraspController, Phase
+    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.controller_state import Phase
 
     scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
     _, _, X_GC = gripper_frame_offsets()

@@ -11,7 +11,8 @@ from drake_grasp.geometry.hand_model import FINGERTIP_Z_M
 from drake_grasp.policies.decisions import hand_overlap_m, image_points_W
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController, Phase, hand_to_pose
+from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controller_state import Phase, hand_to_pose
 
 CAM_Z = 0.3
 

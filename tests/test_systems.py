@@ -213,7 +213,7 @@ def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
 
 def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
     from drake_grasp.world.station import gpd_camera_offset
-    from drake_grasp.policies.controller import Phase
+    from drake_grasp.policies.controller_state import Phase
 
     grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
     calls = []
@@ -279,7 +279,7 @@ def test_gpd_controller_views_detects_once_and_executes_the_tilted_grasp():
 
 
 def test_gpd_controller_without_a_detection_stays_at_the_viewpoint():
-    from drake_grasp.policies.controller import Phase
+    from drake_grasp.policies.controller_state import Phase
 
     scenario, ctrl, sim, _ = _gpd_controller(lambda depth, X_WC: None)
     sim.AdvanceTo(3.0)
@@ -297,7 +297,7 @@ def test_gpd_kinematic_noise_moves_the_grasp_in_the_plane_and_keeps_its_tilt(see
     """The commanded planar move gets the noise; the tilt and the height are kept. The
     detection's x_G points away from the view's (yaw 10 + 160 deg): the hand takes the
     same grasp turned half a turn about its approach, a 20 degree wrist turn."""
-    from drake_grasp.policies.controller import Phase
+    from drake_grasp.policies.controller_state import Phase
 
     grasp = _tilted_grasp([0.45, -0.04, 0.05], 170.0, 25.0)
     _, ctrl, sim, _ = _gpd_controller(
@@ -327,7 +327,7 @@ def test_gpd_without_noise_takes_the_detection_turned_half_a_turn_when_nearer():
 def test_gpd_offset_noise_shifts_the_executed_grasp_and_keeps_its_tilt():
     """The constant-offset model: the hand really goes 2 cm along the grasp's x_G (on
     the table) from where the policy believes; the orientation is the believed one."""
-    from drake_grasp.policies.controller import Phase
+    from drake_grasp.policies.controller_state import Phase
 
     grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
     _, ctrl, sim, _ = _gpd_controller(
@@ -380,7 +380,7 @@ def test_state_values_are_shared_not_copied_and_stay_immutable():
     import copy
     from dataclasses import dataclass, replace
 
-    from drake_grasp.policies.controller import ControllerState
+    from drake_grasp.policies.controller_state import ControllerState
     from drake_grasp.systems.judge import JudgeHistory
     from drake_grasp.systems.state import freeze, shared_when_copied
 
@@ -408,7 +408,7 @@ def test_context_clone_keeps_its_own_controller_state():
     from pydrake.common.value import AbstractValue
     from pydrake.systems.framework import LeafSystem
 
-    from drake_grasp.policies.controller import ControllerState
+    from drake_grasp.policies.controller_state import ControllerState
 
     class Holder(LeafSystem):
         def __init__(self):

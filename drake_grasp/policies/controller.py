@@ -30,13 +30,11 @@ the grasp's tilt is kept.
 
 from __future__ import annotations
 
-import enum
-import functools
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
@@ -46,13 +44,15 @@ from drake_grasp.geometry.hand_model import (
     FINGER_OUTER_X_M,
     PAD_HALF_WIDTH_M,
     STROKE_M,
-    topdown_rotation,
 )
+from drake_grasp.policies.controller_state import (MOTION_PHASE, ControllerState,
+                                                   Phase, StepRecord, hand_pose_memo,
+                                                   hand_to_pose, pose_from_tuple, pose_to_hand,
+                                                   pose_tuple, rot_z)
 from drake_grasp.policies.decisions import (
     CLOSED_LOOP_POLICIES,
     choose_action,
     displacement_norm,
-    gaussian_noisy_displacement,
     grasp_height,
     hand_overlap_m,
     heights_in_hand_box,
@@ -60,114 +60,16 @@ from drake_grasp.policies.decisions import (
     image_points_W,
     widest_section_height,
     min_depth_under_axis,
-    offset_fraction,
 )
 from drake_grasp.config.scenario import Scenario
-from drake_grasp.systems.state import freeze, shared_when_copied
+from drake_grasp.policies.kinematic_noise import executed_hand, executed_pose, noisy_displacement
+from drake_grasp.systems.state import freeze
 from drake_grasp.systems.supervisor import (
     grasp_motion_next,
     interpolate_pose,
     min_jerk,
     motion_phase_code,
 )
-
-ONE_SHOT = ("gpd", "gpd-geometric", "cnn-only")
-
-
-class Phase(enum.Enum):
-    START = "start"        # before the first image
-    VIEW = "view"          # gpd: to the viewpoint, rest, take the one GPD image
-    APPROACH = "approach"  # open-loop move to a one-shot target (gpd, cnn-only, cnn-ctr)
-    SERVO = "servo"        # CTR iterations
-    DESCEND = "descend"
-    CLOSE = "close"
-    LIFT = "lift"
-    HOLD = "hold"
-    DONE = "done"
-
-
-# The shared grasp motion's phase (`supervisor.MOTION_PHASES`) of each controller phase.
-_MOTION_PHASE = {Phase.START: "approach", Phase.VIEW: "approach", Phase.APPROACH: "approach",
-                 Phase.SERVO: "approach",
-                 Phase.DESCEND: "descend", Phase.CLOSE: "close", Phase.LIFT: "lift",
-                 Phase.HOLD: "hold", Phase.DONE: "done"}
-
-
-@dataclass(frozen=True)
-class StepRecord:
-    """One control decision, for pictures and analysis."""
-
-    iteration: int
-    time_s: float
-    hand: tuple  # believed hand pose [x, y, z, yaw_deg] when the image was taken
-    depth: np.ndarray
-    actions: np.ndarray
-    distances: np.ndarray
-    chosen: np.ndarray
-    moved: np.ndarray  # displacement commanded (after kinematic noise)
-
-
-@shared_when_copied
-@dataclass(frozen=True)
-class ControllerState:
-    """Everything the controller remembers (the Context's abstract state)."""
-
-    phase: Phase = Phase.START
-    phase_start_s: float = 0.0
-    iteration: int = 0
-    hand: tuple = (0.0, 0.0, 0.0, 0.0)         # believed target [x, y, z, yaw_deg]
-    segment_from: tuple = (0.0, 0.0, 0.0, 0.0)  # start of the current interpolated move
-    # Final grasp [x, y, z, yaw_deg] (yaw of x_G projected onto the table).
-    grasp: tuple | None = None
-    # gpd: the full believed grasp pose X_WG, 16 floats (a 4x4 matrix row by row); its
-    # approach may be tilted. None for the top-down policies.
-    grasp_pose: tuple | None = None
-    stop_reason: str = ""
-    last_step: StepRecord | None = None
-    outcome: dict = field(default_factory=dict)
-    # When a one-shot policy took the image it decided on [s]: 0 for those deciding at the
-    # start; gpd's image comes at the viewpoint. Its control steps count from here.
-    decided_s: float = 0.0
-    # CTR after its stop rule fired (`controller.converge_iterations`): iterations spent
-    # at the stop height, the nearest depth under the grasp axis when it fired [m], and
-    # how many iterations in a row the commanded move was below `converge_step_m`.
-    converging: int = 0
-    stop_near_m: float = 0.0
-    calm: int = 0
-
-
-def hand_to_pose(hand) -> RigidTransform:
-    x, y, z, yaw = (float(v) for v in hand)
-    return RigidTransform(RotationMatrix(topdown_rotation(np.deg2rad(yaw))), [x, y, z])
-
-
-@functools.lru_cache(maxsize=32)
-def _hand_pose_memo(hand: tuple) -> RigidTransform:
-    """`hand_to_pose` memoized for `_CalcPose`, which runs at every plant step with the
-    same few segment end points. The result is shared: read it, never modify it."""
-    return hand_to_pose(hand)
-
-
-def pose_to_hand(X_WG) -> tuple:
-    """[x, y, z, yaw_deg] of a grasp-frame pose (RigidTransform or 4x4), yaw that of the
-    closing direction x_G projected onto the table (a tilted grasp's too)."""
-    X = np.asarray(getattr(X_WG, "GetAsMatrix4", lambda: X_WG)(), dtype=float)
-    return (float(X[0, 3]), float(X[1, 3]), float(X[2, 3]),
-            float(np.rad2deg(np.arctan2(X[1, 0], X[0, 0]))))
-
-
-def _rot_z(yaw_rad: float) -> np.ndarray:
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _pose_from_tuple(values) -> RigidTransform:
-    return RigidTransform(np.asarray(values, dtype=float).reshape(4, 4))
-
-
-def _pose_tuple(X: np.ndarray) -> tuple:
-    return tuple(float(v) for v in np.asarray(X, dtype=float).reshape(16))
-
 
 class GraspController(LeafSystem):
     """Policy + predefined grasp motion; see the module docstring.
@@ -301,33 +203,13 @@ class GraspController(LeafSystem):
         return float(hand[2]) + self._cam_dz
 
     def _noisy(self, delta: np.ndarray, rng_key: int) -> np.ndarray:
-        noise = self._s.noise
-        if noise.kind != "gaussian" or not np.any(delta):
-            return delta
-        rng = np.random.default_rng([self._s.seed, rng_key, 29])
-        return gaussian_noisy_displacement(delta, rng, noise.gaussian_scale)
+        return noisy_displacement(self._s.noise, self._s.seed, delta, rng_key)
 
     def _executed(self, hand) -> tuple:
-        """Where the hand really goes for a believed pose (the constant-offset model)."""
-        noise = self._s.noise
-        if noise.kind != "offset":
-            return tuple(hand)
-        moved = float(np.hypot(hand[0] - self._start[0], hand[1] - self._start[1]))
-        f = offset_fraction(moved, noise.offset_ramp_m)
-        dx, dy = noise.offset_xy_m
-        out = apply_actions([hand[0], hand[1], hand[3]],
-                            np.array([[f * dx, f * dy, f * noise.offset_theta_deg]]))[0]
-        return (float(out[0]), float(out[1]), float(hand[2]), float(out[2]))
+        return executed_hand(self._s.noise, self._start, hand)
 
     def _executed_pose(self, X_WG: RigidTransform) -> RigidTransform:
-        """`_executed` for a full (possibly tilted) grasp-frame pose: the offset moves
-        its (x, y) and turns it about the world vertical through its origin."""
-        if self._s.noise.kind != "offset":
-            return X_WG
-        hand = pose_to_hand(X_WG)
-        x, y, _, yaw = self._executed(hand)
-        R = _rot_z(np.deg2rad(yaw - hand[3])) @ X_WG.rotation().matrix()
-        return RigidTransform(RotationMatrix(R), [x, y, hand[2]])
+        return executed_pose(self._s.noise, self._start, X_WG)
 
     def _pregrasp(self, X_WG: RigidTransform) -> RigidTransform:
         """gpd: the pre-grasp, `pregrasp_height_m` back along the approach axis z_G."""
@@ -354,7 +236,7 @@ class GraspController(LeafSystem):
         delta = self._noisy(a, 0)
         moved = apply_actions(here, delta[None])[0]
         out = np.eye(4)
-        out[:3, :3] = _rot_z(np.deg2rad(moved[2] - yaw_goal)) @ R
+        out[:3, :3] = rot_z(np.deg2rad(moved[2] - yaw_goal)) @ R
         out[:3, 3] = [moved[0], moved[1], p[2]]
         return out
 
@@ -618,8 +500,8 @@ class GraspController(LeafSystem):
         pre = self._pregrasp(RigidTransform(grasp_pose))
         return replace(s, phase=Phase.APPROACH, phase_start_s=t, segment_from=s.hand,
                        hand=pose_to_hand(pre), grasp=pose_to_hand(grasp_pose),
-                       grasp_pose=_pose_tuple(grasp_pose), decided_s=t,
-                       outcome={"gpd_detection": _pose_tuple(X)})
+                       grasp_pose=pose_tuple(grasp_pose), decided_s=t,
+                       outcome={"gpd_detection": pose_tuple(X)})
 
     # -- outputs ------------------------------------------------------------------------
 
@@ -630,45 +512,45 @@ class GraspController(LeafSystem):
         elapsed = t - s.phase_start_s
         if s.phase in (Phase.START,):
             hand = self._start
-            X = _hand_pose_memo(self._executed(hand))
+            X = hand_pose_memo(self._executed(hand))
         elif s.phase == Phase.VIEW:
-            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
-                                 _hand_pose_memo(self._executed(s.hand)),
+            X = interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
+                                 hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / m.approach_time_s))
         elif s.grasp_pose is not None:
             X = self._gpd_pose(s, elapsed)
         elif s.phase == Phase.APPROACH:
-            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
-                                 _hand_pose_memo(self._executed(s.hand)),
+            X = interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
+                                 hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / m.approach_time_s))
         elif s.phase == Phase.SERVO:
             # Move to the new target within one control period.
-            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
-                                 _hand_pose_memo(self._executed(s.hand)),
+            X = interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
+                                 hand_pose_memo(self._executed(s.hand)),
                                  min_jerk(elapsed / (0.8 * self._period)))
         elif s.phase == Phase.DESCEND:
-            X = interpolate_pose(_hand_pose_memo(self._executed(s.segment_from)),
-                                 _hand_pose_memo(self._executed(s.grasp)),
+            X = interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
+                                 hand_pose_memo(self._executed(s.grasp)),
                                  min_jerk(elapsed / m.descend_time_s))
         elif s.phase == Phase.CLOSE:
-            X = _hand_pose_memo(self._executed(s.grasp))
+            X = hand_pose_memo(self._executed(s.grasp))
         elif s.phase == Phase.LIFT:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            X = interpolate_pose(_hand_pose_memo(self._executed(s.grasp)),
-                                 _hand_pose_memo(self._executed(lifted)),
+            X = interpolate_pose(hand_pose_memo(self._executed(s.grasp)),
+                                 hand_pose_memo(self._executed(lifted)),
                                  min_jerk(elapsed / m.lift_time_s))
         elif s.grasp is not None:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            X = _hand_pose_memo(self._executed(lifted))
+            X = hand_pose_memo(self._executed(lifted))
         else:
-            X = _hand_pose_memo(self._executed(s.hand))
+            X = hand_pose_memo(self._executed(s.hand))
         output.set_value(X)
 
     def _gpd_pose(self, s: ControllerState, elapsed: float) -> RigidTransform:
         """gpd after its detection: to the pre-grasp, along the approach axis to the
         grasp, close there, lift straight up (orientation kept), hold."""
         m = self._s.scripted
-        grasp = _pose_from_tuple(s.grasp_pose)
+        grasp = pose_from_tuple(s.grasp_pose)
         pre = self._pregrasp(grasp)
         lifted = RigidTransform(grasp.rotation(), grasp.translation() + [0.0, 0.0, m.lift_height_m])
         ex = self._executed_pose
@@ -706,4 +588,4 @@ class GraspController(LeafSystem):
             step = int(round((context.get_time() - s.decided_s) / self._period))
         approaching = s.phase in (Phase.START, Phase.APPROACH, Phase.SERVO, Phase.DESCEND)
         output.SetFromVector([float(step), 1.0 if approaching else 0.0,
-                              motion_phase_code(_MOTION_PHASE[s.phase])])
+                              motion_phase_code(MOTION_PHASE[s.phase])])
