@@ -1,6 +1,7 @@
 """The policies and the systems on their side of the Diagram: the paper's
-closed-loop controller and the other built-in policies (`controller`, their decisions as
-pure functions in `decisions`), the CNN distance evaluator and action sampler
+closed-loop controller and the other built-in policies (`controller`, its state in
+`controller_state`, their decisions as pure functions in `decisions`, the kinematic noise
+models in `kinematic_noise`), the CNN distance evaluator and action sampler
 (`evaluator`), grasp-pose detection (`gpd` with its ranking `gpd_ranking`, `gpd_geometric`
 with its stages in `gpd_geometric_*`) and user policies (`plugins`). A policy sees only
 sensors: depth images, gripper state, timing.
