@@ -28,7 +28,7 @@ import numpy as np
 @contextlib.contextmanager
 def gravity_only():
     """Within the block, the torque test's load cases are gravity alone (no shake)."""
-    import drake_grasp.geometry.grasps as G
+    import drake_grasp.geometry.hand_checks as G
 
     original = G._gravity_torque_ratio
     G._gravity_torque_ratio = lambda *a, **k: original(*a, **{**k, "accel_m_s2": 0.0})
@@ -39,10 +39,10 @@ def gravity_only():
 
 
 def _grasps(scene, library, seed: int, *, shake: bool):
-    import drake_grasp.geometry.grasps as G
+    from drake_grasp.geometry.grasps import find_grasps
 
     with contextlib.nullcontext() if shake else gravity_only():
-        return G.find_grasps(scene, library, np.random.default_rng([seed, 61]))
+        return find_grasps(scene, library, np.random.default_rng([seed, 61]))
 
 
 def isolation_scene(index: int, seed: int):

@@ -377,7 +377,6 @@ def _end_epoch(model, sched, out: Path, identity: dict, test_data, *, epoch: int
     return row
 
 
-@full_float32()
 def _model_state(ckpt_path: Path, cfg: NetworkConfig, identity: dict, out: Path, init_net,
                  store, *, batch_norm: bool, seed: int, device, lr: float,
                  lr_decay: float) -> tuple:
@@ -423,6 +422,7 @@ def _train_batch(model, opt, store, rows, cfg: NetworkConfig, camera_z: float, d
     return float(loss.detach()) * len(idx), rank_sum, len(idx)
 
 
+@full_float32()
 def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
           init: str | Path | None, epochs: int = 3, batch: int = 50, lr: float = 2e-4,
           lr_decay: float = 0.7, seed: int = 0, threads: int = 2,
