@@ -169,3 +169,50 @@ def _context(plant, q):
     context = plant.CreateDefaultContext()
     plant.SetPositions(context, q)
     return context
+
+
+def test_the_start_clears_what_the_survey_image_sees_not_the_true_scene(library, monkeypatch):
+    """The start height comes from the wrist camera's survey image, not the true scene:
+    with `scene_top_z` made to fail, an upright bottle (0.197 m) still raises the start so
+    the open fingertips keep START_CLEARANCE_M above the top the image shows (within 1 mm
+    of the true top), and a lying one leaves the paper's 0.3 m."""
+    import drake_grasp.world.scene as scene_module
+    from drake_grasp.world.scene import scenario_scene, scene_top_z
+    from drake_grasp.world.station import (FINGERTIP_BELOW_GRASP_M, START_CLEARANCE_M,
+                                           gripper_frame_offsets)
+
+    X_GC = gripper_frame_offsets()[2]
+    clearance = -X_GC.translation()[2] + FINGERTIP_BELOW_GRASP_M + START_CLEARANCE_M
+    cases = []
+    for pose in ("upright", "lying"):
+        scenario = load_scenario(scenario_name="isolation", scenario_text=(
+            f"{{scene: {{object_ids: [bottle_000], pose: {pose}}}}}"))
+        scene = scenario_scene(scenario, library)
+        cases.append((scenario, scene, scene_top_z(scene, library)))
+
+    def no_truth(*args, **kwargs):
+        raise AssertionError("the station read the scene's true top")
+
+    monkeypatch.setattr(scene_module, "scene_top_z", no_truth)
+    (upright, up_scene, up_top), (lying, lying_scene, lying_top) = cases
+    assert up_top > 0.19 and lying_top < 0.1
+    station = MakeGraspStation(upright, up_scene, library)
+    camera_z = station.X_WG_start.translation()[2] - X_GC.translation()[2]
+    assert camera_z == pytest.approx(up_top + clearance, abs=1e-3)
+    station = MakeGraspStation(lying, lying_scene, library)
+    assert station.X_WG_start.translation()[2] - X_GC.translation()[2] == pytest.approx(
+        lying.arm.start_camera_height_m, abs=1e-9)
+
+
+def test_every_library_object_fits_under_the_survey_pose(library):
+    """No object of the built-in library, in any orientation, reaches the open fingertips
+    at the survey pose (its bounding-box diagonal bounds its height on the table)."""
+    from drake_grasp.world.scene import _object_vertices
+    from drake_grasp.world.station import (FINGERTIP_BELOW_GRASP_M, START_CLEARANCE_M,
+                                           SURVEY_CAMERA_HEIGHT_M, gripper_frame_offsets)
+
+    X_GC = gripper_frame_offsets()[2]
+    clearance = -X_GC.translation()[2] + FINGERTIP_BELOW_GRASP_M + START_CLEARANCE_M
+    tallest = max(float(np.linalg.norm(np.ptp(_object_vertices(library, i), axis=0)))
+                  for i in library.ids())
+    assert 0.3 < tallest < SURVEY_CAMERA_HEIGHT_M - clearance

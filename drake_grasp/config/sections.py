@@ -223,7 +223,8 @@ class ControllerConfig:
     iterations: int = 75
     step_ratio: float = 0.2
     # Camera step down per iteration [m]; 0: (start - end) / iterations, the start height
-    # being `arm.start_camera_height_m` (possibly raised over standing objects).
+    # being `arm.start_camera_height_m` (raised over objects the
+    # survey image shows standing taller: `world.station.survey_top_z`).
     z_step_m: float = 0.0
     # Camera height above the table at the last iteration [m]: the hand's lowest height.
     end_camera_height_m: float = 0.15

@@ -40,7 +40,8 @@ motion_status      vector of 3: [motion phase, phase start time [s], control ste
                    policy's own `context.get_time()`.
 X_WG_start         AbstractValue `RigidTransform`: the grasp frame's pose at t = 0 (top-down,
                    over the scene centre, the wrist camera `arm.start_camera_height_m`
-                   above the table). Constant.
+                   above the table, raised over what the wrist camera's survey image
+                   shows standing taller: `world.station.survey_top_z`). Constant.
 X_GC               AbstractValue `RigidTransform`: the wrist camera in the grasp frame (the
                    gripper model's `camera_mount`). Constant.
 =================  ==========================================================================

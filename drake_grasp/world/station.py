@@ -70,7 +70,6 @@ from drake_grasp.world.scene import (
     OBJECT_BODY_NAME,
     SceneSpec,
     add_scene_objects,
-    scene_top_z,
     set_object_poses,
 )
 from drake_grasp.world.table import add_table_and_sheet
@@ -90,6 +89,13 @@ GPD_CAMERA_FPS = 30.0
 # (models/robotiq_2f85/README.md), and the start keeps this much air below them.
 FINGERTIP_BELOW_GRASP_M = 0.025
 START_CLEARANCE_M = 0.03
+# Each finger joint's position with the hand open (85 mm between the pads).
+OPEN_FINGER_Q_M = 0.0425
+# Before an episode the wrist camera looks at the scene from this height above the table
+# (`survey_top_z`); the start is raised over whatever it sees standing taller than the
+# paper's start clears. The open fingertips are then 0.43 m above the table, above every
+# object a scene can hold (`tests/test_station.py` checks the library against it).
+SURVEY_CAMERA_HEIGHT_M = 0.6
 # A UR5 configuration with the tool pointing down over the workspace, elbow up; the
 # start pose is solved by IK from here.
 Q_HOME = np.array([-0.245, -1.6894, 1.6738, -1.5552, -1.5708, -0.245 + np.pi / 2])
@@ -139,7 +145,7 @@ class GraspStation:
         plant.SetPositions(plant_context, self.arm, self.q_start)
         plant.SetVelocities(plant_context, self.arm, np.zeros(6))
         nq = plant.num_positions(self.gripper)
-        plant.SetPositions(plant_context, self.gripper, np.full(nq, 0.0425))
+        plant.SetPositions(plant_context, self.gripper, np.full(nq, OPEN_FINGER_Q_M))
         set_object_poses(plant, plant_context, self.scene, self.object_instances)
         if self.diagram.HasSubsystemNamed("diff_ik"):  # absent with arm_position_command
             ik, ik_context = sub("diff_ik")
@@ -317,6 +323,42 @@ def solve_start_configuration(control_plant: MultibodyPlant, X_WG: RigidTransfor
                        f"{max(1, int(tries))} starts)")
 
 
+def survey_top_z(diagram, plant, arm, gripper, objects, scene: SceneSpec, control_plant,
+                 X_GC: RigidTransform, *, depth_max_m: float) -> float:
+    """The scene's top as the wrist camera sees it from the survey pose [m above the table].
+
+    The arm is put at the survey pose (the camera `SURVEY_CAMERA_HEIGHT_M` above the scene
+    centre, looking straight down, fingers open), the objects at their scene poses, and the
+    station's `depth_image` (post-processed, frame 0) is read: the top is the survey height
+    less the nearest valid reading (0 when nothing but the table is seen). The camera's
+    height is the one the robot believes (its mount model), as a robot would compute it.
+    """
+    X_WG = topdown_pose(scene.center_xy_m, SURVEY_CAMERA_HEIGHT_M + X_GC.translation()[2])
+    q = solve_start_configuration(control_plant, X_WG)
+    context = diagram.CreateDefaultContext()
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    plant.SetPositions(plant_context, arm, q)
+    plant.SetPositions(plant_context, gripper, np.full(plant.num_positions(gripper), OPEN_FINGER_Q_M))
+    set_object_poses(plant, plant_context, scene, objects)
+    depth = np.asarray(diagram.GetOutputPort("depth_image").Eval(context).data[:, :, 0])
+    valid = np.isfinite(depth) & (depth > 0.0) & (depth < depth_max_m)
+    if not valid.any():
+        return 0.0
+    return max(0.0, SURVEY_CAMERA_HEIGHT_M - float(depth[valid].min()))
+
+
+def start_camera_height(scenario: Scenario, top_z: float, X_GC: RigidTransform) -> float:
+    """The wrist camera's start height [m]: `arm.start_camera_height_m`, raised so the open
+    fingertips keep `START_CLEARANCE_M` above a scene whose top is `top_z`."""
+    clearance = -X_GC.translation()[2] + FINGERTIP_BELOW_GRASP_M + START_CLEARANCE_M
+    if top_z + clearance > SURVEY_CAMERA_HEIGHT_M:
+        raise ValueError(
+            f"scene: the survey image sees an object {top_z:.3f} m above the table; the open "
+            f"fingertips need {clearance:.3f} m above it, more than the survey height "
+            f"{SURVEY_CAMERA_HEIGHT_M} m allows (world/station.py SURVEY_CAMERA_HEIGHT_M)")
+    return max(scenario.arm.start_camera_height_m, top_z + clearance)
+
+
 def _add_cameras(builder, plant, scene_graph, gripper, scenario: Scenario):
     """The wrist depth camera and the GPD baseline's sensor, each with its depth
     post-processing, and their exported images. Returns X_CC_actual, the calibration
@@ -447,9 +489,11 @@ def MakeGraspStation(scenario: Scenario, scene: SceneSpec, library: ObjectLibrar
     diagram.set_name("grasp_station")
 
     # The paper starts the camera 0.3 m above the table; a standing object taller than
-    # the open fingers' reach at that height raises the start so nothing touches.
-    clearance = -X_GC.translation()[2] + FINGERTIP_BELOW_GRASP_M + START_CLEARANCE_M
-    start_camera = max(scenario.arm.start_camera_height_m, scene_top_z(scene, library) + clearance)
+    # the open fingers' reach at that height raises the start so nothing touches. How
+    # tall the scene is comes from the wrist camera's survey image, not the true scene.
+    top_z = survey_top_z(diagram, plant, arm, gripper, objects, scene, control_plant, X_GC,
+                         depth_max_m=scenario.camera.depth_max_m)
+    start_camera = start_camera_height(scenario, top_z, X_GC)
     X_WG_start = topdown_pose(scene.center_xy_m, start_camera + X_GC.translation()[2])
     q_start = solve_start_configuration(control_plant, X_WG_start)
     return GraspStation(
