@@ -24,7 +24,8 @@ import h5py
 import numpy as np
 import torch
 
-from drake_grasp.geometry.actions import apply_actions, hand_axes, view_half_extent_m
+from drake_grasp.geometry.actions import apply_actions, hand_axes
+from drake_grasp.geometry.camera import view_half_extent_m
 from drake_grasp.geometry.grasp_metric import grasp_distance
 from drake_grasp.cnn.weights_io import load_weights
 from drake_grasp.config.scenario import Scenario

@@ -25,6 +25,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
+from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.geometry.hand_model import topdown_rotation
 from drake_grasp.systems.supervisor import MOTION_PHASES
 
@@ -97,12 +98,11 @@ class CentroidServo(LeafSystem):
         """World points of the depth image (seen from `hand`) that stand above the table,
         and the table's height."""
         depth = np.asarray(self._depth.Eval(context).data[:, :, 0], dtype=float)
-        h, w = depth.shape
-        f = 0.5 * h / np.tan(np.deg2rad(self._s.camera.fov_y_deg) / 2.0)
-        v, u = np.mgrid[0:h, 0:w]
+        camera = PinholeCamera.of_image(depth, self._s.camera.fov_y_deg)
+        v, u = np.mgrid[0:camera.height, 0:camera.width]
         ok = (depth > 0) & (depth < self._s.camera.depth_max_m - 1e-3)
         d = depth[ok]
-        P_C = np.stack([(u[ok] - (w - 1) / 2) * d / f, (v[ok] - (h - 1) / 2) * d / f, d], axis=1)
+        P_C = np.stack([*camera.back_project(u[ok], v[ok], d), d], axis=1)
         X_WC = hand_pose(hand) @ self._X_GC.Eval(context)
         P = P_C @ X_WC.rotation().matrix().T + X_WC.translation()
         table_z = float(np.percentile(P[:, 2], 10)) if len(P) else 0.0

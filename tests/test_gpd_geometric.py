@@ -12,11 +12,8 @@ import pytest
 import trimesh
 
 from drake_grasp.policies.gpd_geometric import best_grasp, detect_grasps
-from drake_grasp.policies.gpd_geometric_cloud import (
-    camera_intrinsics,
-    depth_to_points,
-    remove_table,
-)
+from drake_grasp.geometry.camera import PinholeCamera
+from drake_grasp.policies.gpd_geometric_cloud import depth_to_points, remove_table
 from drake_grasp.policies.gpd_geometric_results import DetectedGrasps, ScoreWeights
 from drake_grasp.geometry.contact_physics import force_closure
 from drake_grasp.geometry.grasp_metric import angle_difference_deg
@@ -50,7 +47,8 @@ def _render(X_WC, *, boxes=(), spheres=()) -> np.ndarray:
     """Ray-cast depth (along the optical axis, as Drake renders) of the sheet and of
     boxes ((centre xy, extents, yaw_deg), standing on the sheet) and spheres
     ((centre xyz, radius)); float32, far pixels at FAR."""
-    f, cu, cv = camera_intrinsics(SIZE, SIZE, FOV_Y_DEG)
+    camera = PinholeCamera.from_fov(SIZE, SIZE, FOV_Y_DEG)
+    f, cu, cv = camera.focal_px, camera.cu, camera.cv
     v, u = np.mgrid[0:SIZE, 0:SIZE]
     ray_C = np.stack([(u - cu) / f, (v - cv) / f, np.ones((SIZE, SIZE))], axis=-1)
     ray = ray_C @ X_WC[:3, :3].T  # z_C = 1: the ray parameter is the depth

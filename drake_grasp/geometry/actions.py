@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drake_grasp.geometry.camera import view_half_extent_m
+
 
 def hand_axes(yaw_deg) -> tuple[np.ndarray, np.ndarray]:
     """World xy of the hand's x_G and y_G axes for top-down hands, each (..., 2)."""
@@ -58,11 +60,6 @@ def action_between(hand_xy_yaw, target_xy_yaw) -> np.ndarray:
     dtheta = hand[..., 2] - target[..., 2]
     dtheta = (dtheta + 90.0) % 180.0 - 90.0
     return np.stack([np.sum(d * ex, -1), np.sum(d * ey, -1), dtheta], axis=-1)
-
-
-def view_half_extent_m(camera_height_m, fov_deg: float) -> np.ndarray:
-    """Half width of the square camera footprint on the table at a given camera height."""
-    return np.asarray(camera_height_m, dtype=float) * np.tan(np.deg2rad(fov_deg) / 2.0)
 
 
 def sample_actions_in_view(rng: np.random.Generator, count: int, *, camera_height_m: float,

@@ -12,6 +12,9 @@ wrist, the camera's axes are the hand frame's (the camera looks along the hand's
 approach), so the same formulas map a hand-frame offset from the camera at a depth
 below it to a pixel and back.
 
+The square footprint the view covers on the table, z tan(fov / 2) either side of the
+axis at a camera height z, is `view_half_extent_m`.
+
 Pure numpy; every formula is written once here, in one order of floating-point
 operations, so that every caller gets the same bits.
 """
@@ -94,3 +97,8 @@ def focal_length_px(height: int, fov_y_deg: float) -> float:
     """Focal length [pixels] of an image `height` pixels tall with this vertical field of
     view [deg]: (H / 2) / tan(fov_y / 2)."""
     return float(0.5 * height / np.tan(np.deg2rad(fov_y_deg) / 2.0))
+
+
+def view_half_extent_m(camera_height_m, fov_deg: float) -> np.ndarray:
+    """Half width of the square camera footprint on the table at a given camera height."""
+    return np.asarray(camera_height_m, dtype=float) * np.tan(np.deg2rad(fov_deg) / 2.0)

@@ -39,6 +39,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
 from drake_grasp.geometry.actions import action_between, apply_actions, sample_actions_in_view
+from drake_grasp.geometry.camera import PinholeCamera, focal_length_px
 from drake_grasp.geometry.hand_model import (
     FINGERTIP_Z_M,
     FINGER_OUTER_X_M,
@@ -137,7 +138,7 @@ class GraspController(LeafSystem):
         self._dz = (c.z_step_m if c.z_step_m > 0 else
                     max(0.0, (start_cam - c.end_camera_height_m) / c.iterations))
         cam = scenario.camera
-        self._focal = 0.5 * cam.height / np.tan(np.deg2rad(cam.fov_y_deg) / 2.0)
+        self._focal = focal_length_px(cam.height, cam.fov_y_deg)
         # gpd: the viewpoint, the start's x, y and yaw with the GPD sensor
         # `view_camera_height_m` above the table (top-down: the sensor sits -z_C.z above
         # the grasp centre).
@@ -307,16 +308,17 @@ class GraspController(LeafSystem):
         h, w = labels.shape
         d = float(np.median(depth[target]))
         c_off = self._X_GC.translation()
-        u = np.round((actions[:, 0] - c_off[0]) * self._focal / d + (w / 2 - 0.5)).astype(int)
-        v = np.round((actions[:, 1] - c_off[1]) * self._focal / d + (h / 2 - 0.5)).astype(int)
+        camera = PinholeCamera.centred(w, h, self._focal)
+        u, v = (np.round(p).astype(int) for p in camera.project(
+            actions[:, 0] - c_off[0], actions[:, 1] - c_off[1], d))
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         mask = np.zeros(len(actions), bool)
         mask[inside] = target[v[inside], u[inside]]
         if not mask.any():
             # Target out of the sampled region: head for the centre of its pixels.
             rows, cols = np.nonzero(target)
-            goal = np.array([(cols.mean() - (w / 2 - 0.5)) * d / self._focal + c_off[0],
-                             (rows.mean() - (h / 2 - 0.5)) * d / self._focal + c_off[1]])
+            x, y = camera.back_project(cols.mean(), rows.mean(), d)
+            goal = np.array([x + c_off[0], y + c_off[1]])
             mask[np.argmin(np.linalg.norm(actions[:, :2] - goal, axis=1))] = True
         return mask
 

@@ -2,7 +2,7 @@
 
 `organized_points` turns one depth image, the camera's field of view and its pose into
 world points and camera-facing normals per pixel (`OrganizedCloud`), with Drake's
-pinhole model (`camera_intrinsics`); `depth_to_points` flattens the valid pixels and
+pinhole model (`geometry.camera.PinholeCamera`); `depth_to_points` flattens the valid pixels and
 `remove_table` masks the table and sheet away. `_contact_normals` gives the normals the
 antipodal test uses: the measured surface inside an object, and at a silhouette, where
 the surface below the edge is hidden, a wall whose azimuth follows the depth gradient
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.policies.gpd_geometric_checks import _check_depth, _check_pose, _finite
 
 # Default far value of the post-processed wrist images (`WristCameraConfig.depth_max_m`).
@@ -23,22 +24,6 @@ DEFAULT_MAX_DEPTH_M = 1.5
 # The sheet (2 mm) plus 2 mm: the same clearance `grasps.check_grasp_poses` demands of
 # the fingertips above the sheet's top, and the cut below which points are "table".
 DEFAULT_TABLE_MARGIN_M = 0.004
-
-
-def camera_intrinsics(height: int, width: int, fov_y_deg: float) -> tuple[float, float, float]:
-    """Pinhole intrinsics of Drake's `CameraInfo(width, height, fov_y)`.
-
-    Args:
-        height, width: Image size [pixels].
-        fov_y_deg: Vertical field of view [deg], in (0, 180).
-
-    Returns:
-        (f, cu, cv): focal length [pixels] (square pixels) and the principal point
-        (column, row) = (W / 2 - 0.5, H / 2 - 0.5).
-    """
-    fov = _finite("fov_y_deg", fov_y_deg, low=0.0, low_inclusive=False, high=180.0)
-    f = 0.5 * height / np.tan(np.deg2rad(fov) / 2.0)
-    return float(f), width / 2.0 - 0.5, height / 2.0 - 0.5
 
 
 # ----------------------------------------------------------------------------
@@ -95,12 +80,13 @@ def organized_points(depth, *, fov_y_deg: float, X_WC,
     X = _check_pose(X_WC)
     far = _finite("max_depth_m", max_depth_m, low=0.0, low_inclusive=False)
     H, W = d.shape
-    f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
+    camera = PinholeCamera.from_fov(W, H, fov_y_deg)
+    f = camera.focal_px
     # A hair below the far value: post-processing writes exactly `far` (float32).
     valid = (d > 0.0) & (d < far * (1.0 - 1e-6))
     v, u = np.mgrid[0:H, 0:W]
     dn = np.where(valid, d, np.nan)
-    P_C = np.stack([dn * (u - cu) / f, dn * (v - cv) / f, dn], axis=-1)
+    P_C = np.stack([*camera.back_project(u, v, dn), dn], axis=-1)
 
     # One-sided differences. `normals`: per axis the neighbour with the smaller depth
     # step (the pixel's own surface, not the jump to the table behind a silhouette).

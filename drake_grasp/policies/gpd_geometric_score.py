@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from drake_grasp.geometry.camera import view_half_extent_m
 from drake_grasp.geometry.hand_model import PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M
 from drake_grasp.policies.gpd_geometric_hands import (
     HALF_STROKE_M,
@@ -85,7 +86,7 @@ def score_terms(r: dict, axis: np.ndarray, centre: np.ndarray, width: np.ndarray
     depth_term = np.clip((np.minimum(centre[:, 2] + PAD_HALF_LENGTH_M, top[axis])
                           - (centre[:, 2] - PAD_HALF_LENGTH_M)) / (2.0 * PAD_HALF_LENGTH_M),
                          0.0, 1.0)
-    half_view = max(p_WC[2] - table_z, 1e-3) * np.tan(np.deg2rad(float(fov_y_deg)) / 2.0)
+    half_view = float(view_half_extent_m(max(p_WC[2] - table_z, 1e-3), float(fov_y_deg)))
     view = 1.0 - np.clip(np.hypot(centre[:, 0] - p_WC[0], centre[:, 1] - p_WC[1]) / half_view,
                          0.0, 1.0)
     return {"antipodal": antipodal, "centring": centring, "balance": balance,

@@ -16,7 +16,8 @@ import numpy as np
 from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M, HOUSING_FRONT_Z_M,
                                              HOUSING_RADIUS_M, PAD_HALF_LENGTH_M, PAD_HALF_WIDTH_M,
                                              PALM_FRONT_Z_M, PALM_HALF_X_M, PALM_HALF_Y_M)
-from drake_grasp.policies.gpd_geometric_cloud import OrganizedCloud, camera_intrinsics
+from drake_grasp.geometry.camera import PinholeCamera
+from drake_grasp.policies.gpd_geometric_cloud import OrganizedCloud
 from drake_grasp.policies.gpd_geometric_hands import HALF_STROKE_M
 
 # Probe points on the open hand for the view and occlusion checks, in G [m]: each finger
@@ -67,11 +68,10 @@ def view_and_occlusion(yaw: np.ndarray, centre: np.ndarray, R_WC: np.ndarray, p_
     pw[..., 2] = centre[:, None, 2] - PROBES_G[:, 2]
     pc = (pw - p_WC) @ R_WC
     H, W = cloud.depth.shape
-    f, cu, cv = camera_intrinsics(H, W, fov_y_deg)
     front = pc[..., 2] > 1e-6  # behind the camera: nothing known
     zc_safe = np.where(front, pc[..., 2], 1.0)
-    u = np.rint(f * pc[..., 0] / zc_safe + cu)
-    v = np.rint(f * pc[..., 1] / zc_safe + cv)
+    u, v = (np.rint(p) for p in PinholeCamera.from_fov(W, H, fov_y_deg).project(
+        pc[..., 0], pc[..., 1], zc_safe))
     inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     ui = np.clip(np.where(front, u, 0), 0, W - 1).astype(np.int64)
     vi = np.clip(np.where(front, v, 0), 0, H - 1).astype(np.int64)
