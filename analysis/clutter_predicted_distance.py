@@ -28,7 +28,7 @@ def replay(path: str) -> dict:
     from drake_grasp.evaluation.episode_diagram import controller_class
     from drake_grasp.evaluation.replay import recorded_pile
     from drake_grasp.evaluation.trial_worker import _simulate
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.ctr import CTRController
     from drake_grasp.objects import load_library
 
     rec, scenario, scene = recorded_pile(path)
@@ -37,7 +37,7 @@ def replay(path: str) -> dict:
     library = load_library(None)
     least: list[float] = []
 
-    class Logged(GraspController):
+    class Logged(CTRController):
         def _ctr_step(self, context, s, t):
             port = self._distances
 

@@ -12,7 +12,6 @@ attempts diverge has other attempts after the first difference).
 from __future__ import annotations
 
 import argparse
-import json
 
 
 def compare(a_dir: str, b_dir: str, condition: str) -> dict:

@@ -59,7 +59,7 @@ def collect_attempt(path: str, out_dir: str) -> dict:
     from drake_grasp.evaluation.trial_worker import _model
     from drake_grasp.objects import load_library
     from drake_grasp.core.files import atomic_write_bytes
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.ctr import CTRController
 
     rec, scenario, scene = recorded_pile(path)
     records = str(Path(path).parents[1])
@@ -82,7 +82,7 @@ def collect_attempt(path: str, out_dir: str) -> dict:
                         **{**DatasetConfig().grasp_search(), "num_samples": GRASP_SAMPLES})
     decided: dict = {}  # iteration -> StepRecord: every move the controller made
 
-    class Logged(GraspController):
+    class Logged(CTRController):
         def _ctr_step(self, context, s, t):
             new = super()._ctr_step(context, s, t)
             if new.last_step is not None and new.last_step is not s.last_step:

@@ -44,14 +44,14 @@ ORACLE_PHASES = ("all", "descent", "stop")
 
 
 def _oracle_controller(truth_xy_theta: np.ndarray, phase: str = "all"):
-    """A GraspController subclass whose candidates are scored by the true distance: at
+    """A CTRController subclass whose candidates are scored by the true distance: at
     every decision (`phase` "all"), only in the descent ("descent": before the stop
     rule has fired) or only at the stop height ("stop": the decisions after it fired)."""
     from drake_grasp.geometry.actions import apply_actions
     from drake_grasp.geometry.grasp_metric import distance_to_nearest_grasp
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.ctr import CTRController
 
-    class OracleController(GraspController):
+    class OracleController(CTRController):
         oracle_steps = 0  # decisions scored by the truth (a check that it was used)
 
         def _ctr_step(self, context, s, t):

@@ -14,7 +14,7 @@ from drake_grasp.geometry.actions import apply_actions
 from drake_grasp.policies.decisions import displacement_norm, gaussian_noisy_displacement
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controllers import make_controller
 from drake_grasp.policies.controller_state import Phase, hand_to_pose
 from drake_grasp.policies.evaluator import ActionSampler
 
@@ -55,8 +55,8 @@ def _controller_diagram(scenario, depth_image, policy="ctr", evaluator=None):
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
     builder = DiagramBuilder()
-    ctrl = builder.AddSystem(GraspController(
-        scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC))
+    ctrl = builder.AddSystem(make_controller(
+        policy, scenario=scenario, X_WG_start=start, X_GC=X_GC))
     c = scenario.controller
     sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
                                               theta_deg=c.sample_theta_deg, period_s=c.period_s,
@@ -320,8 +320,8 @@ def test_target_mode_keeps_candidates_on_the_target(scenario):
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
     builder = DiagramBuilder()
-    ctrl = builder.AddSystem(GraspController(
-        scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC, target_label=7))
+    ctrl = builder.AddSystem(make_controller(
+        "ctr", scenario=scenario, X_WG_start=start, X_GC=X_GC, target_label=7))
     c = scenario.controller
     sampler = builder.AddSystem(ActionSampler(num_candidates=c.num_candidates, xy_m=c.sample_xy_m,
                                               theta_deg=c.sample_theta_deg, period_s=c.period_s))
@@ -353,11 +353,12 @@ def test_oracle_analysis_scores_every_step_with_the_true_distance(analysis_scrip
     """analysis/oracle_ctr.py (CTR with the true distance function, a diagnostic): every
     control decision of the trial went through the oracle, the controller class is put
     back afterwards, and with perfect scores the hand ends on a true grasp."""
-    import drake_grasp.policies.controller as controller_module
+    from drake_grasp.policies.controllers import CONTROLLERS
+    from drake_grasp.policies.ctr import CTRController
 
     oracle = analysis_script("oracle_ctr")
     trial = oracle.run_trial(0, 0)  # isolation trial 0: a lying apple
-    assert controller_module.GraspController is GraspController
+    assert CONTROLLERS["ctr"] is CTRController
     assert trial["num_true_grasps"] > 0
     assert trial["oracle_steps"] == trial["control_steps"] > 0
     assert trial["success"] and trial["final_distance_m"] < 0.01

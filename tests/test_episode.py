@@ -279,9 +279,9 @@ def test_target_mode_names_its_target_and_refuses_one_not_in_the_scene(library):
 def test_controller_class_swaps_the_policys_controller_for_the_block_only(library):
     from drake_grasp.evaluation.episode_diagram import build_episode_diagram, controller_class
     from drake_grasp.world.scene import make_scene
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.ctr import CTRController
 
-    class Marked(GraspController):
+    class Marked(CTRController):
         pass
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=(
@@ -293,4 +293,4 @@ def test_controller_class_swaps_the_policys_controller_for_the_block_only(librar
         raise RuntimeError("boom")
     after = build_episode_diagram(scenario, scene, library)
     assert type(inside.diagram.GetSubsystemByName("controller")) is Marked
-    assert type(after.diagram.GetSubsystemByName("controller")) is GraspController
+    assert type(after.diagram.GetSubsystemByName("controller")) is CTRController

@@ -12,7 +12,7 @@ from drake_grasp.geometry.hand_model import FINGERTIP_Z_M
 from drake_grasp.policies.decisions import grasp_axis_pixel, grasp_height
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controllers import make_controller
 from drake_grasp.policies.controller_state import Phase
 
 START_CAMERA_HEIGHT_M = 0.3
@@ -28,7 +28,7 @@ def _controller(scenario, depth, policy="ctr", score_fn=None):
     """The controller alone, its inputs fixed: a zero candidate action scored 0."""
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], START_CAMERA_HEIGHT_M + X_GC.translation()[2], 0.0)
-    ctrl = GraspController(scenario=scenario, policy=policy, X_WG_start=start, X_GC=X_GC,
+    ctrl = make_controller(policy, scenario=scenario, X_WG_start=start, X_GC=X_GC,
                            score_fn=score_fn)
     sim = Simulator(ctrl)
     ctx = sim.get_mutable_context()
@@ -174,7 +174,7 @@ def test_controller_grasp_height_follows_grasp_at_widest_section(at_widest):
         f"{{seed: 2, controller: {{grasp_at_widest_section: {str(at_widest).lower()}}}}}"))
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], START_CAMERA_HEIGHT_M + X_GC.translation()[2], 0.0)
-    ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC)
+    ctrl = make_controller("ctr", scenario=scenario, X_WG_start=start, X_GC=X_GC)
     R, sheet = 0.04, 0.002
     x = np.linspace(-R, R, 61)
     xs, ys = np.meshgrid(x, np.linspace(-0.01, 0.01, 5))

@@ -197,7 +197,7 @@ def test_cnn_only_scores_its_global_candidates_with_the_start_camera_height():
     from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
     from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.controllers import make_controller
     from drake_grasp.policies.controller_state import Phase
 
     scenario = load_scenario(scenario_name="isolation", scenario_text="{seed: 2}")
@@ -209,7 +209,7 @@ def test_cnn_only_scores_its_global_candidates_with_the_start_camera_height():
         seen.append(kw)
         return np.linalg.norm(actions[:, :2], axis=1)
 
-    ctrl = GraspController(scenario=scenario, policy="cnn-only", X_WG_start=start, X_GC=X_GC,
+    ctrl = make_controller("cnn-only", scenario=scenario, X_WG_start=start, X_GC=X_GC,
                            score_fn=score, score_needs_height=True)
     sim = Simulator(ctrl)
     ctx = sim.get_mutable_context()

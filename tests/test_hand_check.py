@@ -11,7 +11,7 @@ from drake_grasp.geometry.hand_model import FINGERTIP_Z_M
 from drake_grasp.policies.decisions import hand_overlap_m, image_points_W
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.controllers import make_controller
 from drake_grasp.policies.controller_state import Phase, hand_to_pose
 
 CAM_Z = 0.3
@@ -76,7 +76,7 @@ def ctr_first_step(scenario, depth_fn=None):
     controller's state after 1.5 periods, the controller, the image and the start pose."""
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], CAM_Z + X_GC.translation()[2], 0.0)
-    ctrl = GraspController(scenario=scenario, policy="ctr", X_WG_start=start, X_GC=X_GC,
+    ctrl = make_controller("ctr", scenario=scenario, X_WG_start=start, X_GC=X_GC,
                            score_fn=None)
     X_WC = (start @ X_GC).GetAsMatrix4()
     f = 0.5 * 64 / np.tan(np.deg2rad(scenario.camera.fov_y_deg) / 2.0)

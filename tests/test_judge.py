@@ -197,11 +197,11 @@ def _systems_reading(diagram, names=PRIVILEGED) -> set[str]:
 @pytest.mark.parametrize("policy", ["ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init"])
 def test_no_controller_policy_has_privileged_ports(policy):
     from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.controllers import make_controller
 
     _, _, X_GC = gripper_frame_offsets()
     scenario = load_scenario(scenario_name="isolation", scenario_text=f"{{policy: {policy}}}")
-    ctrl = GraspController(scenario=scenario, policy=policy, X_WG_start=topdown_pose([0.5, 0], 0.2),
+    ctrl = make_controller(policy, scenario=scenario, X_WG_start=topdown_pose([0.5, 0], 0.2),
                            X_GC=X_GC)
     ports = {ctrl.get_input_port(i).get_name() for i in range(ctrl.num_input_ports())}
     assert not ports & set(PRIVILEGED), ports

@@ -190,12 +190,12 @@ def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
 
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.controllers import make_controller
 
     scenario = load_scenario(scenario_name="isolation", scenario_text=scenario_text)
     _, _, X_GC = gripper_frame_offsets()
     start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], np.deg2rad(10.0))
-    ctrl = GraspController(scenario=scenario, policy="gpd", X_WG_start=start, X_GC=X_GC,
+    ctrl = make_controller("gpd", scenario=scenario, X_WG_start=start, X_GC=X_GC,
                            X_GC_gpd=gpd_camera_offset(), detect_fn=detect_fn)
     ctx = ctrl.CreateDefaultContext()
     ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))

@@ -347,19 +347,30 @@ def target_object(scenario, scene, station) -> tuple[int | None, int | None]:
 
 @contextlib.contextmanager
 def controller_class(cls):
-    """Episodes built inside the block run `cls`, a `GraspController` subclass, as the
-    built-in policy's controller (`add_policy_systems` looks the class up each time it
-    builds). For diagnostics that replace or log one decision of the controller
-    (`analysis/oracle_ctr.py`: the true distances; `analysis/clutter_predicted_distance.py`:
-    the predictions logged); not for policies (`Scenario.policy: MODULE:FACTORY` is)."""
-    import drake_grasp.policies.controller as module
+    """Episodes built inside the block run `cls`, a subclass of a built-in policy's
+    controller class (`policies.controllers.CONTROLLERS`), for the policies whose class it
+    derives from (`make_controller` looks the class up each time it builds; a subclass of
+    `CTRController` runs ctr). For diagnostics that replace or log one decision of the
+    controller (`analysis/oracle_ctr.py`: the true distances;
+    `analysis/clutter_predicted_distance.py`: the predictions logged); not for policies
+    (`Scenario.policy: MODULE:FACTORY` is)."""
+    from drake_grasp.policies.controllers import CONTROLLERS
 
-    original = module.GraspController
-    module.GraspController = cls
+    original = dict(CONTROLLERS)
+    replaced = [policy for policy, base in original.items() if issubclass(cls, base)]
+    if not replaced:
+        raise TypeError(f"controller_class: {cls.__name__} derives from none of the built-in "
+                        f"controller classes {sorted(c.__name__ for c in original.values())}")
+    # Only the most derived match: a CNNCTRController subclass runs cnn-ctr, not ctr.
+    best = [p for p in replaced if not any(
+        original[q] is not original[p] and issubclass(original[q], original[p])
+        for q in replaced)]
+    CONTROLLERS.update({policy: cls for policy in best})
     try:
         yield cls
     finally:
-        module.GraspController = original
+        CONTROLLERS.clear()
+        CONTROLLERS.update(original)
 
 
 def policy_image_ports(builder, scenario, station_diagram) -> dict:
@@ -380,7 +391,7 @@ def policy_image_ports(builder, scenario, station_diagram) -> dict:
 
 def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, target_label,
                        detect_fn, depth, label, gpd_depth):
-    """The built-in policy's systems: "controller" (GraspController), "action_sampler" and
+    """The built-in policy's systems: "controller" (`make_controller`), "action_sampler" and
     "distance_evaluator" (the CNN; "no_evaluator" for policies without it), connected to
     the image output ports given (`depth`, `label` - None outside target mode -,
     `gpd_depth`). The in-process episode
@@ -390,7 +401,7 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     from pydrake.common.value import AbstractValue
     from pydrake.systems.primitives import ConstantValueSource
 
-    from drake_grasp.policies.controller import GraspController
+    from drake_grasp.policies.controllers import make_controller
     from drake_grasp.policies.evaluator import (ActionSampler, DistanceEvaluator, check_views,
                                                needs_camera_height, score_candidates)
 
@@ -403,8 +414,8 @@ def add_policy_systems(builder, scenario, *, model, X_WG_start, X_GC, X_GC_gpd, 
     score_fn = (timer.wrap(lambda d, actions, **kw: score_candidates(
         model, d, actions, mirror=c.mirror_average, views=c.view_average, **kw))
         if needs_cnn else None)
-    controller = builder.AddNamedSystem("controller", GraspController(
-        scenario=scenario, policy=scenario.policy, X_WG_start=X_WG_start, X_GC=X_GC,
+    controller = builder.AddNamedSystem("controller", make_controller(
+        scenario.policy, scenario=scenario, X_WG_start=X_WG_start, X_GC=X_GC,
         X_GC_gpd=X_GC_gpd, score_fn=score_fn, score_needs_height=needs_height,
         detect_fn=timer.wrap(_detector(scenario, detect_fn)), target_label=target_label))
     builder.Connect(depth, controller.GetInputPort("depth_image"))
