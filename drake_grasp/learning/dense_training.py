@@ -119,7 +119,7 @@ class BatchNormTrunk(torch.nn.Module):
         """The grid of distances, (B, T, N, N), as `DistanceCNN.image_features`."""
         self.net._check_images(images)
         z3 = self._pre_activations(images)[2]
-        return self.net._after_ip1_grid(self.net._lrelu(self.bn3(z3)))
+        return self.net.head.grid_from_hidden(self.net._lrelu(self.bn3(z3)))
 
     @torch.no_grad()
     def start_as_identity(self, images: torch.Tensor) -> None:
