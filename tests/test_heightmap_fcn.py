@@ -14,7 +14,7 @@ import torch
 def _box_image(H, cam_h, centre_xy, half_m, top_h):
     """A flat table at cam_h below the camera and a box of side 2 half_m, top at top_h
     above the table, centred at `centre_xy` (camera-axis offsets, x along the image's
-    columns, y along its rows, as `DistanceCNN._window_grid` maps them)."""
+    columns, y along its rows, as `WindowHead.window_grid` maps them)."""
     cfg = H.GRID_CONFIG
     f, size = cfg.focal_px, cfg.image_size
     c = np.arange(size) - (size / 2.0 - 0.5)

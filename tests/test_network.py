@@ -210,7 +210,7 @@ _TOLERANCES = [(torch.float64, 1e-9, 1e-8), (torch.float32, 5e-5, 1e-2)]
 
 def _ip1_branches(m: DistanceCNN, feats: torch.Tensor, offsets: torch.Tensor) -> tuple:
     """How many IP1 inputs are on lrelu's identity branch for every candidate, on its
-    slope branch for every candidate, and ambiguous (what `_ip1_split` partitions)."""
+    slope branch for every candidate, and ambiguous (what `InferenceIP1.split` partitions)."""
     x = feats.reshape(1, feats.shape[0], -1) + offsets[:, :, None]
     on, off = (x > 0).all(dim=0), (x <= 0).all(dim=0)
     return int(on.sum()), int(off.sum()), int((~(on | off)).sum())
@@ -230,10 +230,10 @@ def test_split_ip1_equals_dense_product(spread, expect_split):
         if expect_split:
             assert min(on, off, ambiguous) > 0, "the check needs inputs of all three kinds"
         else:
-            assert ambiguous > m._SPLIT_MAX_AMBIGUOUS * (on + off + ambiguous)
-        assert (m._ip1_split(feats, offsets) is not None) == expect_split, (on, off, ambiguous)
+            assert ambiguous > m.head.fast_ip1.SPLIT_MAX_AMBIGUOUS * (on + off + ambiguous)
+        assert (m.head.fast_ip1.split(feats, offsets) is not None) == expect_split, (on, off, ambiguous)
         fast = m.score_actions(feats, acts)
-        dense = m._score_features(feats[None], offsets)
+        dense = m.head.score_features(feats[None], offsets)
     direct = m.forward_direct(img.expand(128, -1, -1, -1), acts).detach()
     assert _max_rel(fast, dense) <= 5e-5
     assert _max_rel(fast, direct) <= 5e-5
@@ -561,16 +561,16 @@ def test_window_is_placed_where_the_candidate_grasp_is_seen():
     assert torch.allclose(d0, d1, rtol=1e-9, atol=0), (d0, d1)
     # The grid's centre for the hand's own grasp axis (action 0) at the image's depth.
     feats = action_features(torch.zeros(1, 1, 3), WIN, dtype=torch.float64)
-    grid = m._window_grid(feats, torch.tensor([0.25], dtype=torch.float64))
+    grid = m.head.window_grid(feats, torch.tensor([0.25], dtype=torch.float64))
     side = WIN.feature_shape()[1]
     u, v = ((grid.mean(dim=(1, 2))[0] + 1) * (side - 1) / 2) * 2 + 6.5  # back to pixels
     u0, v0 = grasp_axis_pixel((64, 64), WIN.focal_px, (WIN.camera_x_G_m, WIN.camera_y_G_m), 0.25)
     assert abs(u.item() - u0) < 1e-9 and abs(v.item() - v0) < 1e-9
     # Turned by 60 degrees, each window row runs along the closing axis, (cos 60, sin 60)
     # in (x_G, y_G), i.e. in (u, v).
-    turned = m._window_grid(action_features(torch.tensor([[[0.0, 0.0, math.pi / 3]]]), WIN,
-                                            dtype=torch.float64),
-                            torch.tensor([0.25], dtype=torch.float64))
+    turned = m.head.window_grid(action_features(torch.tensor([[[0.0, 0.0, math.pi / 3]]]), WIN,
+                                                dtype=torch.float64),
+                                torch.tensor([0.25], dtype=torch.float64))
     du, dv = (turned[0, 0, 1] - turned[0, 0, 0]).tolist()
     assert du > 0 and abs(dv / du - math.sqrt(3)) < 1e-5
 

@@ -1,12 +1,12 @@
-"""The distance CNN's "grid" head (`NetworkConfig.action_fusion == "grid"`): the trunk
-without an action input, then IP2 predicting the distance at every node of a grid of
-actions (x, y around the camera's centre, theta over 180 degrees). This module owns
+"""The distance CNN's "grid" head (`NetworkConfig.action_fusion == "grid"`): the shared
+trunk without an action input, then IP2 predicting the distance at every node of a grid
+of actions (x, y around the camera's centre, theta over 180 degrees). This module owns
 that grid: the nodes around an action and their trilinear weights (`grid_corners`), the
 interpolation of a distance grid at actions (`grid_scores`), the nodes inside the
-camera's view (`grid_view_mask`), and the head's forward paths that
-`drake_grasp.cnn.network.DistanceCNN` delegates to: the whole grid from IP1's output
-(`after_ip1_grid`), the trunk up to it (`grid_hidden`) and the control path that runs
-IP2 only at the nodes a set of candidates needs (`score_grid_nodes`).
+camera's view (`grid_view_mask`), and `GridHead`, the head
+`drake_grasp.cnn.network.DistanceCNN` delegates to for it: the trunk up to IP2's input
+(`GridHead.hidden`), the whole grid from it (`GridHead.grid_from_hidden`) and the control
+path that runs IP2 only at the nodes a set of candidates needs (`GridHead.score_nodes`).
 """
 
 import math
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from drake_grasp.cnn.net_config import ArrayLike, NetworkConfig
+from drake_grasp.cnn.net_config import NetworkConfig
 
 
 def grid_corners(cfg: "NetworkConfig", feats: torch.Tensor) -> list:
@@ -76,50 +76,61 @@ def grid_scores(cfg: "NetworkConfig", grids: torch.Tensor, feats: torch.Tensor) 
     return out
 
 
-def after_ip1_grid(net, hidden: torch.Tensor) -> torch.Tensor:
-    """The whole distance grid of the `DistanceCNN` `net`, (..., T, N, N), from
-    `grid_hidden` (..., ip1)."""
-    z = net.ip2(hidden)
-    return (net.config.output_scale_m * F.softplus(z)).reshape(
-        *hidden.shape[:-1], *net.config.grid_shape())
+class GridHead:
+    """The grid head on the `DistanceCNN` `net`'s shared trunk. Holds only the net (whose
+    layers it reads) and is made afresh by `DistanceCNN.head`."""
 
+    def __init__(self, net) -> None:
+        self.net = net
 
-def grid_hidden(net, images: torch.Tensor) -> torch.Tensor:
-    """`DistanceCNN.grid_hidden` of `net`: the trunk up to IP2's input, lrelu(IP1(...)),
-    (B, ip1)."""
-    net._check_images(images)
-    if not net.grid:
-        raise ValueError(f"grid_hidden: a {net.config.action_fusion!r} net has no grid head")
-    x = F.max_pool2d(net._lrelu(net.conv1(images)), 2)
-    h = F.max_pool2d(net._lrelu(net.conv2(x)), 2).flatten(1)
-    return net._lrelu(net.ip1(h))
+    def direct(self, images: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """(B,) distances for one action's features (B, 4) per image."""
+        return self.scores(self.net.image_features(images), feats[:, None])[:, 0]
 
+    def image_features(self, images: torch.Tensor) -> torch.Tensor:
+        """The whole distance grid of each image, (B, T, N, N)."""
+        return self.grid_from_hidden(self.hidden(images))
 
-def score_grid_nodes(net, hidden: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
-    """`DistanceCNN.score_grid_nodes` of `net`: distances for K actions on one image from
-    `grid_hidden`, IP2 computed only at the grid nodes around them, (K,)."""
-    if hidden.ndim == 2 and hidden.shape[0] == 1:
-        hidden = hidden[0]
-    if tuple(hidden.shape) != (net.config.ip1,):
-        raise ValueError(f"hidden: expected shape ({net.config.ip1},) or (1, "
-                         f"{net.config.ip1}) (grid_hidden of one image), got "
-                         f"{tuple(hidden.shape)}")
-    feats = net._features(actions)
-    if feats.ndim != 2:
-        raise ValueError(
-            f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
-    if 4 * 8 * feats.shape[0] > net.ip2.out_features:
-        # Many actions (e.g. 2,048 over the whole view need ~40% of the nodes):
-        # gathering rows costs more than IP2 over the whole grid.
-        grids = after_ip1_grid(net, hidden)
-        return grid_scores(net.config, grids[None], feats[None])[0]
-    corners = grid_corners(net.config, feats[None])
-    nodes, where = torch.unique(torch.cat([idx for idx, _ in corners], dim=1),
-                                return_inverse=True)
-    z = F.linear(hidden, net.ip2.weight[nodes], net.ip2.bias[nodes])
-    values = net.config.output_scale_m * F.softplus(z)
-    k = feats.shape[0]
-    out = 0.0
-    for j, (_, weight) in enumerate(corners):
-        out = out + values[where[:, j * k:(j + 1) * k]] * weight
-    return out[0]
+    def scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """Distances (B, M) for M actions' features (B, M, 4) from grids (`grid_scores`)."""
+        return grid_scores(self.net.config, grids, feats)
+
+    def score_one(self, grid: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """Distances (K,) for K actions' features (K, 4) on one image's grid."""
+        return self.scores(grid[None], feats[None])[0]
+
+    def grid_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
+        """The whole distance grid, (..., T, N, N), from `hidden` (..., ip1)."""
+        net = self.net
+        z = net.ip2(hidden)
+        return (net.config.output_scale_m * F.softplus(z)).reshape(
+            *hidden.shape[:-1], *net.config.grid_shape())
+
+    def hidden(self, images: torch.Tensor) -> torch.Tensor:
+        """`DistanceCNN.grid_hidden`: the trunk up to IP2's input, lrelu(IP1(...)),
+        (B, ip1)."""
+        net = self.net
+        x = net.trunk(images)
+        h = F.max_pool2d(net._lrelu(net.conv2(x)), 2).flatten(1)
+        return net._lrelu(net.ip1(h))
+
+    def score_nodes(self, hidden: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """`DistanceCNN.score_grid_nodes`: distances for K actions' features (K, 4) on one
+        image from its `hidden` (ip1,), IP2 computed only at the grid nodes around
+        them, (K,)."""
+        net = self.net
+        if 4 * 8 * feats.shape[0] > net.ip2.out_features:
+            # Many actions (e.g. 2,048 over the whole view need ~40% of the nodes):
+            # gathering rows costs more than IP2 over the whole grid.
+            grids = self.grid_from_hidden(hidden)
+            return grid_scores(net.config, grids[None], feats[None])[0]
+        corners = grid_corners(net.config, feats[None])
+        nodes, where = torch.unique(torch.cat([idx for idx, _ in corners], dim=1),
+                                    return_inverse=True)
+        z = F.linear(hidden, net.ip2.weight[nodes], net.ip2.bias[nodes])
+        values = net.config.output_scale_m * F.softplus(z)
+        k = feats.shape[0]
+        out = 0.0
+        for j, (_, weight) in enumerate(corners):
+            out = out + values[where[:, j * k:(j + 1) * k]] * weight
+        return out[0]

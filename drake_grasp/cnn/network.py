@@ -26,20 +26,24 @@ broadcast add, lrelu and the IP layers (`DistanceCNN.score_actions` for control,
 floating-point rounding, gradients included.
 
 For control (one image, K candidates, no gradient) IP1 is split further
-(`DistanceCNN._ip1_split`). IP1's input is ``lrelu(Zp[j, p] + c_k[j])``; an input whose
-argument has the same sign for all K candidates (``Zp[j, p] + min_k c_k[j] > 0``, or
-``Zp[j, p] + max_k c_k[j] <= 0``) is affine in c_k, so its share of IP1 is one
+(`tiled_fusion.InferenceIP1.split`). IP1's input is ``lrelu(Zp[j, p] + c_k[j])``; an
+input whose argument has the same sign for all K candidates (``Zp[j, p] + min_k c_k[j]
+> 0``, or ``Zp[j, p] + max_k c_k[j] <= 0``) is affine in c_k, so its share of IP1 is one
 matrix-vector pass over the weights for all K together. Only the remaining inputs
 (about 20-30% on the wrist images measured) go through the per-candidate product.
 Same numbers up to summation order.
 
 This module owns the model: its layers (their attribute names are the weights files'
-tensor names), the shared trunk and the three forms above. The config and input encoding
-are `drake_grasp.cnn.net_config`'s; each action fusion's cache and fast path is its own
-module, which the model delegates to (`tiled_fusion`, `window_fusion`, `grid_head`);
-test-time mirror averaging is `drake_grasp.cnn.mirror`'s and weights I/O (safetensors
-only, verified on load) `drake_grasp.cnn.weights_io`'s. It knows nothing of Drake;
-`drake_grasp.systems` wraps it.
+tensor names), the shared trunk (`DistanceCNN.trunk`: Conv1 -> lrelu -> Pool1) and the
+public forms above, which check their inputs and delegate to the head of the net's
+action fusion (`DistanceCNN.head`): `tiled_fusion.TiledHead` (the paper's, with the
+inference-only IP1 paths `tiled_fusion.InferenceIP1`), `window_fusion.WindowHead` or
+`grid_head.GridHead`. A head holds no weights of its own: it reads the net's layers, so
+the state_dict keys are the layers' attribute names here whatever the fusion. The
+config and input encoding are `drake_grasp.cnn.net_config`'s; test-time mirror
+averaging is `drake_grasp.cnn.mirror`'s and weights I/O (safetensors only, verified on
+load) `drake_grasp.cnn.weights_io`'s. It knows nothing of Drake; `drake_grasp.systems`
+wraps it.
 """
 
 # No `from __future__ import annotations`: NetworkConfig may be nested in scenario
@@ -52,8 +56,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from drake_grasp.cnn import grid_head, tiled_fusion, window_fusion
+from drake_grasp.cnn.grid_head import GridHead
 from drake_grasp.cnn.net_config import ArrayLike, NetworkConfig, action_features, normalize_depth
+from drake_grasp.cnn.tiled_fusion import TiledHead
+from drake_grasp.cnn.window_fusion import WindowHead
+
+# The head of each `NetworkConfig.action_fusion`.
+_HEADS = {"tiled": TiledHead, "window": WindowHead, "grid": GridHead}
 
 
 class DistanceCNN(nn.Module):
@@ -133,6 +142,13 @@ class DistanceCNN(nn.Module):
         """Floating dtype of the parameters."""
         return self.conv1.weight.dtype
 
+    @property
+    def head(self):
+        """The head of this net's action fusion on its layers (`TiledHead`, `WindowHead`
+        or `GridHead`). Made on each access: it holds nothing but the net, so copies of
+        the net (deep or shallow) each get their own."""
+        return _HEADS[self.config.action_fusion](self)
+
     def preprocess(self, depth: ArrayLike) -> torch.Tensor:
         """`normalize_depth` with this net's config and dtype -> (B, 1, H, W)."""
         return normalize_depth(depth, self.config, dtype=self.dtype)
@@ -151,32 +167,20 @@ class DistanceCNN(nn.Module):
     def _features(self, actions: ArrayLike) -> torch.Tensor:
         return action_features(actions, self.config, dtype=self.dtype)
 
-    def _head(self, h: torch.Tensor, *, fast_ip1: bool = False) -> torch.Tensor:
-        """IP1 -> lrelu -> IP2 -> scaled softplus on flattened Pool2 activations."""
-        y = self._ip1_packed(h) if fast_ip1 else None
-        if y is None:
-            y = self.ip1(h)
-        return self._after_ip1(y)
-
     def _after_ip1(self, y: torch.Tensor) -> torch.Tensor:
-        """lrelu -> IP2 -> scaled softplus on IP1's pre-activation."""
+        """lrelu -> IP2 -> scaled softplus on IP1's pre-activation (tiled and window)."""
         z = self.ip2(self._lrelu(y)).squeeze(-1)
         return self.config.output_scale_m * F.softplus(z)
 
-    def _ip1_packed(self, h: torch.Tensor) -> Optional[torch.Tensor]:
-        """IP1 through oneDNN on cached weights, or None (`tiled_fusion.ip1_packed`)."""
-        return tiled_fusion.ip1_packed(self, h)
+    # -- the shared trunk ----------------------------------------------------------------
 
-    # Above this fraction of ambiguous IP1 inputs the dense product is cheaper (the split
-    # costs two passes over the weights plus the per-candidate product on those inputs).
-    _SPLIT_MAX_AMBIGUOUS = 0.6
+    def trunk(self, images: torch.Tensor) -> torch.Tensor:
+        """Pool1 of normalized images: Conv1 -> lrelu -> 2x2 max-pool, (B, C1, 30, 30) for
+        the defaults. Every head goes on to Conv2 from here (the tiled one after adding
+        the action)."""
+        return F.max_pool2d(self._lrelu(self.conv1(images)), 2)
 
-    def _ip1_split(self, features: torch.Tensor, offsets: torch.Tensor) -> Optional[torch.Tensor]:
-        """IP1 for K actions on one image, split by the sign of lrelu's argument, or
-        None where that does not apply (`tiled_fusion.ip1_split`): (K, out)."""
-        return tiled_fusion.ip1_split(self, features, offsets)
-
-    # -- direct form -----------------------------------------------------------------
+    # -- the forms, each delegating to the head ----------------------------------------
 
     def forward_direct(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """The paper's graph, literally: one image and one action per row.
@@ -195,42 +199,26 @@ class DistanceCNN(nn.Module):
                 f"actions: expected shape ({images.shape[0]}, 3 or 4) to match "
                 f"{images.shape[0]} images, got {tuple(feats.shape)}"
             )
-        if self.window:
-            return self._window_scores(self.image_features(images), feats[:, None])[:, 0]
-        if self.grid:
-            return self._grid_scores(self.image_features(images), feats[:, None])[:, 0]
-        x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
-        x = x + self.ip_action(feats)[:, :, None, None]  # tiled over Pool1's H, W
-        x = F.max_pool2d(self._lrelu(self.conv2(x)), 2)
-        return self._head(x.flatten(1))
+        return self.head.direct(images, feats)
 
     def forward(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Same as `forward_direct`."""
         return self.forward_direct(images, actions)
 
-    # -- factored (fast) form ----------------------------------------------------------
-
     def image_features(self, images: torch.Tensor) -> torch.Tensor:
-        """The action-independent part: pool2(Conv2(Pool1(lrelu(Conv1(I))))).
+        """The action-independent part of each image, computed once for all its actions.
 
-        Conv2's bias is included; Conv2's leaky ReLU is *not* (it comes after the
-        action's per-channel shift, see the module docstring).
+        Tiled (the paper's): pool2(Conv2(Pool1(lrelu(Conv1(I))))), Conv2's bias included
+        and its leaky ReLU *not* (it comes after the action's per-channel shift, see the
+        module docstring): (B, C2, P, P), (B, 50, 13, 13) for the defaults. Window:
+        lrelu(Conv2) unpooled and the reference depth, (B, C2 + 1, S, S). Grid: the
+        whole distance grid, (B, T, N, N).
 
         Args:
             images: Normalized depth, (B, 1, S, S).
-
-        Returns:
-            (B, C2, P, P): (B, 50, 13, 13) for the defaults.
         """
-        if self.grid:
-            return self._after_ip1_grid(self.grid_hidden(images))
         self._check_images(images)
-        x = F.max_pool2d(self._lrelu(self.conv1(images)), 2)
-        if self.window:
-            fmap = self._lrelu(self.conv2(x))
-            ref = self._reference_depth(images)[:, None, None, None]
-            return torch.cat((fmap, ref.expand(-1, 1, *fmap.shape[2:])), dim=1)
-        return F.max_pool2d(self.conv2(x), 2)
+        return self.head.image_features(images)
 
     def action_offsets(self, actions: ArrayLike) -> torch.Tensor:
         """Per-channel Conv2-output shift c(a) caused by the tiled action input.
@@ -244,76 +232,22 @@ class DistanceCNN(nn.Module):
         Returns:
             (..., C2).
         """
-        return tiled_fusion.action_offsets(self, actions)
-
-    # -- window fusion -----------------------------------------------------------------
-
-    def _reference_depth(self, images: torch.Tensor) -> torch.Tensor:
-        """Each image's median depth [m] (`window_fusion.reference_depth`), (B,)."""
-        return window_fusion.reference_depth(self, images)
-
-    def _window_grid(self, feats: torch.Tensor, ref: torch.Tensor,
-                     side_m: Optional[float] = None) -> torch.Tensor:
-        """grid_sample coordinates of every candidate's window
-        (`window_fusion.window_grid`), (B, M * n, n, 2)."""
-        return window_fusion.window_grid(self, feats, ref, side_m)
-
-    def _window_scores(self, features: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """Distances (B, M) for M actions on each of B images from `image_features`
-        (`window_fusion.window_scores`)."""
-        return window_fusion.window_scores(self, features, feats)
-
-    # -- grid head ---------------------------------------------------------------------
-
-    def _grid_corners(self, feats: torch.Tensor) -> list:
-        return grid_head.grid_corners(self.config, feats)
-
-    def _grid_scores(self, grids: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        return grid_head.grid_scores(self.config, grids, feats)
-
-    def _after_ip1_grid(self, hidden: torch.Tensor) -> torch.Tensor:
-        """The whole distance grid, (..., T, N, N), from `grid_hidden` (..., ip1)."""
-        return grid_head.after_ip1_grid(self, hidden)
-
-    def grid_hidden(self, images: torch.Tensor) -> torch.Tensor:
-        """Grid head: the trunk up to IP2's input, lrelu(IP1(...)), (B, ip1). IP2 maps it
-        to the distance at every grid node; `score_grid_nodes` evaluates only the nodes
-        a set of actions needs."""
-        return grid_head.grid_hidden(self, images)
-
-    def score_grid_nodes(self, hidden: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
-        """Distances for K actions on one image from `grid_hidden`, computing IP2 only at
-        the grid nodes around them (the controller's candidates lie within a few cm and
-        tens of degrees of the hand: about 1/20 of the 18 x 33 x 33 nodes; for more than
-        1/32 as many actions as nodes, IP2 runs over the whole grid). Equal to
-        `score_actions(image_features(...))` (same interpolation of the same node values;
-        IP2's rows are the same dot products, so the values agree to float rounding).
-
-        Args:
-            hidden: (ip1,) or (1, ip1), `grid_hidden` of one image.
-            actions: (K, 3) raw or (K, 4) features.
-
-        Returns:
-            Distances [m], (K,).
-        """
-        return grid_head.score_grid_nodes(self, hidden, actions)
-
-    def _score_features(self, features: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """Distances from image features and per-channel action shifts broadcast against
-        them (`tiled_fusion.score_features`)."""
-        return tiled_fusion.score_features(self, features, offsets)
+        if self.window or self.grid:
+            raise ValueError(f"action_offsets: a {self.config.action_fusion!r} net has no "
+                             "per-channel action shift")
+        return TiledHead(self).offsets(self._features(actions))
 
     def score_actions(self, features: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for K candidate actions on one image (control).
 
         Call under `torch.inference_mode()` in a controller: no autograd graph is
-        kept and, for float32 on CPU, IP1 is split (`_ip1_split`): the inputs whose
-        leaky ReLU branch is the same for all K candidates cost one pass over IP1's
-        weights for all of them, and only the others go through the per-candidate
-        product (about 2x faster for the controller's candidates on the machines
-        measured). Where that does not apply, all K actions go through IP1 as one
-        (K, 8450) @ (8450, 500) product on cached oneDNN weights. The result is
-        differentiable when a gradient is wanted.
+        kept and, for a tiled net in float32 on CPU, IP1 is split
+        (`tiled_fusion.InferenceIP1.split`): the inputs whose leaky ReLU branch is the
+        same for all K candidates cost one pass over IP1's weights for all of them, and
+        only the others go through the per-candidate product (about 2x faster for the
+        controller's candidates on the machines measured). Where that does not apply,
+        all K actions go through IP1 as one (K, 8450) @ (8450, 500) product on cached
+        oneDNN weights. The result is differentiable when a gradient is wanted.
 
         Args:
             features: `image_features` of one image, (C2, P, P) or (1, C2, P, P).
@@ -330,22 +264,11 @@ class DistanceCNN(nn.Module):
                 f"features: expected shape {expected} or (1, *{expected}) "
                 f"(image_features of one image), got {tuple(features.shape)}"
             )
-        if self.window or self.grid:
-            feats = self._features(actions)
-            if feats.ndim != 2:
-                raise ValueError(
-                    f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
-            scores = self._grid_scores if self.grid else self._window_scores
-            return scores(features[None], feats[None])[0]
-        offsets = self.action_offsets(actions)
-        if offsets.ndim != 2:
+        feats = self._features(actions)
+        if feats.ndim != 2:
             raise ValueError(
-                f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}"
-            )
-        y = self._ip1_split(features, offsets)
-        if y is None:
-            return self._score_features(features[None], offsets)
-        return self._after_ip1(y)
+                f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
+        return self.head.score_one(features, feats)
 
     def forward_factored(self, images: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
         """Distances for M actions on each of B images (training), differentiable.
@@ -360,18 +283,47 @@ class DistanceCNN(nn.Module):
             Distances [m], (B, M).
         """
         features = self.image_features(images)
-        if self.window or self.grid:
-            feats = self._features(actions)
-            if feats.ndim != 3 or feats.shape[0] != images.shape[0]:
-                raise ValueError(
-                    f"actions: expected shape ({images.shape[0]}, M, 3 or 4) to match "
-                    f"{images.shape[0]} images, got {tuple(torch.as_tensor(actions).shape)}")
-            scores = self._grid_scores if self.grid else self._window_scores
-            return scores(features, feats)
-        offsets = self.action_offsets(actions)
-        if offsets.ndim != 3 or offsets.shape[0] != images.shape[0]:
+        feats = self._features(actions)
+        if feats.ndim != 3 or feats.shape[0] != images.shape[0]:
             raise ValueError(
                 f"actions: expected shape ({images.shape[0]}, M, 3 or 4) to match "
-                f"{images.shape[0]} images, got {tuple(torch.as_tensor(actions).shape)}"
-            )
-        return self._score_features(features[:, None], offsets)
+                f"{images.shape[0]} images, got {tuple(torch.as_tensor(actions).shape)}")
+        return self.head.scores(features, feats)
+
+    # -- the grid head's control path --------------------------------------------------
+
+    def grid_hidden(self, images: torch.Tensor) -> torch.Tensor:
+        """Grid head: the trunk up to IP2's input, lrelu(IP1(...)), (B, ip1). IP2 maps it
+        to the distance at every grid node; `score_grid_nodes` evaluates only the nodes
+        a set of actions needs."""
+        self._check_images(images)
+        if not self.grid:
+            raise ValueError(f"grid_hidden: a {self.config.action_fusion!r} net has no grid head")
+        return GridHead(self).hidden(images)
+
+    def score_grid_nodes(self, hidden: torch.Tensor, actions: ArrayLike) -> torch.Tensor:
+        """Distances for K actions on one image from `grid_hidden`, computing IP2 only at
+        the grid nodes around them (the controller's candidates lie within a few cm and
+        tens of degrees of the hand: about 1/20 of the 18 x 33 x 33 nodes; for more than
+        1/32 as many actions as nodes, IP2 runs over the whole grid). Equal to
+        `score_actions(image_features(...))` (same interpolation of the same node values;
+        IP2's rows are the same dot products, so the values agree to float rounding).
+
+        Args:
+            hidden: (ip1,) or (1, ip1), `grid_hidden` of one image.
+            actions: (K, 3) raw or (K, 4) features.
+
+        Returns:
+            Distances [m], (K,).
+        """
+        if hidden.ndim == 2 and hidden.shape[0] == 1:
+            hidden = hidden[0]
+        if tuple(hidden.shape) != (self.config.ip1,):
+            raise ValueError(f"hidden: expected shape ({self.config.ip1},) or (1, "
+                             f"{self.config.ip1}) (grid_hidden of one image), got "
+                             f"{tuple(hidden.shape)}")
+        feats = self._features(actions)
+        if feats.ndim != 2:
+            raise ValueError(
+                f"actions: expected shape (K, 3 or 4), got {tuple(torch.as_tensor(actions).shape)}")
+        return GridHead(self).score_nodes(hidden, feats)

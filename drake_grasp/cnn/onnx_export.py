@@ -91,7 +91,7 @@ class _HeadPart(nn.Module):
     def forward(self, features: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         offsets = self.model.action_offsets(actions)  # (B, K, C2)
         h = self.model._lrelu(features[:, None] + offsets[..., None, None])
-        return self.model._head(h.flatten(2))
+        return self.model.head.mlp(h.flatten(2))
 
 
 def _resolve_exporter(exporter: str) -> str:

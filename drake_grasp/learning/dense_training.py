@@ -38,7 +38,8 @@ from drake_grasp.cnn.network import DistanceCNN
 from drake_grasp.cnn.weights_io import load_weights, save_weights
 from drake_grasp.cnn.views import AUGMENTATIONS, turn_grids, turn_images
 from drake_grasp.core.files import atomic_write_text
-from drake_grasp.learning.common import full_float32, torch_device
+from drake_grasp.learning.common import (ChunkCache, ShardSet, full_float32, load_checkpoint,
+                                         torch_device)
 from drake_grasp.learning.dense_labels import LabelStore, build_labels, view_masks
 from drake_grasp.learning.dense_rank import RANK_REACH_CELLS, pairwise_rank_loss, rank_pairs
 
@@ -119,7 +120,7 @@ class BatchNormTrunk(torch.nn.Module):
         """The grid of distances, (B, T, N, N), as `DistanceCNN.image_features`."""
         self.net._check_images(images)
         z3 = self._pre_activations(images)[2]
-        return self.net._after_ip1_grid(self.net._lrelu(self.bn3(z3)))
+        return self.net.head.grid_from_hidden(self.net._lrelu(self.bn3(z3)))
 
     @torch.no_grad()
     def start_as_identity(self, images: torch.Tensor) -> None:
@@ -221,8 +222,6 @@ def export_checkpoint_weights(run_dir: str | Path, path: str | Path) -> dict:
     if not ckpt_path.is_file():
         raise FileNotFoundError(f"{ckpt_path}: not found (is {run_dir} a `drake-grasp "
                                 "train-grid` output folder?)")
-    from drake_grasp.learning.common import load_checkpoint
-
     ckpt = load_checkpoint(ckpt_path)
     identity = ckpt.get("identity") if isinstance(ckpt, dict) else None
     if not isinstance(identity, dict) or "config" not in identity or "model" not in ckpt:
@@ -383,8 +382,6 @@ def _model_state(ckpt_path: Path, cfg: NetworkConfig, identity: dict, out: Path,
     """(model, Adam, its learning-rate schedule, the run's state: `_start_state`), from the
     checkpoint when there is one. The optimizer is made (and its state loaded) after the
     model's move to `device`, so that its state lives where the parameters do."""
-    from drake_grasp.learning.common import load_checkpoint
-
     net = DistanceCNN(cfg, generator=torch.Generator().manual_seed(seed))
     model = BatchNormTrunk(net) if batch_norm else net
     ckpt = load_checkpoint(ckpt_path) if ckpt_path.exists() else None
@@ -528,7 +525,6 @@ def train(labels_dir, out: str | Path, *, test_data: str | Path | None,
 def evaluate(model: DistanceCNN, test_data: str | Path, *, ranking_images: int = 200) -> dict:
     """Test L1 over every stored labelled offset and the controller's ranking metrics."""
     from drake_grasp.learning.cnn_metrics import l1_by_label, ranking_metrics
-    from drake_grasp.learning.common import ChunkCache, ShardSet
 
     model.eval()
     l1, bins = l1_by_label(model, ShardSet(test_data, ChunkCache(int(2e9))))
