@@ -9,13 +9,12 @@ camera's view (`grid_view_mask`), and `GridHead`, the head
 path that runs IP2 only at the nodes a set of candidates needs (`GridHead.score_nodes`).
 """
 
-import math
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from drake_grasp.cnn.net_config import NetworkConfig
+from drake_grasp.geometry.camera import view_half_extent_m
 
 
 def grid_corners(cfg: "NetworkConfig", feats: torch.Tensor) -> list:
@@ -50,8 +49,7 @@ def grid_view_mask(camera_height_m, cfg: "NetworkConfig", *, slack_m: float = 1e
     camera's footprint on the table at each of B camera heights above it [m], widened by
     `slack_m`."""
     n = cfg.grid_shape()[1]
-    half_view = (np.atleast_1d(np.asarray(camera_height_m, float))
-                 * math.tan(math.radians(cfg.camera_fov_deg) / 2.0))
+    half_view = np.atleast_1d(view_half_extent_m(camera_height_m, cfg.camera_fov_deg))
     offsets = (np.arange(n) - (n - 1) / 2.0) * cfg.grid_step_m
     return np.abs(offsets)[None, :] <= half_view[:, None] + slack_m
 

@@ -17,6 +17,8 @@ from typing import Any, Optional, Union
 import numpy as np
 import torch
 
+from drake_grasp.geometry.camera import focal_length_px
+
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
 _DEPTH_REFERENCES = ("fixed", "median")
@@ -262,7 +264,7 @@ class NetworkConfig:
     @property
     def focal_px(self) -> float:
         """The wrist camera's focal length in pixels (square image, `camera_fov_deg`)."""
-        return (self.image_size / 2.0) / math.tan(math.radians(self.camera_fov_deg) / 2.0)
+        return focal_length_px(self.image_size, self.camera_fov_deg)
 
     def to_dict(self) -> dict[str, Any]:
         """The config as a plain dict (JSON-able); a "tiled" net's leaves out the window
