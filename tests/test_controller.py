@@ -10,8 +10,8 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from drake_grasp.geometry.actions import apply_actions
-from drake_grasp.policies.decisions import displacement_norm, gaussian_noisy_displacement
+from drake_grasp.geometry.actions import apply_actions, displacement_norm
+from drake_grasp.systems.kinematic_noise import gaussian_noisy_displacement
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
 from drake_grasp.policies.controllers import make_controller
@@ -247,21 +247,29 @@ def test_gaussian_noise_matches_the_formula():
 
 
 def test_offset_model_shifts_the_commanded_pose(scenario):
+    """The KinematicNoise system between the policy and the station: the hand really
+    goes the constant offset (in the hand frame) from the pose the policy commands."""
+    from drake_grasp.systems.kinematic_noise import KinematicNoise
+
     scenario.noise.kind = "offset"
     scenario.noise.offset_xy_m = [0.02, -0.01]
     scenario.noise.offset_theta_deg = 10.0
-    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3))
-    sim.AdvanceTo(0.0)
-    s = ctrl.get_controller_state(ctx)
+    start = topdown_pose([0.5, 0.0], 0.3 - 0.115, 0.0)
+    noise = KinematicNoise(noise=scenario.noise, seed=scenario.seed, X_WG_start=start,
+                           period_s=scenario.controller.period_s)
+    ctx = noise.CreateDefaultContext()
     believed = (0.55, 0.03, 0.1, 30.0)  # 5.8 cm from the start: the full offset applies
-    from dataclasses import replace
-
-    ctx.SetAbstractState(0, replace(s, phase=Phase.CLOSE, grasp=believed))
-    X = ctrl.GetOutputPort("X_WG_desired").Eval(ctx)
+    noise.GetInputPort("X_WG_commanded").FixValue(ctx, hand_to_pose(believed))
+    noise.GetInputPort("X_WG_goal").FixValue(ctx, hand_to_pose(believed))
+    X = noise.GetOutputPort("X_WG_desired").Eval(ctx)
     expected = apply_actions([believed[0], believed[1], believed[3]], np.array([[0.02, -0.01, 10.0]]))[0]
     X_exp = hand_to_pose((expected[0], expected[1], believed[2], expected[2]))
     assert np.allclose(X.GetAsMatrix4(), X_exp.GetAsMatrix4(), atol=1e-9)
     assert np.linalg.norm(X.translation()[:2] - believed[:2]) == pytest.approx(np.hypot(0.02, 0.01))
+    # At the start pose (where it observed the scene) the offset has not ramped in yet.
+    noise.GetInputPort("X_WG_commanded").FixValue(ctx, start)
+    np.testing.assert_allclose(noise.GetOutputPort("X_WG_desired").Eval(ctx).GetAsMatrix4(),
+                               start.GetAsMatrix4(), atol=1e-12)
 
 
 @pytest.mark.parametrize("step,shifted", [(2, False), (3, True)])

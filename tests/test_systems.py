@@ -292,27 +292,71 @@ def test_gpd_controller_without_a_detection_stays_at_the_viewpoint():
     assert ctrl.GetOutputPort("gripper_command").Eval(ctx)[0] == scenario.gripper.open_width_m
 
 
+def _gpd_with_noise(detect_fn, scenario_text: str):
+    """The gpd controller (every input fixed as in `_gpd_controller`) feeding the
+    KinematicNoise system, as the episode Diagram wires them."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.systems.kinematic_noise import KinematicNoise
+    from drake_grasp.world.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
+    from drake_grasp.policies.controllers import make_controller
+
+    scenario = load_scenario(scenario_name="isolation", scenario_text=scenario_text)
+    _, _, X_GC = gripper_frame_offsets()
+    start = topdown_pose([0.5, 0.0], 0.3 + X_GC.translation()[2], np.deg2rad(10.0))
+    builder = DiagramBuilder()
+    ctrl = builder.AddSystem(make_controller(
+        "gpd", scenario=scenario, X_WG_start=start, X_GC=X_GC, X_GC_gpd=gpd_camera_offset(),
+        detect_fn=detect_fn))
+    noise = builder.AddSystem(KinematicNoise(noise=scenario.noise, seed=scenario.seed,
+                                             X_WG_start=start, period_s=scenario.controller.period_s))
+    builder.Connect(ctrl.GetOutputPort("X_WG_desired"), noise.GetInputPort("X_WG_commanded"))
+    builder.Connect(ctrl.GetOutputPort("X_WG_goal"), noise.GetInputPort("X_WG_goal"))
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ctx = ctrl.GetMyMutableContextFromRoot(sim.get_mutable_context())
+    ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((0, 3)))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(0))
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    gpd_image = ImageDepth32F(640, 480)
+    gpd_image.mutable_data[:] = 0.6
+    ctrl.GetInputPort("gpd_depth_image").FixValue(ctx, gpd_image)
+    sim.Initialize()
+    executed = lambda: noise.GetOutputPort("X_WG_desired").Eval(  # noqa: E731
+        noise.GetMyContextFromRoot(sim.get_context())).GetAsMatrix4()
+    return ctrl, sim, executed
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_gpd_kinematic_noise_moves_the_grasp_in_the_plane_and_keeps_its_tilt(seed):
-    """The commanded planar move gets the noise; the tilt and the height are kept. The
+    """The commanded planar move gets the noise (the KinematicNoise system); the tilt and
+    the height are kept, and the policy keeps believing the grasp it commanded. The
     detection's x_G points away from the view's (yaw 10 + 160 deg): the hand takes the
     same grasp turned half a turn about its approach, a 20 degree wrist turn."""
     from drake_grasp.policies.controller_state import Phase
 
     grasp = _tilted_grasp([0.45, -0.04, 0.05], 170.0, 25.0)
-    _, ctrl, sim, _ = _gpd_controller(
+    ctrl, sim, executed = _gpd_with_noise(
         lambda depth, X_WC: grasp, f"{{policy: gpd, seed: {seed}, noise: {{kind: gaussian}}}}")
-    sim.AdvanceTo(2.05)
-    s = ctrl.get_controller_state(sim.get_context())
-    assert s.phase == Phase.APPROACH
-    X = np.reshape(s.grasp_pose, (4, 4))
+    sim.AdvanceTo(4.55)
+    s = ctrl.get_controller_state(ctrl.GetMyContextFromRoot(sim.get_context()))
+    assert s.phase == Phase.CLOSE
+    believed = np.reshape(s.grasp_pose, (4, 4))
+    np.testing.assert_allclose(believed, grasp @ np.diag([-1.0, -1.0, 1.0, 1.0]), atol=1e-12)
+    X = executed()
     assert not np.allclose(X[:2, 3], grasp[:2, 3], atol=1e-4)  # moved by the noise
     assert X[2, 3] == pytest.approx(0.05)
     assert X[:3, 2] @ [0, 0, -1] == pytest.approx(np.cos(np.deg2rad(25.0)))  # tilt kept
     assert X[:3, :3] @ X[:3, :3].T == pytest.approx(np.eye(3))
     # The approach's horizontal part turned with the noisy yaw only; x_G flipped.
     assert X[:3, 0] @ grasp[:3, 0] < 0
-    turn = (s.grasp[3] - 10.0 + 90.0) % 180.0 - 90.0
+    yaw = np.rad2deg(np.arctan2(X[1, 0], X[0, 0]))
+    turn = (yaw - 10.0 + 90.0) % 180.0 - 90.0
     assert abs(turn) < 60.0
 
 
@@ -330,12 +374,14 @@ def test_gpd_offset_noise_shifts_the_executed_grasp_and_keeps_its_tilt():
     from drake_grasp.policies.controller_state import Phase
 
     grasp = _tilted_grasp([0.52, 0.03, 0.04], 30.0, 20.0)
-    _, ctrl, sim, _ = _gpd_controller(
+    ctrl, sim, executed = _gpd_with_noise(
         lambda depth, X_WC: grasp, "{policy: gpd, noise: {kind: offset, offset_xy_m: [0.02, 0.0]}}")
     sim.AdvanceTo(4.55)
-    ctx = sim.get_context()
+    ctx = ctrl.GetMyContextFromRoot(sim.get_context())
     assert ctrl.get_controller_state(ctx).phase == Phase.CLOSE
-    X = ctrl.GetOutputPort("X_WG_desired").Eval(ctx).GetAsMatrix4()
+    np.testing.assert_allclose(ctrl.GetOutputPort("X_WG_desired").Eval(ctx).GetAsMatrix4(),
+                               grasp, atol=1e-9)  # the policy commands what it believes
+    X = executed()
     x_G = grasp[:2, 0] / np.linalg.norm(grasp[:2, 0])
     assert X[:2, 3] == pytest.approx(grasp[:2, 3] + 0.02 * x_G, abs=1e-9)
     assert X[2, 3] == pytest.approx(grasp[2, 3])

@@ -19,8 +19,9 @@ def _check_user_policy(scenario) -> None:
     parse_policy_spec(scenario.policy)  # raises, naming the spec
     if scenario.noise.kind != "none":
         raise ValueError(f"noise.kind: got {scenario.noise.kind!r} with the user policy "
-                         f"{scenario.policy!r}; expected 'none' (the kinematic noise models act "
-                         "inside the built-in controller, a user policy gets none)")
+                         f"{scenario.policy!r}; expected 'none' (the KinematicNoise system reads "
+                         "each commanded move from the built-in controller's X_WG_goal port, "
+                         "which a user policy does not have)")
     if scenario.target:
         raise ValueError(f"target: got {scenario.target!r} with the user policy "
                          f"{scenario.policy!r}; expected '' (target-object mode uses the label "

@@ -279,6 +279,7 @@ class ControllerSide:
 
         from drake_grasp.evaluation.episode_diagram import add_policy_systems
         from drake_grasp.config.scenario import Scenario, dump_scenario
+        from drake_grasp.systems.kinematic_noise import connect_with_noise
         from drake_grasp.world.station import make_arm_diff_ik
         from drake_grasp.policies.evaluator import load_cnn
 
@@ -313,8 +314,8 @@ class ControllerSide:
             gpd_depth=images["gpd_depth_image"])
         self._control_plant = _control_plant(scenario)  # the IK keeps no reference
         self.diff_ik = builder.AddNamedSystem("diff_ik", make_arm_diff_ik(scenario, self._control_plant))
-        builder.Connect(controller.GetOutputPort("X_WG_desired"),
-                        self.diff_ik.GetInputPort("X_AE_desired"))
+        connect_with_noise(builder, scenario, controller, self.diff_ik.GetInputPort("X_AE_desired"),
+                           X_WG_start=_pose(task["X_WG_start"]))
         builder.ExportInput(controller.GetInputPort("gripper_state"), "gripper_state")
         builder.ExportOutput(self.diff_ik.GetOutputPort("joint_positions"), "arm_position_command")
         builder.ExportOutput(controller.GetOutputPort("gripper_command"), "gripper_command")

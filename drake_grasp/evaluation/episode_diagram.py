@@ -170,6 +170,7 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
     from pydrake.math import RigidTransform
     from pydrake.systems.framework import DiagramBuilder
 
+    from drake_grasp.systems.kinematic_noise import connect_with_noise
     from drake_grasp.world.station import MakeGraspStation
 
     if not scene.objects:
@@ -199,7 +200,11 @@ def build_episode_diagram(scenario: Scenario, scene: SceneSpec, library: ObjectL
                                              out, detect_fn)
     if out.user_policy is None:
         builder.Connect(sd.GetOutputPort("gripper_state"), policy.GetInputPort("gripper_state"))
-        builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
+        if scenario.policy == "scripted":
+            builder.Connect(policy.GetOutputPort("X_WG_desired"), sd.GetInputPort("X_WG_desired"))
+        else:  # the built-in policies, through the kinematic noise when the scenario has it
+            connect_with_noise(builder, scenario, policy, sd.GetInputPort("X_WG_desired"),
+                               X_WG_start=station.X_WG_start)
         builder.Connect(policy.GetOutputPort("gripper_command"),
                         sd.GetInputPort("gripper_command"))
     out.policy = policy

@@ -245,9 +245,10 @@ def plugin_condition(experiment: Experiment, spec: str) -> Condition:
     built-in policy of `EXTRA_POLICIES` the experiment does not list, runs as in
     `experiment`: named `plugins.condition_name(spec)` ("centroid_policy.make_policy"; a
     built-in: its own name), with the experiment's settings that all of its conditions
-    share (disturbance, depth noise, controller profile), and no kinematic noise (for a
-    user policy the noise models act inside the built-in controller; a built-in added so
-    runs noise-free too). Its trials get the same seeds, so the same scenes, as the others.
+    share (disturbance, depth noise, controller profile), and no kinematic noise (the
+    `KinematicNoise` system reads each commanded move's goal from the built-in
+    controller's `X_WG_goal`, which a user policy does not have; a built-in added so runs
+    noise-free too). Its trials get the same seeds, so the same scenes, as the others.
 
     Raises:
         ValueError: a malformed spec, or one whose name clashes with a condition of the

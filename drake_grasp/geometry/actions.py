@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from drake_grasp.geometry.camera import view_half_extent_m
+from drake_grasp.geometry.grasp_metric import ANGLE_WEIGHT_M_PER_DEG
 
 
 def hand_axes(yaw_deg) -> tuple[np.ndarray, np.ndarray]:
@@ -48,6 +49,13 @@ def apply_actions(hand_xy_yaw, actions) -> np.ndarray:
     yaw = hand[:, None, 2] - a[..., 2]
     out = np.concatenate([xy, yaw[..., None]], axis=-1)
     return out[0] if single else out
+
+
+def displacement_norm(delta) -> np.ndarray:
+    """|delta| of actions [dx, dy, dtheta_deg] in the paper's (x, y, theta) metric [m]
+    (0.001 m per degree)."""
+    d = np.asarray(delta, dtype=float)
+    return np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2 + (ANGLE_WEIGHT_M_PER_DEG * d[..., 2]) ** 2)
 
 
 def action_between(hand_xy_yaw, target_xy_yaw) -> np.ndarray:

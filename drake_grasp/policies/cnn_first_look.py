@@ -4,8 +4,8 @@ open loop to a grasp read from that image; `cnn-ctr`, followed by CTR).
 The candidates are `controller.global_candidates` actions drawn so the displaced hand
 centre stays in the camera's view, scored by the CNN (`score_fn`), masked to the target
 in target mode, penalised near remembered failed grasps; the best is commanded as one
-displacement (with the kinematic noise of any commanded displacement), at the start
-height.
+displacement at the start height (the `KinematicNoise` system noises it like any
+commanded move).
 """
 
 from __future__ import annotations
@@ -59,8 +59,7 @@ class _FirstLook:
         """The hand after the one-shot move to the global best (start height kept)."""
         start = self._start
         best = self._global_best(context, start)
-        delta = self._noisy(best, 0)
-        moved = apply_actions([start[0], start[1], start[3]], delta[None])[0]
+        moved = apply_actions([start[0], start[1], start[3]], np.asarray(best)[None])[0]
         return (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
 
 

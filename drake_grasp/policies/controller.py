@@ -14,8 +14,10 @@ One class per policy, each a `GraspController` subclass (`make_controller` in
 
 A subclass says what it does at the start (`_begin`), in its own phases (`_policy_phase`:
 CTR's servo iterations, GPD's viewpoint) and when its one-shot approach ends
-(`_approach_done`); the motion after that is this class's. Kinematic noise
-(`kinematic_noise`) acts on every commanded planar displacement the same way.
+(`_approach_done`); the motion after that is this class's. The controller commands
+the poses it believes in; kinematic noise is the `systems.kinematic_noise.KinematicNoise`
+system between its `X_WG_desired` and the station, which reads the goal of each
+commanded move from `X_WG_goal`.
 """
 
 from __future__ import annotations
@@ -45,7 +47,6 @@ from drake_grasp.policies.decisions import (
     widest_section_height,
 )
 from drake_grasp.config.scenario import Scenario
-from drake_grasp.policies.kinematic_noise import executed_hand, executed_pose, noisy_displacement
 from drake_grasp.systems.supervisor import (
     grasp_motion_next,
     interpolate_pose,
@@ -68,7 +69,10 @@ class GraspController(LeafSystem):
             viewpoint, by the gpd policy only (the others never evaluate it, so it costs
             them no rendering).
     Output ports:
-        X_WG_desired: desired grasp-frame pose for differential IK.
+        X_WG_desired: desired grasp-frame pose for differential IK (the pose the
+            controller believes it commands).
+        X_WG_goal: the believed pose the current commanded move ends at (the
+            `KinematicNoise` system draws a move's error when it changes).
         gripper_command: [width_m, grip_force_n].
         control_status: [control step, approaching, motion phase]: the CTR iteration (for
             the one-shot policies the number of control periods since the image they
@@ -124,6 +128,9 @@ class GraspController(LeafSystem):
         self.DeclareAbstractOutputPort(
             "X_WG_desired", lambda: AbstractValue.Make(RigidTransform()), self._CalcPose,
             {self.abstract_state_ticket(self._state), self.time_ticket()})
+        self.DeclareAbstractOutputPort(
+            "X_WG_goal", lambda: AbstractValue.Make(RigidTransform()), self._CalcGoal,
+            {self.abstract_state_ticket(self._state)})
         self.DeclareVectorOutputPort("gripper_command", 2, self._CalcGripper,
                                      {self.abstract_state_ticket(self._state)})
         self.DeclareVectorOutputPort("control_status", 3, self._CalcStatus,
@@ -163,7 +170,7 @@ class GraspController(LeafSystem):
         """The policy's own data once done: iterations and stop_reason, or a
         failure_reason when it attempted no grasp (init, no GPD detection); gpd: its
         detection ("gpd_detection", the selected X_WG as 16 floats, row by row, before
-        kinematic noise). Success and the failure class come from the GraspJudge."""
+        the kinematic noise the station adds). Success and the failure class come from the GraspJudge."""
         return dict(self.get_controller_state(context).outcome)
 
     @property
@@ -180,15 +187,6 @@ class GraspController(LeafSystem):
 
     def _camera_height(self, hand) -> float:
         return float(hand[2]) + self._cam_dz
-
-    def _noisy(self, delta: np.ndarray, rng_key: int) -> np.ndarray:
-        return noisy_displacement(self._s.noise, self._s.seed, delta, rng_key)
-
-    def _executed(self, hand) -> tuple:
-        return executed_hand(self._s.noise, self._start, hand)
-
-    def _executed_pose(self, X_WG: RigidTransform) -> RigidTransform:
-        return executed_pose(self._s.noise, self._start, X_WG)
 
     def _grasp_from_depth(self, depth: np.ndarray, seen_from, hand) -> tuple:
         """The grasp at `hand`'s (x, y, yaw), its height read from a depth image taken
@@ -279,36 +277,46 @@ class GraspController(LeafSystem):
         s = self.get_controller_state(context)
         output.set_value(self._pose(s, context.get_time() - s.phase_start_s))
 
+    def _CalcGoal(self, context, output):
+        output.set_value(self._goal(self.get_controller_state(context)))
+
+    def _goal(self, s: ControllerState) -> RigidTransform:
+        """The believed pose the move under way in state `s` ends at: the grasp once the
+        policy has one and is past its own phases, else the hand's target."""
+        if s.grasp is not None and s.phase not in (Phase.START, Phase.VIEW, Phase.SERVO,
+                                                   Phase.APPROACH):
+            return hand_pose_memo(tuple(s.grasp))
+        return hand_pose_memo(tuple(self._start if s.phase == Phase.START else s.hand))
+
     def _pose(self, s: ControllerState, elapsed: float) -> RigidTransform:
         """The commanded grasp-frame pose in state `s`, `elapsed` into its phase."""
         m = self._s.scripted
-        if s.phase in (Phase.START,):
-            hand = self._start
-            return hand_pose_memo(self._executed(hand))
+        if s.phase == Phase.START:
+            return hand_pose_memo(tuple(self._start))
         if s.phase in (Phase.VIEW, Phase.APPROACH):
-            return interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
-                                    hand_pose_memo(self._executed(s.hand)),
+            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
+                                    hand_pose_memo(tuple(s.hand)),
                                     min_jerk(elapsed / m.approach_time_s))
         if s.phase == Phase.SERVO:
             # Move to the new target within one control period.
-            return interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
-                                    hand_pose_memo(self._executed(s.hand)),
+            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
+                                    hand_pose_memo(tuple(s.hand)),
                                     min_jerk(elapsed / (0.8 * self._period)))
         if s.phase == Phase.DESCEND:
-            return interpolate_pose(hand_pose_memo(self._executed(s.segment_from)),
-                                    hand_pose_memo(self._executed(s.grasp)),
+            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
+                                    hand_pose_memo(tuple(s.grasp)),
                                     min_jerk(elapsed / m.descend_time_s))
         if s.phase == Phase.CLOSE:
-            return hand_pose_memo(self._executed(s.grasp))
+            return hand_pose_memo(tuple(s.grasp))
         if s.phase == Phase.LIFT:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            return interpolate_pose(hand_pose_memo(self._executed(s.grasp)),
-                                    hand_pose_memo(self._executed(lifted)),
+            return interpolate_pose(hand_pose_memo(tuple(s.grasp)),
+                                    hand_pose_memo(tuple(lifted)),
                                     min_jerk(elapsed / m.lift_time_s))
         if s.grasp is not None:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            return hand_pose_memo(self._executed(lifted))
-        return hand_pose_memo(self._executed(s.hand))
+            return hand_pose_memo(tuple(lifted))
+        return hand_pose_memo(tuple(s.hand))
 
     def _CalcGripper(self, context, output: BasicVector):
         s = self.get_controller_state(context)

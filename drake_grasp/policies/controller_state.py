@@ -49,7 +49,7 @@ class StepRecord:
     actions: np.ndarray
     distances: np.ndarray
     chosen: np.ndarray
-    moved: np.ndarray  # displacement commanded (after kinematic noise)
+    moved: np.ndarray  # displacement commanded (before the station's kinematic noise)
 
 
 @shared_when_copied

@@ -22,12 +22,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from drake_grasp.geometry.actions import apply_actions
+from drake_grasp.geometry.actions import apply_actions, displacement_norm
 from drake_grasp.policies.controller import GraspController
 from drake_grasp.policies.controller_state import ControllerState, Phase, StepRecord, hand_to_pose
 from drake_grasp.policies.decisions import (
     choose_action,
-    displacement_norm,
     hand_overlap_m,
     min_depth_under_axis,
 )
@@ -127,8 +126,7 @@ class CTRController(GraspController):
             best = best if clear is None else clear
         ratio = c.converge_step_ratio if s.converging and c.converge_step_ratio > 0 else c.step_ratio
         command = ratio * best
-        delta = self._noisy(command, s.iteration + 1)
-        moved = apply_actions([hand[0], hand[1], hand[3]], delta[None])[0]
+        moved = apply_actions([hand[0], hand[1], hand[3]], command[None])[0]
         if s.converging:
             # Hold the height; rise when a surface under the grasp axis comes nearer than
             # the stop rule allows (or than it was when the rule fired, if nearer then):
@@ -146,6 +144,6 @@ class CTRController(GraspController):
         new_hand = (float(moved[0]), float(moved[1]), float(z), yaw)
         record = StepRecord(s.iteration, t, tuple(hand),
                             *(freeze(np.array(a, copy=True))
-                              for a in (depth, actions, distances, best, delta)))
+                              for a in (depth, actions, distances, best, command)))
         return replace(s, iteration=s.iteration + 1, hand=new_hand, segment_from=hand,
                        phase_start_s=t, last_step=record)

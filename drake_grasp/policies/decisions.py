@@ -17,7 +17,6 @@ from drake_grasp.geometry.camera import PinholeCamera
 from drake_grasp.geometry.hand_model import (FINGER_OUTER_X_M, FINGERTIP_Z_M, HOUSING_FRONT_Z_M,
                                              HOUSING_RADIUS_M, PAD_HALF_WIDTH_M, PALM_FRONT_Z_M,
                                              PALM_HALF_X_M, PALM_HALF_Y_M, STROKE_M)
-from drake_grasp.geometry.grasp_metric import ANGLE_WEIGHT_M_PER_DEG as METRES_PER_DEGREE
 
 # The policies that decide at every control step (CTR, and CTR after a one-shot start).
 CLOSED_LOOP_POLICIES = ("ctr", "cnn-ctr")
@@ -34,31 +33,6 @@ def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,
     a[:, :2] = rng.uniform(-xy_m, xy_m, (count, 2))
     a[:, 2] = rng.uniform(-theta_deg, theta_deg, count)
     return a
-
-
-def displacement_norm(delta) -> np.ndarray:
-    """|delta| in the paper's (x, y, theta) metric [m]."""
-    d = np.asarray(delta, dtype=float)
-    return np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2 + (METRES_PER_DEGREE * d[..., 2]) ** 2)
-
-
-def gaussian_noisy_displacement(delta, rng: np.random.Generator, scale: float = 0.4) -> np.ndarray:
-    """The paper's kinematic noise: delta + scale * w * |delta|, w ~ N(0, I) per dimension
-    (theta's noise in degrees, through the 0.001 m/deg weighting)."""
-    d = np.asarray(delta, dtype=float)
-    w = rng.standard_normal(3)
-    size = float(displacement_norm(d))
-    noise = scale * w * size
-    noise[2] /= METRES_PER_DEGREE
-    return d + noise
-
-
-def offset_fraction(moved_m: float, ramp_m: float) -> float:
-    """How much of the constant offset applies after the hand moved `moved_m` from where
-    it observed the scene (0 at the observation pose, 1 after `ramp_m`)."""
-    if ramp_m <= 0:
-        return 1.0
-    return float(min(1.0, max(0.0, moved_m / ramp_m)))
 
 
 def memory_penalty(hand_xy_yaw, actions: np.ndarray, failed_xy_yaw: np.ndarray,

@@ -6,8 +6,9 @@ yaw, the GPD sensor `gpd.view_camera_height_m` above the table), rests
 `detect_fn` (`drake_grasp.policies.gpd.make_detector`) for a 6-DOF grasp (its approach may
 tilt up to `gpd.approach_max_tilt_deg` from straight down); then open loop to a pre-grasp
 `scripted.pregrasp_height_m` back along the approach, and the descent along the approach
-axis. Kinematic noise corrupts the move from the viewpoint to the grasp's (x, y, yaw of
-x_G on the table); the grasp's tilt is kept.
+axis. The policy commands the detected grasp; kinematic noise (the
+`systems.kinematic_noise.KinematicNoise` system) corrupts the move from the viewpoint to
+the grasp's (x, y, yaw of x_G on the table), and keeps the grasp's tilt.
 
 gpd-geometric: the hand-tuned geometric detector (`drake_grasp.policies.gpd_geometric`) on
 the wrist camera's first image at the start pose, top-down, open loop.
@@ -90,18 +91,16 @@ class GPDController(GraspController):
             raise ValueError(f"gpd detect_fn: the grasp pose's rotation is not a rotation "
                              f"matrix: {X[:3, :3]!r}")
         X[:3, :3] = R
-        grasp_pose = self._displaced_grasp(X, s.hand)
+        grasp_pose = self._turned_grasp(X, s.hand)
         pre = self._pregrasp(RigidTransform(grasp_pose))
         return replace(s, phase=Phase.APPROACH, phase_start_s=t, segment_from=s.hand,
                        hand=pose_to_hand(pre), grasp=pose_to_hand(grasp_pose),
                        grasp_pose=pose_tuple(grasp_pose), decided_s=t,
                        outcome={"gpd_detection": pose_tuple(X)})
 
-    def _displaced_grasp(self, X_WG: np.ndarray, view) -> np.ndarray:
-        """The detected grasp where the hand will believe it is after the commanded move
-        from `view`: the planar displacement to the grasp's (x, y, yaw of x_G on the
-        table) gets the kinematic noise (`_noisy`, as any commanded displacement); the
-        grasp's height and tilt are kept."""
+    def _turned_grasp(self, X_WG: np.ndarray, view) -> np.ndarray:
+        """The detected grasp as the hand takes it from `view`: turned half a turn about
+        its approach when its x_G points away from the view's."""
         X = np.array(X_WG, dtype=float)
         R, p = X[:3, :3], X[:3, 3]
         _, _, _, yaw = pose_to_hand(X)
@@ -113,8 +112,7 @@ class GPDController(GraspController):
         yaw_goal = here[2] - a[2]
         if np.cos(np.deg2rad(yaw_goal - yaw)) < 0.0:
             R = R @ np.diag([-1.0, -1.0, 1.0])
-        delta = self._noisy(a, 0)
-        moved = apply_actions(here, delta[None])[0]
+        moved = apply_actions(here, a[None])[0]  # the grasp's (x, y, yaw), as moved to
         out = np.eye(4)
         out[:3, :3] = rot_z(np.deg2rad(moved[2] - yaw_goal)) @ R
         out[:3, 3] = [moved[0], moved[1], p[2]]
@@ -138,17 +136,23 @@ class GPDController(GraspController):
         grasp = pose_from_tuple(s.grasp_pose)
         pre = self._pregrasp(grasp)
         lifted = RigidTransform(grasp.rotation(), grasp.translation() + [0.0, 0.0, m.lift_height_m])
-        ex = self._executed_pose
         if s.phase == Phase.APPROACH:
-            return interpolate_pose(hand_to_pose(self._executed(s.segment_from)), ex(pre),
+            return interpolate_pose(hand_to_pose(s.segment_from), pre,
                                     min_jerk(elapsed / m.approach_time_s))
         if s.phase == Phase.DESCEND:
-            return interpolate_pose(ex(pre), ex(grasp), min_jerk(elapsed / m.descend_time_s))
+            return interpolate_pose(pre, grasp, min_jerk(elapsed / m.descend_time_s))
         if s.phase == Phase.CLOSE:
-            return ex(grasp)
+            return grasp
         if s.phase == Phase.LIFT:
-            return interpolate_pose(ex(grasp), ex(lifted), min_jerk(elapsed / m.lift_time_s))
-        return ex(lifted)
+            return interpolate_pose(grasp, lifted, min_jerk(elapsed / m.lift_time_s))
+        return lifted
+
+    def _goal(self, s: ControllerState) -> RigidTransform:
+        """gpd after its detection: every move ends at the grasp (the pre-grasp is on
+        its approach axis)."""
+        if s.grasp_pose is not None:
+            return pose_from_tuple(s.grasp_pose)
+        return super()._goal(s)
 
 
 class GeometricController(GraspController):
@@ -173,11 +177,10 @@ class GeometricController(GraspController):
         if detection is None:
             return replace(base, phase=Phase.DONE, outcome=dict(NO_DETECTION))
         x, y, theta, z = detection
-        # Move there as one displacement (noisy like any commanded displacement).
+        # Move there as one displacement.
         goal = np.array([x, y, theta])
         a = action_between(np.array([start[0], start[1], start[3]]), goal)
-        delta = self._noisy(a, 0)
-        moved = apply_actions([start[0], start[1], start[3]], delta[None])[0]
+        moved = apply_actions([start[0], start[1], start[3]], a[None])[0]
         hand = (float(moved[0]), float(moved[1]), start[2], float(moved[2]))
         grasp = (hand[0], hand[1], float(z), hand[3])
         return replace(base, phase=Phase.APPROACH, hand=hand, grasp=grasp)

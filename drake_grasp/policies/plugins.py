@@ -82,8 +82,10 @@ episode whose policy never closes ends at `max_sim_time_s` as a "timeout". Succe
 failure classes (`drake_grasp.evaluation.records.GRASP_FAILURES`) mean what they mean for the built-in
 policies.
 
-Not applied to a user policy: the kinematic noise models (`noise.kind` must be "none") and
-target-object mode (`target` must be ""); both act inside the built-in controller.
+Not applied to a user policy: the kinematic noise models (`noise.kind` must be "none": the
+`KinematicNoise` system reads each commanded move's goal from the built-in controller's
+`X_WG_goal` port) and target-object mode (`target` must be ""; it acts inside the
+built-in controller).
 """
 
 from __future__ import annotations
