@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Reference results committed under analysis/results/ (sizes chosen for a 2-core CPU
-# machine; the paper's full sizes are the experiments' defaults: drop --trials).
+# The first reference results (2026-11-21/23, one tenth of the paper's sizes, chosen for a
+# 2-core CPU machine; the paper's full sizes are the experiments' defaults: drop --trials).
+# Today's headline numbers: analysis/results/reference/ (analysis/make_reference.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DG=${DG:-drake-grasp}
@@ -17,6 +18,10 @@ for e in sweep-latency sweep-control-period sweep-dropped-frames sweep-camera-tr
          sweep-camera-rotation; do
     $DG evaluate --experiment $e --trials 20 --workers 2 --seed 0 --out $R/$e
 done
-python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $R/table1.md
-python analysis/figure5.py $R/sim-distance --out $R/figure5.png
-python -c "from drake_grasp.evaluation.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$R')"
+# Its combined report goes to tenth-size/, not the top of analysis/results/ (whose current
+# numbers are reference/, written by analysis/make_reference.py).
+T=$R/tenth-size
+mkdir -p $T
+python analysis/table1.py $R/isolation $R/clutter $R/clutter-shift --out $T/table1.md
+python analysis/figure5.py $R/sim-distance --out $T/figure5.png
+python -c "from drake_grasp.evaluation.report import make_combined_report; make_combined_report(['$R/isolation', '$R/sim-distance', '$R/clutter', '$R/clutter-shift'], '$T')"

@@ -107,12 +107,12 @@ def bench_controller_step_ms(repeats: int = 50) -> dict:
     the image seen from 0.25 m)."""
     import torch
 
-    from drake_grasp.core.assets import models_dir
+    from drake_grasp.core.assets import model_path
     from drake_grasp.policies.decisions import choose_action, sample_candidates
     from drake_grasp.policies.evaluator import FCN_WEIGHTS, load_cnn, score_candidates
 
     model = load_cnn("")
-    fcn = load_cnn(str(models_dir() / FCN_WEIGHTS))
+    fcn = load_cnn(str(model_path(FCN_WEIGHTS)))  # in the repository's models/ only
 
     def whole_grid(depth, actions):
         with torch.inference_mode():
@@ -291,7 +291,7 @@ def bench_cnn_onnx(rounds: int = 10, repeats: int = 10) -> dict:
         return {"cnn_onnx_torch_ms_128": None, "cnn_onnx_ms_128": None, "cnn_onnx_speedup": None}
     import torch
 
-    from drake_grasp.core.assets import models_dir
+    from drake_grasp.core.assets import model_path
     from drake_grasp.cnn.onnx_export import export_onnx
     from drake_grasp.policies.decisions import sample_candidates
     from drake_grasp.policies.evaluator import PAPER_WEIGHTS, load_cnn, score_candidates
@@ -301,7 +301,7 @@ def bench_cnn_onnx(rounds: int = 10, repeats: int = 10) -> dict:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             onnx_path = export_onnx(out=Path(tmp) / "cnn.onnx").path  # the paper net
-            backends = {"torch": load_cnn(str(models_dir() / PAPER_WEIGHTS)),
+            backends = {"torch": load_cnn(str(model_path(PAPER_WEIGHTS))),
                         "onnx": load_cnn(str(onnx_path))}
         rng = np.random.default_rng(BENCH_SEED)
         depth = rng.uniform(0.2, 0.3, (64, 64)).astype(np.float32)

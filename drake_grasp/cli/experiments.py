@@ -107,7 +107,8 @@ def _parser_evaluate(sub) -> None:
                         "before it: models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
                         "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/; "
                         "the paper's net: "
-                        "models/cnn/; each weights.safetensors); FILE,FILE,... scores with the "
+                        "models/cnn/; each weights.safetensors, in the repository's models/ "
+                        "only, not installed with the package); FILE,FILE,... scores with the "
                         "mean of several nets (an ensemble). Its sha256 is part of the run's "
                         "identity")
     p.add_argument("--gpd-weights", default=None, metavar="FILE",

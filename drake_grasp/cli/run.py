@@ -82,7 +82,8 @@ def _parser_demo(sub) -> None:
                    "models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
                    "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/ are the "
                    "grid heads before it, models/cnn/ the paper's "
-                   "net, each weights.safetensors); FILE,FILE,... "
+                   "net, each weights.safetensors, in the repository's models/ only, not "
+                   "installed with the package); FILE,FILE,... "
                    "scores with the mean of several nets (an ensemble)")
     p.add_argument("--seed", type=int, default=None,
                    help="trial seed (scene and noise); default: the scenario's seed")

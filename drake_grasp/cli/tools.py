@@ -87,7 +87,8 @@ def _parser_export_onnx(sub) -> None:
                         ".head.onnx (X.onnx -> X.head.onnx); both are replaced if present")
     p.add_argument("--weights", default="", metavar="W",
                    help="safetensors weights to export, a tiled (paper) net (default: the "
-                        "shipped paper net models/cnn/weights.safetensors; the grid head, "
+                        "paper net models/cnn/weights.safetensors, in the repository's models/ "
+                        "only, not installed with the package; the grid head, "
                         "the episodes' default, has no ONNX export)")
     p.add_argument("--exporter", default="auto", choices=["auto", "dynamo", "torchscript"],
                    help="torch.onnx.export path: dynamo (needs onnxscript) or torchscript "

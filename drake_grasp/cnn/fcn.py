@@ -44,6 +44,7 @@ import drake_grasp
 from drake_grasp.cnn.grid_head import grid_scores, grid_view_mask
 from drake_grasp.cnn.net_config import NetworkConfig, action_features
 from drake_grasp.cnn.weights_io import tensors_sha256
+from drake_grasp.core.assets import missing_weights_message
 
 FCN_FORMAT = "drake_grasp.HeightmapFCN/1"
 _KEYS = ("format", "config", "code_version", "tensors_sha256", "user_metadata")
@@ -283,7 +284,7 @@ def weights_format(path: Union[str, os.PathLike]) -> str:
     """The ``format`` in a safetensors weights file's metadata ("" when it has none)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weights file")
+        raise FileNotFoundError(missing_weights_message(path))
     try:
         with safetensors.safe_open(str(path), framework="pt") as f:
             return (f.metadata() or {}).get("format", "")

@@ -30,7 +30,7 @@ import torch
 from torch import nn
 
 import drake_grasp
-from drake_grasp.core.assets import models_dir
+from drake_grasp.core.assets import model_path
 from drake_grasp.cnn.fcn import FCN_FORMAT, weights_format
 from drake_grasp.cnn.network import DistanceCNN
 from drake_grasp.cnn.weights_io import load_weights, tensors_sha256
@@ -190,7 +190,8 @@ def export_onnx(
     if missing:
         raise ImportError(f"exporting to ONNX needs {missing}: pip install "
                           "'drake_grasp[onnx-export]'")
-    source = Path(weights) if weights else models_dir() / SHIPPED_WEIGHTS
+    # The paper's net is in the repository's models/ only: model_path names it when missing.
+    source = Path(weights) if weights else model_path(SHIPPED_WEIGHTS)
     if weights_format(source) == FCN_FORMAT:
         raise ValueError(f"{source}: a height-map FCN ({FCN_FORMAT}); the ONNX export "
                          "covers the distance CNN with the tiled (paper) fusion only")

@@ -20,6 +20,7 @@ import torch
 
 import drake_grasp
 from drake_grasp.cnn.net_config import NetworkConfig
+from drake_grasp.core.assets import missing_weights_message
 from drake_grasp.cnn.network import DistanceCNN
 
 WEIGHTS_FORMAT = "drake_grasp.DistanceCNN/1"
@@ -125,7 +126,8 @@ def load_weights(
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weights file")
+        # A net the wheel does not carry is named with its folder in the repository.
+        raise FileNotFoundError(missing_weights_message(path))
     try:
         with safetensors.safe_open(str(path), framework="pt") as f:
             header = f.metadata() or {}

@@ -402,7 +402,11 @@ def option_patches(*, weights: str = "", gpd_weights: str = "", mirror_average: 
             files = weights_files(weights)
         except ValueError as e:
             raise ValueError(f"--weights {weights}: {e}") from None
+        from drake_grasp.core.assets import missing_weights_message, repository_model
+
         for f in files:
+            if not Path(f).is_file() and repository_model(f) is not None:
+                raise ValueError(f"--weights {weights}: {missing_weights_message(f)}")
             if not Path(f).is_file():
                 raise ValueError(f"--weights {weights}: {f}: no such file (expected CNN weights: "
                                  "*.safetensors from `drake-grasp train`, or *.onnx; several "

@@ -93,11 +93,20 @@ def recorded_weights(scenario, run_info: dict, condition: str, *, source: str = 
 def _shipped_weights(sha: str, source: str, condition: str, missing: str | None) -> Path:
     """The shipped `models/*/weights.safetensors` whose sha256 is `sha` (for
     `recorded_weights`); ValueError naming what was looked for when none is."""
-    from drake_grasp.core.assets import models_dir
+    from drake_grasp.core.assets import (REPOSITORY_WEIGHTS_SHA256, models_dir,
+                                         not_installed_message)
 
     for f in sorted(models_dir().glob("*/weights.safetensors")):
         if file_sha256(f) == sha:
             return f
+    in_repository = [net for net, h in REPOSITORY_WEIGHTS_SHA256.items() if h == sha]
+    if in_repository:
+        # A net the repository's models/ holds and the wheel does not carry.
+        raise ValueError(f"{source}: condition {condition!r} ran the net with weights sha256 "
+                         f"{sha}: " + not_installed_message(
+                             f"{in_repository[0]}/weights.safetensors",
+                             hint="replay from a checkout of the repository, or copy that "
+                                  f"folder to {models_dir() / in_repository[0]}"))
     if missing is None:
         raise ValueError(f"{source}: condition {condition!r} ran the default CNN of its day "
                          f"(weights sha256 {sha}), which no shipped "

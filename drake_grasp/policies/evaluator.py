@@ -32,7 +32,8 @@ if TYPE_CHECKING:
 # BN12500_WEIGHTS (2 epochs on 12,500 scenes), EP5_WEIGHTS (5 epochs on 7,500 scenes),
 # BN12_WEIGHTS (2 epochs on those scenes), BN_WEIGHTS (on 2,500 scenes), the grid head
 # trained without BatchNorm (GRID_WEIGHTS) and the paper's tiled net (PAPER_WEIGHTS) stay
-# shipped and selectable; records made with an earlier default replay with it
+# in the repository's models/ and selectable (the wheel carries the default only,
+# `core.assets.SHIPPED_MODELS`); records made with an earlier default replay with it
 # (`replay.recorded_weights`).
 DEFAULT_WEIGHTS = "cnn-grid-bn12500-ep3/weights.safetensors"
 BN12500_WEIGHTS = "cnn-grid-bn12500/weights.safetensors"

@@ -1,0 +1,104 @@
+"""analysis/results/reference/: the committed headline numbers are what
+analysis/make_reference.py computes from the committed records."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from drake_grasp.evaluation.records import wilson_interval
+
+RESULTS = Path(__file__).resolve().parents[1] / "analysis" / "results"
+REFERENCE = RESULTS / "reference"
+
+# README *Reference results* (the current default), as (successes, n).
+README_TABLE1 = {"isolation": {"ctr": (118, 120), "gpd": (116, 120)},
+                 "clutter": {"ctr": (64, 71), "gpd": (94, 96)},
+                 "clutter-shift": {"ctr": (55, 62), "gpd": (20, 53)}}
+README_WITHIN_3CM = {"ctr": 340, "ctr_noise": 342, "gpd": 352, "gpd_noise": 99,
+                     "cnn-only": 309, "cnn-ctr": 349}
+
+
+@pytest.fixture(scope="module")
+def regenerated(tmp_path_factory, analysis_script):
+    """The folder the script writes from the committed records (all arms: about 10 s)."""
+    out = tmp_path_factory.mktemp("reference")
+    assert analysis_script("make_reference").main(["--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def committed():
+    return json.loads((REFERENCE / "summary.json").read_text())
+
+
+def test_committed_folder_is_what_the_script_writes(regenerated, committed):
+    fresh = json.loads((regenerated / "summary.json").read_text())
+    assert fresh["table1"] == committed["table1"]
+    assert fresh["figure5"] == committed["figure5"]
+    assert fresh == committed
+    for name in ("table1.md", "README.md"):
+        assert (regenerated / name).read_text() == (REFERENCE / name).read_text(), name
+    assert (regenerated / "figure5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (REFERENCE / "figure5.png").is_file()
+
+
+def test_summary_has_the_report_keys_and_every_source(committed):
+    for key in ("experiments", "table1", "figures", "paper", "targets", "figure5", "sources"):
+        assert key in committed, key
+    assert set(committed["table1"]) == {"isolation", "clutter", "clutter-shift"}
+    assert set(committed["figure5"]) == {"init", "ctr", "ctr_noise", "gpd", "gpd_noise",
+                                         "cnn-only", "cnn-ctr"}
+    cells = [row[c] for row in committed["table1"].values() for c in ("ctr", "gpd")]
+    for entry in cells + list(committed["figure5"].values()):
+        folder = entry["source"]["folder"]
+        assert (RESULTS / folder / "trials").is_dir(), folder
+        prov = committed["sources"][folder]
+        assert prov["record_code_versions"] and prov["commands"] and prov["sessions_wall_s"] > 0
+        assert entry["code_versions"] and set(entry["code_versions"]) <= set(prov["record_code_versions"])
+
+
+def _check_rate(successes, n, rate, ci):
+    assert 0 < n and 0 <= successes <= n
+    assert rate == pytest.approx(successes / n, abs=1e-12)
+    assert ci == pytest.approx(list(wilson_interval(successes, n)), abs=1e-12)
+    assert ci[0] <= rate <= ci[1]
+
+
+def test_table1_rates_counts_and_intervals_agree(committed):
+    for exp, row in committed["table1"].items():
+        for cond in ("ctr", "gpd"):
+            sim = row[cond]["sim"]
+            _check_rate(sim["successes"], sim["n"], sim["success_rate"], sim["ci95"])
+            assert (sim["successes"], sim["n"]) == README_TABLE1[exp][cond], (exp, cond)
+
+
+def test_figure5_within_3cm_rates_agree(committed):
+    for arm, stats in committed["figure5"].items():
+        _check_rate(stats["within_3cm_count"], stats["within_3cm_n"], stats["within_3cm_rate"],
+                    stats["within_3cm_ci95"])
+        assert stats["within_3cm_n"] == 400, arm
+        if arm in README_WITHIN_3CM:
+            assert stats["within_3cm_count"] == README_WITHIN_3CM[arm], arm
+        if arm == "init":
+            assert stats["n"] is None  # INIT attempts no grasp
+        else:
+            _check_rate(stats["successes"], stats["n"], stats["success_rate"], stats["ci95"])
+
+
+def test_a_condition_the_folder_lacks_is_named(analysis_script, tmp_path, monkeypatch, capsys):
+    R = analysis_script("make_reference")
+    monkeypatch.setitem(R.FIGURE5, "gpd", ("paper-bn12500-ep3/perception", "gpd"))
+    with pytest.raises(SystemExit) as e:
+        R.main(["--out", str(tmp_path)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "paper-bn12500-ep3/perception: no records of condition(s) ['gpd']" in err
+    assert "cnn-ctr" in err  # what it holds
+
+
+def test_help(analysis_script, capsys):
+    with pytest.raises(SystemExit) as e:
+        analysis_script("make_reference").main(["--help"])
+    assert e.value.code == 0
+    assert "analysis/results/reference" in capsys.readouterr().out
