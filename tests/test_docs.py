@@ -136,3 +136,11 @@ def test_each_command_the_readme_names_exists(command, capsys):
         main([*command, "--help"])
     assert exit_.value.code == 0, f"drake-grasp {' '.join(command)} --help"
     assert f"usage: drake-grasp {' '.join(command)}" in capsys.readouterr().out
+
+
+def test_the_readmes_links_into_docs_exist():
+    text = README.read_text(encoding="utf-8")
+    links = re.findall(r"\]\((docs/[^)#]+)", text)
+    assert len(links) >= 20
+    for link in links:
+        assert (ROOT / link).is_file(), f"README.md links to {link}, which does not exist"
