@@ -579,7 +579,7 @@ def test_a_hand_turned_about_the_camera_axis_renders_the_turned_image(library):
                                    rtol=0, atol=1e-6)
         off = np.abs(np.rot90(image, k) - seen)[:63, :63]
         assert (off > 1e-3).sum() > 20
-    # GPD's 640 x 480 camera (README, *Depth sensing*): turned 180 degrees, its image is
+    # GPD's 640 x 480 camera (docs/guide/station.md, *Depth sensing*): turned 180 degrees, its image is
     # symmetric about pixel (319, 239), half a pixel from CameraInfo's (319.5, 239.5).
     gpd = SceneRenderer(world, scenario.gpd)
     high = np.array([0.51, 0.02, 0.68 + CAMERA_Z, 20.0])

@@ -67,11 +67,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             ... next to it (or the one already holding this run: see `choose_folder`).
         physics_profile: A `scenario.PHYSICS_PROFILES` name every trial runs with; ""
             keeps the scenarios' (the default profile).
-        patches: `experiments.ScenarioPatch`es every trial of their groups runs with,
-            after the experiment's own: other CNN or GPD weights, controller settings of
-            the closed-loop conditions, the judge's search, the failure memory
-            (`experiments.option_patches` makes them of the command's options, checking
-            each). They are part of the run's identity through the conditions' resolved
+        patches (Sequence[ScenarioPatch]): `experiments.ScenarioPatch`es every trial of
+            their groups runs with, after the experiment's own: other CNN or GPD weights,
+            controller settings of the closed-loop conditions, the judge's search, the
+            failure memory (`experiments.option_patches` makes them of the command's
+            options, checking each). They are part of the run's identity through the conditions' resolved
             scenarios (and the weights files' sha256).
 
     Returns:

@@ -65,8 +65,8 @@ def body_contacts(contact_results: ContactResults, body_of_geometry) -> set[tupl
 
     Args:
         contact_results: the plant's `contact_results` output.
-        body_of_geometry: collision geometry id value -> body index (`geometry_bodies`),
-            or a callable doing the same.
+        body_of_geometry (Mapping[int, int] | Callable[[int], int]): collision geometry
+            id value -> body index (`geometry_bodies`), or a callable doing the same.
     """
     lookup = body_of_geometry if callable(body_of_geometry) else body_of_geometry.__getitem__
     pairs = set()

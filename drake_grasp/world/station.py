@@ -134,7 +134,7 @@ class GraspStation:
         """Arm at the start configuration, gripper open, objects at their scene poses.
 
         Args:
-            station_context: this station diagram's Context (use
+            station_context (Context): this station diagram's Context (use
                 `diagram.GetMyMutableContextFromRoot(root)` when it is nested).
         """
         def sub(name):
