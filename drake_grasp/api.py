@@ -1,8 +1,8 @@
 """drake_grasp's public Python API: what a script, a notebook or a test imports.
 
 Everything here is re-exported from the module that owns it; other names of the package
-may change between versions, these are kept. The README's "Python usage" section runs
-them (a test executes it), and `tests/test_api.py` builds this page with pdoc.
+may change between versions, these are kept. The README's how-tos run them
+(`tests/test_api.py` executes each), and `tests/test_api.py` builds this page with pdoc.
 
 The usual path, lowest level first:
 
