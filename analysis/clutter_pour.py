@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import glob
 import json
 import time
 from pathlib import Path
@@ -60,10 +59,11 @@ def footprint_cm2(objects: list[dict]) -> float:
 
 def results(folder: str) -> dict:
     """Per run: objects out of view at the start and at the end, how the run ended."""
-    records = [json.loads(Path(f).read_text())
-               for f in sorted(glob.glob(str(Path(folder) / "trials" / "*.json")))]
+    from drake_grasp.evaluation.records import load_records
+
+    records = [r.to_dict() for r in load_records(folder)]
     if not records:
-        raise SystemExit(f"{folder}: no trial records in {folder}/trials")
+        raise SystemExit(f"{folder}: no trial records")
     runs = collections.defaultdict(list)
     for r in records:
         runs[(r["condition"], r["run_index"])].append(r)

@@ -93,11 +93,13 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     args = p.parse_args(argv)
+    from drake_grasp.evaluation.records import trial_paths
+
     paths = []
     for folder in args.records:
-        found = sorted(str(f) for f in Path(folder, "trials").glob("*__ctr__*.json"))
+        found = [str(f) for f in trial_paths(folder, condition="ctr")]
         if not found:
-            print(f"clutter_predicted_distance: error: {folder}/trials: no CTR records",
+            print(f"clutter_predicted_distance: error: {folder}: no CTR records",
                   file=sys.stderr)
             return 2
         paths += found

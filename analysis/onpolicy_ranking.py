@@ -267,12 +267,13 @@ def main(argv=None) -> int:
 
     if args.cmd == "collect":
         from drake_grasp.evaluation.montecarlo import parallel_map
+        from drake_grasp.evaluation.records import trial_paths
 
         paths = []
         for folder in args.records:
-            found = sorted(str(q) for q in Path(folder, "trials").glob("*__ctr__*.json"))
+            found = [str(q) for q in trial_paths(folder, condition="ctr")]
             if not found:
-                sys.exit(f"onpolicy_ranking: {folder}/trials: no CTR records")
+                sys.exit(f"onpolicy_ranking: {folder}: no CTR records")
             paths += found
         Path(args.out).mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()

@@ -146,11 +146,13 @@ def clutter_main(args) -> int:
     from drake_grasp.core.provenance import code_version
     from drake_grasp.evaluation.records import wilson_interval
 
-    paths = sorted(str(p) for p in Path(args.records, "trials").glob(f"*__{args.condition}__*.json"))
+    from drake_grasp.evaluation.records import trial_paths
+
+    paths = [str(p) for p in trial_paths(args.records, condition=args.condition)]
     if args.trials:
         paths = paths[:args.trials]
     if not paths:
-        raise SystemExit(f"{args.records}/trials: no records of condition {args.condition!r}")
+        raise SystemExit(f"{args.records}: no records of condition {args.condition!r}")
     arms = tuple(a.strip() for a in args.arms.split(","))
     if not arms or any(a not in ("cnn", "oracle") for a in arms):
         raise SystemExit(f"--arms: {args.arms!r}; expected cnn, oracle or cnn,oracle")

@@ -51,7 +51,9 @@ def replay(path: str, weights: str) -> dict:
 
 
 def run_attempt(path: str, weights: str, also_recorded: bool) -> dict:
-    rec = json.loads(Path(path).read_text())
+    from drake_grasp.evaluation.records import record_at
+
+    rec = record_at(path).to_dict()  # the file, or its row once the folder is packed
     row = {"trial_id": rec["trial_id"], "records": str(Path(path).parents[1]),
            "recorded": {"success": bool(rec["success"]), "failure_class": rec["failure_class"],
                         "final_distance_m": rec["final_distance_m"]},
@@ -105,15 +107,16 @@ def main(argv=None) -> int:
     from drake_grasp.evaluation.montecarlo import parallel_map
     from drake_grasp.core.provenance import code_version
     from drake_grasp.core.files import atomic_write_text
+    from drake_grasp.evaluation.records import trial_paths
 
     for f in args.weights.split(","):
         if not Path(f).is_file():
             raise SystemExit(f"--weights: {f}: no such file")
     paths = []
     for folder in args.records:
-        found = sorted(str(q) for q in Path(folder, "trials").glob(f"*__{args.condition}__*.json"))
+        found = [str(q) for q in trial_paths(folder, condition=args.condition)]
         if not found:
-            raise SystemExit(f"{folder}/trials: no records of condition {args.condition!r}")
+            raise SystemExit(f"{folder}: no records of condition {args.condition!r}")
         paths += found[:args.trials] if args.trials else found
     t0 = time.perf_counter()
     rows = parallel_map(run_attempt, [(q, args.weights, args.also_recorded) for q in paths],

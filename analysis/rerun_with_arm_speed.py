@@ -40,16 +40,17 @@ def main(argv=None) -> int:
     from drake_grasp.config.scenario import Scenario
     from drake_grasp.policies.evaluator import load_cnn
 
-    pattern = f"*__{args.condition}__*.json"
-    files = sorted((Path(args.results_dir) / "trials").glob(pattern))
-    files = files[args.first:args.first + args.trials]
-    if not files:
-        ap.exit(2, f"no trial records {pattern} in {args.results_dir}/trials\n")
+    from drake_grasp.evaluation.records import load_records
+
+    records = [r.to_dict() for r in load_records(args.results_dir)
+               if r.condition == args.condition]
+    records = records[args.first:args.first + args.trials]
+    if not records:
+        ap.exit(2, f"no trial records of condition {args.condition!r} in {args.results_dir}\n")
     library = load_library()
     model = load_cnn("", threads=1)
     rows = []
-    for f in files:
-        record = json.loads(f.read_text())
+    for record in records:
         scenario = yaml_load_typed(schema=Scenario, data=record["scenario_yaml"])
         if args.angular_speed > 0:
             scenario.arm.max_tcp_angular_speed_rad_s = args.angular_speed

@@ -55,6 +55,13 @@ def test_tiny_experiment_writes_records_and_a_report(reference):
     assert (out / "report.md").is_file() and (out / "summary.json").is_file()
 
 
+def test_a_finished_call_packs_its_records_into_the_table(reference):
+    out, _ = reference
+    # The per-trial files were the write path while the call ran; it packed them.
+    assert (out / "trials.parquet").is_file() and not (out / "trials").exists()
+    assert len(load_records(out)) == 4
+
+
 def test_rerun_skips_finished_trials(reference):
     out, _ = reference
     again = evaluate(experiment="smoke", out=out, trials=2, workers=1, seed=3, progress=False,

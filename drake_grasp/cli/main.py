@@ -1,7 +1,7 @@
 """The `drake-grasp` command line. Thin: parses flags and calls library functions.
 
 Each command group lives in its own module (run.py, learn.py, gpd.py, experiments.py,
-lab.py, tools.py), which adds its subcommands with `add_parsers(sub)`; what several
+lab.py, results.py, tools.py), which adds its subcommands with `add_parsers(sub)`; what several
 commands share (argument types, the scenario flags) is in args.py.
 """
 
@@ -10,10 +10,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from drake_grasp.cli import run, learn, gpd, experiments, lab, tools
+from drake_grasp.cli import run, learn, gpd, experiments, lab, results, tools
 
 # In the order `drake-grasp --help` lists them.
-GROUPS = (run, learn, gpd, experiments, lab, tools)
+GROUPS = (run, learn, gpd, experiments, lab, results, tools)
 
 
 def build_parser() -> argparse.ArgumentParser:

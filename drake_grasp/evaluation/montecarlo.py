@@ -45,7 +45,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
 
     Args:
         experiment: Name in `drake_grasp.evaluation.experiments.EXPERIMENTS`.
-        out: Results folder (created; resumed when it holds this run).
+        out: Results folder (created; resumed when it holds this run). Trials are written
+            one file each while the call runs and packed into its `trials.parquet` when
+            the call finishes (`records.pack_records`).
         trials: Trials per condition (clutter: runs); default the experiment's.
         workers: Local worker processes (1: in this process).
         scheduler: Address of a Dask scheduler to run on instead.
@@ -98,6 +100,11 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     _run_session(todo, info, done_ids, out=out, workers=workers, scheduler=scheduler,
                  objects_dir=objects_dir, progress=progress, fail_trials=fail_trials,
                  total=len(tasks))
+    # The per-trial files were the crash-safe path while the call ran; a finished call
+    # packs them into the folder's table (an interrupted one leaves them for its resume).
+    from drake_grasp.evaluation.records import pack_records
+
+    pack_records(out)
     return _result(out, tasks, todo, replaced, report)
 
 

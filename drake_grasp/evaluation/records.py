@@ -9,17 +9,25 @@ Layout::
                                  asked for and the created time. Written by the runner
                                  before any trial; a resume with another identity is
                                  refused.
-    DIR/trials/<stem>.json       one finished trial (a `TrialRecord`); <stem> is the trial id
-                                 with "/" replaced by "__" ("isolation/ctr/0007" ->
-                                 "isolation__ctr__0007.json").
+    DIR/trials.parquet           the packed records: one row per trial, one column per
+                                 `TrialRecord` field (`records_table` has the columns).
+                                 Written when an `evaluate` call finishes, and by
+                                 `drake-grasp results pack` (`pack_records`).
+    DIR/trials/<stem>.json       one finished trial (a `TrialRecord`) not packed yet; <stem>
+                                 is the trial id with "/" replaced by "__"
+                                 ("isolation/ctr/0007" -> "isolation__ctr__0007.json").
     DIR/replays/<stem>.html      optional Meshcat replay of a trial (written by the runner;
-                                 the report links those of failed trials).
+                                 the report links those of failed trials). Kept as files:
+                                 a page to open in a browser, and few of them.
 
-A trial counts as done iff its file exists and parses: every file is written under a
-temporary name in the same folder and renamed into place when complete, so a killed
-worker leaves no half-written record, and each worker writes only its own trials, so
-parallel workers never contend for a file. Files are plain JSON (no pickle): a results
-directory from someone else can be read without running their code.
+The per-trial JSON files are the crash-safe write path while a run goes on: each is
+written under a temporary name in the same folder and renamed into place when complete,
+so a killed worker leaves no half-written record, and each worker writes only its own
+trials, so parallel workers never contend for a file. A trial counts as done iff it is a
+row of the table or its file exists and parses; one in both (a pack killed between the
+table's rename and the files' removal) counts once, as its file says (`pack_records`).
+Both forms are plain data (no pickle): a results directory from someone else can be read
+without running their code.
 """
 
 from __future__ import annotations
@@ -34,8 +42,10 @@ from pathlib import Path
 from typing import Any
 
 from drake_grasp.core.files import atomic_write_text
+# Re-exported: reports and analysis scripts import the statistics from here.
+from drake_grasp.evaluation.proportions import mcnemar_exact_p, wilson_interval  # noqa: F401
+from drake_grasp.evaluation.records_table import TABLE_FILE, TRIALS_DIR, read_table, write_table
 
-TRIALS_DIR = "trials"
 RUN_INFO_FILE = "run.json"
 REPLAYS_DIR = "replays"
 # Bumped when a field changes meaning or is removed; files carry it as "format_version".
@@ -130,32 +140,17 @@ def replay_path(results_dir: str | os.PathLike, trial_id: str) -> Path:
 
 # Field kinds for validation: (kind, may be None).
 _KINDS: dict[str, tuple[str, bool]] = {
-    "trial_id": ("str", False),
-    "experiment": ("str", False),
-    "condition": ("str", False),
-    "policy": ("str", False),
-    "noise": ("str", False),
-    "noise_scale": ("float", True),
-    "depth_noise": ("bool", False),
-    "offset_m": ("float", True),
-    "disturbance": ("dict", False),
-    "scenario_name": ("str", False),
-    "scenario_yaml": ("str", False),
-    "seed": ("int", False),
-    "config_hash": ("str", False),
-    "code_version": ("str", False),
-    "success": ("bool", False),
-    "failure_class": ("str", False),
-    "failure_reason": ("str", True),
-    "final_distance_m": ("float", True),
-    "sim_time_s": ("float", False),
-    "wall_time_s": ("float", False),
-    "control_steps": ("int", False),
-    "object_ids": ("list_str", False),
-    "grasped_object_id": ("str", True),
-    "run_index": ("int", True),
-    "attempt_index": ("int", True),
-    "extra": ("dict", False),
+    "trial_id": ("str", False), "experiment": ("str", False), "condition": ("str", False),
+    "policy": ("str", False), "noise": ("str", False), "noise_scale": ("float", True),
+    "depth_noise": ("bool", False), "offset_m": ("float", True),
+    "disturbance": ("dict", False), "scenario_name": ("str", False),
+    "scenario_yaml": ("str", False), "seed": ("int", False), "config_hash": ("str", False),
+    "code_version": ("str", False), "success": ("bool", False),
+    "failure_class": ("str", False), "failure_reason": ("str", True),
+    "final_distance_m": ("float", True), "sim_time_s": ("float", False),
+    "wall_time_s": ("float", False), "control_steps": ("int", False),
+    "object_ids": ("list_str", False), "grasped_object_id": ("str", True),
+    "run_index": ("int", True), "attempt_index": ("int", True), "extra": ("dict", False),
 }
 
 
@@ -205,7 +200,7 @@ def _check_value(name: str, value: Any, where: str) -> Any:
 
 @dataclass
 class TrialRecord:
-    """One finished Monte Carlo trial. Written as `DIR/trials/<stem>.json`.
+    """One finished Monte Carlo trial (`DIR/trials/<stem>.json`, or a row of `trials.parquet`).
 
     Attributes:
         trial_id: Unique within the results dir, e.g. "isolation/ctr/0007".
@@ -428,29 +423,140 @@ def read_record(path: str | os.PathLike) -> TrialRecord:
     return record
 
 
-def load_records(results_dir: str | os.PathLike) -> list[TrialRecord]:
-    """All finished trials of a results dir, sorted by trial_id ([] when there are none).
+def table_path(results_dir: str | os.PathLike) -> Path:
+    """`DIR/trials.parquet`: the folder's packed records (it may not exist)."""
+    return Path(results_dir) / TABLE_FILE
+
+
+def read_table_records(results_dir: str | os.PathLike) -> list[TrialRecord]:
+    """The records packed in `DIR/trials.parquet`, in table order ([] without a table).
 
     Raises:
-        ValueError: A trial file is corrupt (named in the message).
+        ValueError: The table is corrupt, from a newer format, holds an invalid record or
+            one trial twice; the message names the file (and the row).
     """
-    records = [read_record(p) for p in _trial_files(Path(results_dir))]
-    return sorted(records, key=lambda r: r.trial_id)
+    path = table_path(results_dir)
+    if not path.is_file():
+        return []
+    records, seen = [], set()
+    for i, row in enumerate(read_table(path, _KINDS)):
+        record = TrialRecord.from_dict(row, source=f"{path} row {i}")
+        if record.trial_id in seen:
+            raise ValueError(f"{path} row {i}: trial {record.trial_id!r} is in the table twice")
+        seen.add(record.trial_id)
+        records.append(record)
+    return records
+
+
+def _loose_records(results_dir: Path) -> dict[str, tuple[Path, TrialRecord]]:  # id: (file, record)
+    return {(r := read_record(p)).trial_id: (p, r) for p in _trial_files(results_dir)}
+
+
+def load_records(results_dir: str | os.PathLike) -> list[TrialRecord]:
+    """All finished trials of a results dir, packed (`trials.parquet`) or not
+    (`trials/*.json`), sorted by trial_id ([] when there are none). A trial in both forms
+    counts once, as its file says.
+
+    Raises:
+        ValueError: The table or a trial file is corrupt (named in the message).
+    """
+    results_dir = Path(results_dir)
+    records = {r.trial_id: r for r in read_table_records(results_dir)}
+    records.update({k: r for k, (_, r) in _loose_records(results_dir).items()})
+    return [records[k] for k in sorted(records)]
+
+
+def trial_paths(results_dir: str | os.PathLike, *, condition: str | None = None) -> list[Path]:
+    """`trial_path` of every finished trial (of `condition`), packed or not, sorted: names
+    to hand to workers, each read back with `record_at`."""
+    return sorted(trial_path(results_dir, r.trial_id) for r in load_records(results_dir)
+                  if condition is None or r.condition == condition)
+
+
+def find_record(results_dir: str | os.PathLike, trial_id: str) -> TrialRecord:
+    """The record of one trial, from its file or the folder's table.
+
+    Raises:
+        ValueError: The folder has no such trial, or what holds it is corrupt (named).
+    """
+    path = trial_path(results_dir, trial_id)
+    if path.is_file():
+        return read_record(path)
+    for record in read_table_records(results_dir):
+        if record.trial_id == trial_id:
+            return record
+    raise ValueError(f"{results_dir}: no trial {trial_id!r} (neither {path} nor a row of "
+                     f"{table_path(results_dir)})")
+
+
+def record_at(path: str | os.PathLike) -> TrialRecord:
+    """The record a trial file's path names (`DIR/trials/<stem>.json`): the file, or once
+    the folder is packed, the table's row of that trial (`find_record`)."""
+    path = Path(path)
+    if path.is_file() or path.parent.name != TRIALS_DIR:
+        return read_record(path)
+    return find_record(path.parent.parent, trial_id_from_stem(path.stem))
 
 
 def done_trial_ids(results_dir: str | os.PathLike) -> set[str]:
-    """Ids of the trials whose file exists and parses: what a resumed run may skip.
+    """Ids of the trials in the table or whose file parses: what a resumed run may skip.
 
-    A corrupt file does not count (the trial is run again and its file replaced), so this
-    never raises on one; `load_records` does.
+    A corrupt trial file does not count (the trial is run again and its file replaced), so
+    this never raises on one; `load_records` does.
+
+    Raises:
+        ValueError: The table is corrupt (named in the message): re-running its trials
+            would replace a whole run's records, so that is left to a person.
     """
-    done = set()
+    done = {r.trial_id for r in read_table_records(results_dir)}
     for p in _trial_files(Path(results_dir)):
         try:
             done.add(read_record(p).trial_id)
         except (ValueError, OSError):
             continue
     return done
+
+
+def _same(a: TrialRecord, b: TrialRecord) -> bool:
+    """Equal field by field, types and float bits included (1 != 1.0 here)."""
+    return json.dumps(a.to_dict(), allow_nan=False) == json.dumps(b.to_dict(), allow_nan=False)
+
+
+def pack_records(results_dir: str | os.PathLike) -> dict:
+    """Packs the folder's trial files into `DIR/trials.parquet` and removes them.
+
+    The new table (old rows + every file's record, a file replacing its trial's row,
+    sorted by trial_id) is written to a temporary name and renamed into place. A file is
+    removed only once the table on disk reads back its record equal (types and float bits
+    included); then the empty `trials/`. A kill at any point leaves the old table and the
+    files, or the new table and files repeating its rows: `load_records` counts each once.
+
+    Returns:
+        {"folder", "rows" (in the table now), "packed" (files removed; 0: nothing written)}.
+
+    Raises:
+        ValueError: A file or the table is corrupt, or a file's record does not come back
+            equal from the table (named in the message; that file is kept).
+    """
+    results_dir = Path(results_dir)
+    loose = _loose_records(results_dir)
+    if not loose:
+        return {"folder": str(results_dir), "rows": len(read_table_records(results_dir)),
+                "packed": 0}
+    merged = {r.trial_id: r for r in read_table_records(results_dir)}
+    merged.update({k: r for k, (_, r) in loose.items()})
+    write_table(table_path(results_dir), [merged[k].to_dict() for k in sorted(merged)], _KINDS)
+    packed = {r.trial_id: r for r in read_table_records(results_dir)}
+    for trial_id, (path, record) in loose.items():
+        if trial_id not in packed or not _same(packed[trial_id], record):
+            raise ValueError(f"{path}: its record does not read back equal from "
+                             f"{table_path(results_dir)}; the file is kept")
+    for path, _ in loose.values():
+        path.unlink()
+    folder = results_dir / TRIALS_DIR
+    if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+    return {"folder": str(results_dir), "rows": len(packed), "packed": len(loose)}
 
 
 def write_run_info(results_dir: str | os.PathLike, info: dict) -> Path:
@@ -489,47 +595,3 @@ def read_run_info(results_dir: str | os.PathLike) -> dict:
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
-
-
-# --------------------------------------------------------------------------- statistics
-
-def mcnemar_exact_p(only_a: int, only_b: int) -> float:
-    """Two-sided exact McNemar p-value of paired outcomes: the binomial test at 1/2 of the
-    discordant pairs (`only_a` succeeded only under A, `only_b` only under B)."""
-    if only_a < 0 or only_b < 0:
-        raise ValueError(f"mcnemar_exact_p: need counts >= 0, got {only_a}, {only_b}")
-    n = only_a + only_b
-    if n == 0:
-        return 1.0
-    k = min(only_a, only_b)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
-    return min(1.0, 2 * tail)
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (95% for the default z).
-
-    Chosen over the normal approximation because it stays inside [0, 1] and is sensible
-    at 0/n and n/n, which are common here (e.g. 40 isolation trials, all successful).
-
-    Args:
-        successes: Number of successes, 0 <= successes <= n.
-        n: Number of trials; 0 gives the uninformative (0.0, 1.0).
-        z: Standard-normal quantile.
-
-    Returns:
-        (lower, upper).
-    """
-    if n < 0 or successes < 0 or successes > n:
-        raise ValueError(f"wilson_interval: need 0 <= successes <= n, got successes={successes}, n={n}")
-    if n == 0:
-        return (0.0, 1.0)
-    p = successes / n
-    z2 = z * z
-    denom = 1.0 + z2 / n
-    center = (p + z2 / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / denom
-    # Exact bounds at the ends (the formula gives them up to rounding).
-    lo = 0.0 if successes == 0 else max(0.0, center - half)
-    hi = 1.0 if successes == n else min(1.0, center + half)
-    return (lo, hi)

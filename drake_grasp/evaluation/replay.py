@@ -119,18 +119,20 @@ def _shipped_weights(sha: str, source: str, condition: str, missing: str | None)
 
 def recorded_pile(path: str | Path) -> tuple:
     """(record, scenario, scene) of a clutter attempt: its trial record (the JSON file, as
-    a dict), its scenario and the pile it began on (`extra.scene`); what the analysis
-    scripts replay an attempt from. The scenario names the weights the attempt ran
-    (`recorded_weights`, from the run.json of the record's results folder,
-    `RESULTS/trials/RECORD.json`, when there is one).
+    a dict; once its folder is packed, the path still names the trial: `records.record_at`
+    reads its row of `RESULTS/trials.parquet`), its scenario and the pile it began on
+    (`extra.scene`); what the analysis scripts replay an attempt from. The scenario names
+    the weights the attempt ran (`recorded_weights`, from the run.json of the record's
+    results folder, `RESULTS/trials/RECORD.json`, when there is one).
 
     Raises:
         ValueError: The record holds no pile (the message names the file).
     """
-    from drake_grasp.evaluation.records import RUN_INFO_FILE, read_run_info
+    from drake_grasp.evaluation.records import RUN_INFO_FILE, read_run_info, record_at
     from drake_grasp.world.scene import SceneSpec
 
-    rec = json.loads(Path(path).read_text())
+    rec = json.loads(Path(path).read_text()) if Path(path).is_file() else \
+        record_at(path).to_dict()
     if not (rec.get("extra") or {}).get("scene"):
         raise ValueError(f"{path}: no extra.scene (expected a clutter attempt's record)")
     scenario = recorded_scenario(rec["scenario_yaml"])
@@ -170,15 +172,12 @@ def replay_trial(results_dir: str | Path, *, trial_id: str, out: str | Path | No
     """Re-runs one recorded trial exactly (its resolved scenario, and for clutter attempts
     the pile it started from) and writes its episode files with the replay page."""
     from drake_grasp.evaluation.episode import run_episode
-    from drake_grasp.evaluation.records import (RUN_INFO_FILE, load_records, read_run_info,
+    from drake_grasp.evaluation.records import (RUN_INFO_FILE, find_record, read_run_info,
                                                 replay_path)
     from drake_grasp.world.scene import SceneSpec
 
     results_dir = Path(results_dir)
-    matches = [r for r in load_records(results_dir) if r.trial_id == trial_id]
-    if not matches:
-        raise ValueError(f"{results_dir}: no trial {trial_id!r}")
-    rec = matches[0]
+    rec = find_record(results_dir, trial_id)  # its file, or its row of the folder's table
     if not rec.scenario_yaml:
         raise ValueError(f"{results_dir}: trial {trial_id!r} has no scenario to replay (building "
                          f"it failed: {rec.failure_reason})")

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from drake_grasp.evaluation.records import (FAILURE_CLASSES, TrialRecord, load_records,
-    read_run_info, wilson_interval)
+from drake_grasp.evaluation.records import (FAILURE_CLASSES, TABLE_FILE, TrialRecord,
+    load_records, read_run_info, wilson_interval)
 
 BIN_M = 0.03  # the paper's Figure 5 bin size
 HIST_MAX_M = 0.30  # last regular bin edge; farther trials go to an overflow bin
@@ -145,8 +145,8 @@ def load_results(results_dir: str | os.PathLike, *,
         raise ValueError(f"{results_dir}: results dir does not exist")
     records = load_records(results_dir)
     if not records:
-        raise ValueError(f"{results_dir}: no trial records in {results_dir / 'trials'} "
-                         "(nothing to report; has the run started?)")
+        raise ValueError(f"{results_dir}: no trial records (neither {TABLE_FILE} nor "
+                         "trials/*.json; nothing to report; has the run started?)")
     if trials is not None:
         in_folder = len(records)
         records = select_records(records, trials)

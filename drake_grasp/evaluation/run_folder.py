@@ -162,7 +162,7 @@ def folder_conflict(out: str | Path, identity: dict) -> str | None:
     The reason names the first differing key, e.g. "conditions[1].scenario.controller.
     step_ratio: 0.2 in the folder, 0.3 now (and 2 more differences)".
     """
-    from drake_grasp.evaluation.records import RUN_INFO_FILE, TRIALS_DIR, read_run_info
+    from drake_grasp.evaluation.records import RUN_INFO_FILE, TRIALS_DIR, read_run_info, table_path
 
     out = Path(out)
     if not out.exists():
@@ -173,7 +173,8 @@ def folder_conflict(out: str | Path, identity: dict) -> str | None:
         old = read_run_info(out)
     except FileNotFoundError:
         trials = out / TRIALS_DIR
-        if trials.is_dir() and any(not p.name.startswith(".") for p in trials.iterdir()):
+        if table_path(out).is_file() or (
+                trials.is_dir() and any(not p.name.startswith(".") for p in trials.iterdir())):
             return (f"{out}: holds trial records but no {RUN_INFO_FILE}, so what they were "
                     "run with is unknown")
         return None

@@ -1,10 +1,10 @@
 """Failures of clutter attempts by the object the judge names, over trial folders."""
-import json, glob, collections, re, sys
+import collections, re, sys
+from drake_grasp.evaluation.records import load_records
 dirs = sys.argv[1:]
 fail = collections.Counter(); att = collections.Counter(); cls = collections.Counter()
 for d in dirs:
-    for f in glob.glob(f"{d}/trials/*.json"):
-        t = json.load(open(f))
+    for t in (r.to_dict() for r in load_records(d)):
         if t['failure_class'] == 'simulation-error':
             continue
         obj = t.get('grasped_object_id')
