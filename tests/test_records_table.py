@@ -251,3 +251,19 @@ def test_a_folder_with_only_a_table_holds_a_run(tmp_path):
     pack_records(tmp_path)
     assert "holds trial records but no run.json" in folder_conflict(tmp_path, {"x": 1})
     assert trial_path(tmp_path, "isolation/ctr/0007").parent.name == "trials"
+
+
+def test_two_packs_of_one_folder_take_turns(tmp_path):
+    import threading
+
+    for r in fabricated():
+        write_record(tmp_path, r)
+    result = {}
+    with records_table.folder_lock(tmp_path):
+        worker = threading.Thread(target=lambda: result.update(pack_records(tmp_path)))
+        worker.start()
+        worker.join(0.5)
+        assert worker.is_alive() and not table_path(tmp_path).exists()  # waiting its turn
+    worker.join(30)
+    assert result == {"folder": str(tmp_path), "rows": 3, "packed": 3}
+    assert len(load_records(tmp_path)) == 3

@@ -44,7 +44,8 @@ from typing import Any
 from drake_grasp.core.files import atomic_write_text
 # Re-exported: reports and analysis scripts import the statistics from here.
 from drake_grasp.evaluation.proportions import mcnemar_exact_p, wilson_interval  # noqa: F401
-from drake_grasp.evaluation.records_table import TABLE_FILE, TRIALS_DIR, read_table, write_table
+from drake_grasp.evaluation.records_table import (TABLE_FILE, TRIALS_DIR, folder_lock, read_table,
+                                                  write_table)
 
 RUN_INFO_FILE = "run.json"
 REPLAYS_DIR = "replays"
@@ -535,28 +536,30 @@ def pack_records(results_dir: str | os.PathLike) -> dict:
         {"folder", "rows" (in the table now), "packed" (files removed; 0: nothing written)}.
 
     Raises:
+        FileNotFoundError: The folder does not exist.
         ValueError: A file or the table is corrupt, or a file's record does not come back
             equal from the table (named in the message; that file is kept).
     """
     results_dir = Path(results_dir)
-    loose = _loose_records(results_dir)
-    if not loose:
-        return {"folder": str(results_dir), "rows": len(read_table_records(results_dir)),
-                "packed": 0}
-    merged = {r.trial_id: r for r in read_table_records(results_dir)}
-    merged.update({k: r for k, (_, r) in loose.items()})
-    write_table(table_path(results_dir), [merged[k].to_dict() for k in sorted(merged)], _KINDS)
-    packed = {r.trial_id: r for r in read_table_records(results_dir)}
-    for trial_id, (path, record) in loose.items():
-        if trial_id not in packed or not _same(packed[trial_id], record):
-            raise ValueError(f"{path}: its record does not read back equal from "
-                             f"{table_path(results_dir)}; the file is kept")
-    for path, _ in loose.values():
-        path.unlink()
-    folder = results_dir / TRIALS_DIR
-    if folder.is_dir() and not any(folder.iterdir()):
-        folder.rmdir()
-    return {"folder": str(results_dir), "rows": len(packed), "packed": len(loose)}
+    with folder_lock(results_dir):  # one pack of a folder at a time
+        loose, old = _loose_records(results_dir), read_table_records(results_dir)
+        if not loose:
+            return {"folder": str(results_dir), "rows": len(old), "packed": 0}
+        merged = {r.trial_id: r for r in old}
+        merged.update({k: r for k, (_, r) in loose.items()})
+        rows = [merged[k].to_dict() for k in sorted(merged)]
+        write_table(table_path(results_dir), rows, _KINDS)
+        packed = {r.trial_id: r for r in read_table_records(results_dir)}
+        for trial_id, (path, record) in loose.items():
+            if trial_id not in packed or not _same(packed[trial_id], record):
+                raise ValueError(f"{path}: its record does not read back equal from "
+                                 f"{table_path(results_dir)}; the file is kept")
+        for path, _ in loose.values():
+            path.unlink()
+        folder = results_dir / TRIALS_DIR
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        return {"folder": str(results_dir), "rows": len(packed), "packed": len(loose)}
 
 
 def write_run_info(results_dir: str | os.PathLike, info: dict) -> Path:

@@ -25,6 +25,7 @@ renamed into place: a reader sees the old table or the new one, never half of on
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -67,6 +68,25 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike):
+    """Holds an exclusive advisory lock (flock) on the folder itself while the block runs,
+    so that two packs of one folder (a finishing `evaluate` and `drake-grasp results pack`)
+    take turns instead of one table replacing rows the other had just packed. No lock file
+    is left behind; where flock does not exist (not POSIX) the block runs unlocked."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
 
 
 def write_table(path: str | os.PathLike, rows: list[dict[str, Any]],
