@@ -267,3 +267,23 @@ def test_two_packs_of_one_folder_take_turns(tmp_path):
     worker.join(30)
     assert result == {"folder": str(tmp_path), "rows": 3, "packed": 3}
     assert len(load_records(tmp_path)) == 3
+
+
+def test_a_packed_clutter_attempt_still_replays_from_its_path(tmp_path):
+    """`replay.recorded_pile` (what the analysis scripts replay attempts from) takes the
+    path of an attempt's file; once its folder is packed, the same path reads the row."""
+    from drake_grasp.evaluation.replay import recorded_pile
+
+    folder = tmp_path / "run"
+    shutil.copytree(COMMITTED, folder)
+    path = folder / "trials" / "clutter-shift__ctr__0000__attempt01.json"
+    rec, scenario, scene = recorded_pile(path)
+    pack_records(folder)
+    assert not path.exists()
+    packed, packed_scenario, packed_scene = recorded_pile(path)
+    assert json.dumps(packed) == json.dumps({k: v for k, v in rec.items()
+                                             if k != "format_version"})
+    from pydrake.common.yaml import yaml_dump_typed
+
+    assert yaml_dump_typed(packed_scenario) == yaml_dump_typed(scenario)
+    assert packed_scene.to_dict() == scene.to_dict() and scene.objects
