@@ -27,7 +27,6 @@ import collections
 import dataclasses
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 

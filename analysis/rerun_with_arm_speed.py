@@ -63,7 +63,7 @@ def main(argv=None) -> int:
                      "recorded_final_distance_m": record["final_distance_m"],
                      "hand_at_close_xy_yaw": run.result.details["hand_at_close_xy_yaw"],
                      "wall_s": time.perf_counter() - t0})
-        print(f"{len(rows)}/{len(files)} {record['trial_id']}: "
+        print(f"{len(rows)}/{len(records)} {record['trial_id']}: "
               f"{'lifted' if rows[-1]['success'] else 'failed'}, "
               f"{rows[-1]['final_distance_m']}", flush=True)
     out = {"results_dir": args.results_dir, "condition": args.condition,
