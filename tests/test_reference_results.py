@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from drake_grasp.evaluation.records import wilson_interval
+from drake_grasp.evaluation.records import done_trial_ids, wilson_interval
 
 RESULTS = Path(__file__).resolve().parents[1] / "analysis" / "results"
 REFERENCE = RESULTS / "reference"
@@ -52,7 +52,8 @@ def test_summary_has_the_report_keys_and_every_source(committed):
     cells = [row[c] for row in committed["table1"].values() for c in ("ctr", "gpd")]
     for entry in cells + list(committed["figure5"].values()):
         folder = entry["source"]["folder"]
-        assert (RESULTS / folder / "trials").is_dir(), folder
+        # its records: per-trial files, or packed into the folder's trials.parquet
+        assert done_trial_ids(RESULTS / folder), folder
         prov = committed["sources"][folder]
         assert prov["record_code_versions"] and prov["commands"] and prov["sessions_wall_s"] > 0
         assert entry["code_versions"] and set(entry["code_versions"]) <= set(prov["record_code_versions"])
