@@ -13,23 +13,11 @@ from drake_grasp.evaluation import records_table
 from drake_grasp.evaluation.records import (TrialRecord, done_trial_ids, find_record,
                                             load_records, pack_records, read_record, record_at,
                                             table_path, trial_path, trial_paths, write_record)
+from test_results import make_record
 
 ROOT = Path(__file__).resolve().parents[1]
 # A small committed results folder: 62 clutter-shift attempts of Table 1's seed.
 COMMITTED = ROOT / "analysis" / "results" / "paper-bn12500-ep3" / "clutter-shift"
-
-
-def make_record(trial_id="isolation/ctr/0007", **overrides) -> TrialRecord:
-    values = dict(
-        trial_id=trial_id, experiment="isolation", condition="ctr", policy="ctr", noise="none",
-        noise_scale=None, depth_noise=False, offset_m=None, disturbance={},
-        scenario_name="isolation", scenario_yaml="seed: 7\npolicy: ctr\n", seed=7,
-        config_hash="abc123", code_version="0.1.0", success=True, failure_class="none",
-        failure_reason=None, final_distance_m=0.012, sim_time_s=6.5, wall_time_s=3.25,
-        control_steps=75, object_ids=["mug_03"], grasped_object_id="mug_03", run_index=None,
-        attempt_index=None, extra={"note": "x"})
-    values.update(overrides)
-    return TrialRecord(**values)
 
 
 def fabricated() -> list[TrialRecord]:

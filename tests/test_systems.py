@@ -182,11 +182,25 @@ def _tilted_grasp(xyz, yaw_deg: float, tilt_deg: float) -> np.ndarray:
     return X
 
 
+def _fix_gpd_inputs(ctrl, ctx) -> None:
+    """Every input of a gpd controller fixed: blank wrist images, no candidates, the GPD
+    image a flat 0.6 m."""
+    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+    ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))
+    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
+    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((0, 3)))
+    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(0))
+    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
+    gpd_image = ImageDepth32F(640, 480)
+    gpd_image.mutable_data[:] = 0.6
+    ctrl.GetInputPort("gpd_depth_image").FixValue(ctx, gpd_image)
+
+
 def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
     """A gpd GraspController alone in a Simulator, every input fixed (the GPD image a
     flat 0.6 m)."""
     from pydrake.systems.analysis import Simulator
-    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.station import gpd_camera_offset, gripper_frame_offsets, topdown_pose
@@ -198,14 +212,7 @@ def _gpd_controller(detect_fn, scenario_text: str = "{policy: gpd}"):
     ctrl = make_controller("gpd", scenario=scenario, X_WG_start=start, X_GC=X_GC,
                            X_GC_gpd=gpd_camera_offset(), detect_fn=detect_fn)
     ctx = ctrl.CreateDefaultContext()
-    ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))
-    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
-    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((0, 3)))
-    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(0))
-    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
-    gpd_image = ImageDepth32F(640, 480)
-    gpd_image.mutable_data[:] = 0.6
-    ctrl.GetInputPort("gpd_depth_image").FixValue(ctx, gpd_image)
+    _fix_gpd_inputs(ctrl, ctx)
     sim = Simulator(ctrl, ctx)
     sim.Initialize()
     return scenario, ctrl, sim, start
@@ -297,7 +304,6 @@ def _gpd_with_noise(detect_fn, scenario_text: str):
     KinematicNoise system, as the episode Diagram wires them."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.systems.kinematic_noise import KinematicNoise
@@ -317,15 +323,7 @@ def _gpd_with_noise(detect_fn, scenario_text: str):
     builder.Connect(ctrl.GetOutputPort("X_WG_goal"), noise.GetInputPort("X_WG_goal"))
     diagram = builder.Build()
     sim = Simulator(diagram)
-    ctx = ctrl.GetMyMutableContextFromRoot(sim.get_mutable_context())
-    ctrl.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 64))
-    ctrl.GetInputPort("label_image").FixValue(ctx, ImageLabel16I(64, 64))
-    ctrl.GetInputPort("candidate_actions").FixValue(ctx, np.zeros((0, 3)))
-    ctrl.GetInputPort("predicted_distances").FixValue(ctx, np.zeros(0))
-    ctrl.GetInputPort("gripper_state").FixValue(ctx, np.zeros(4))
-    gpd_image = ImageDepth32F(640, 480)
-    gpd_image.mutable_data[:] = 0.6
-    ctrl.GetInputPort("gpd_depth_image").FixValue(ctx, gpd_image)
+    _fix_gpd_inputs(ctrl, ctrl.GetMyMutableContextFromRoot(sim.get_mutable_context()))
     sim.Initialize()
     executed = lambda: noise.GetOutputPort("X_WG_desired").Eval(  # noqa: E731
         noise.GetMyContextFromRoot(sim.get_context())).GetAsMatrix4()
