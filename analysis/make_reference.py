@@ -41,17 +41,19 @@ DEFAULT_OUT = RESULTS / "reference"
 COMMAND = "python analysis/make_reference.py"
 
 # --------------------------------------------------------------------------- what comes from where
-# (folder under analysis/results/, condition). README *Reference results*: Table 1's CTR rows
-# with the default CNN (models/cnn-grid-bn12500-ep3/), GPD's rows with its fallback (GPD does
-# not use the CNN); Figure 5's CTR and perception arms with the default, GPD's with the
-# fallback, INIT (no motion, no policy) from the first 400-trial run.
+# (folder under analysis/results/, condition). Table 1: CTR and GPD (with its fallback; GPD
+# does not use the CNN) on Table 1's seeds, re-run with the package after the layout
+# refactor, whose start height comes from the wrist camera (layout-2026-12-07/). Figure 5:
+# the CTR and perception arms with the default CNN (models/cnn-grid-bn12500-ep3/) before
+# the layout refactor, GPD's with the fallback, INIT (no motion, no policy) from the first
+# 400-trial run.
 TABLE1 = {
-    "isolation": {"ctr": ("paper-bn12500-ep3/isolation", "ctr"),
-                  "gpd": ("failure-memory/isolation-seed11-gpd-fallback", "gpd")},
-    "clutter": {"ctr": ("paper-bn12500-ep3/clutter", "ctr"),
-                "gpd": ("failure-memory/clutter-seed16-gpd-fallback", "gpd")},
-    "clutter-shift": {"ctr": ("paper-bn12500-ep3/clutter-shift", "ctr"),
-                      "gpd": ("failure-memory/clutter-shift-seed8-gpd-fallback", "gpd")},
+    "isolation": {"ctr": ("layout-2026-12-07/isolation", "ctr"),
+                  "gpd": ("layout-2026-12-07/isolation", "gpd")},
+    "clutter": {"ctr": ("layout-2026-12-07/clutter", "ctr"),
+                "gpd": ("layout-2026-12-07/clutter-gpd", "gpd")},
+    "clutter-shift": {"ctr": ("layout-2026-12-07/clutter-shift", "ctr"),
+                      "gpd": ("layout-2026-12-07/clutter-shift", "gpd")},
 }
 FIGURE5 = {
     "init": ("paper-grid/sim-distance", "init"),
@@ -66,6 +68,14 @@ FIGURE5 = {
 # README: run.json records no command line. Used only where run.json has none.
 _W = "--weights models/cnn-grid-bn12500-ep3/weights.safetensors"
 COMMANDS = {
+    "layout-2026-12-07/isolation": [
+        "drake-grasp evaluate --experiment isolation --trials 120 --seed 11 --conditions ctr,gpd --workers 2 --out isolation"],
+    "layout-2026-12-07/clutter": [
+        "drake-grasp evaluate --experiment clutter --trials 10 --seed 16 --conditions ctr --workers 2 --out clutter"],
+    "layout-2026-12-07/clutter-gpd": [
+        "drake-grasp evaluate --experiment clutter --trials 10 --seed 16 --conditions gpd --workers 2 --out clutter-gpd"],
+    "layout-2026-12-07/clutter-shift": [
+        "drake-grasp evaluate --experiment clutter-shift --trials 10 --seed 8 --conditions ctr,gpd --workers 2 --out clutter-shift"],
     "paper-bn12500-ep3/isolation": [
         f"drake-grasp evaluate --experiment isolation --conditions ctr,ctr-sim --trials 120 --seed 11 {_W} --workers 2 --out isolation"],
     "paper-bn12500-ep3/clutter": [
