@@ -57,8 +57,10 @@ def test_collect_replays_a_recorded_attempt_and_keeps_its_decisions(analysis_scr
     recorded outcome and decision count, its candidates carry true distances, the shipped
     net's scores on the kept images are the distances the controller saw, and a second
     call reads the file instead of simulating again."""
+    from drake_grasp.evaluation.records import record_at
+
     O = analysis_script("onpolicy_ranking")
-    rec = json.loads(RECORD.read_text())
+    rec = record_at(RECORD).to_dict()
     meta = O.collect_attempt(str(RECORD), str(tmp_path))
     assert meta["reproduced"] and meta["success"] == rec["success"]
     assert meta["decisions"] == rec["extra"]["decisions"] and meta["true_grasps"] > 0

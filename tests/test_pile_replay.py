@@ -24,12 +24,12 @@ def test_a_pile_replays_as_recorded_with_its_weights_and_runs_with_others(analys
     against the record's 0.15921 m (outcome and steps as recorded), the same with numpy's
     AVX-512 kernels, OpenBLAS's core type, oneDNN's ISA and llvmpipe's vector width
     changed; the machines before it reproduced the record's to 1e-6."""
-    import json
+    from drake_grasp.evaluation.records import record_at
 
     R = analysis_script("pile_replay")
     row = R.run_attempt(str(RECORD), str(models_dir() / "fcn-heightmap" / "weights.safetensors"),
                         True)
-    recorded = json.loads(RECORD.read_text())
+    recorded = record_at(RECORD).to_dict()
     assert row["recorded"] == {"success": False, "failure_class": "slipped-during-lift",
                                "final_distance_m": recorded["final_distance_m"]}
     own = row["recorded_weights_replay"]
@@ -59,4 +59,5 @@ def test_summary_pairs_the_outcomes(analysis_script):
     assert out["recorded"]["successes"] == 6 and out["replay"]["successes"] == 11
     assert out["replay"]["failure_classes"] == {"none": 11, "collision": 3}
     with pytest.raises(SystemExit, match="no records of condition 'ctr'"):
-        R.main([str(RECORD.parent / "none"), "--weights", str(RECORD), "--out", "x.json"])
+        # any existing file passes --weights' check; the folder has no records
+        R.main([str(RECORD.parent / "none"), "--weights", __file__, "--out", "x.json"])

@@ -158,16 +158,13 @@ def test_a_recorded_pile_names_the_weights_its_attempt_ran(tmp_path):
     """`recorded_pile` reads the run.json beside the record's `trials/` folder: an attempt
     recorded with the default of its day (`weights: ""`) replays with that day's file,
     whatever today's default is."""
-    import shutil
-
+    from drake_grasp.evaluation.records import record_at, write_record
     from drake_grasp.evaluation.replay import recorded_pile
     from drake_grasp.core.provenance import file_sha256
 
     src = (Path(__file__).resolve().parents[1] / "analysis" / "results" / "paper-bn12"
            / "clutter" / "trials" / "clutter__ctr__0000__attempt01.json")
-    (tmp_path / "trials").mkdir()
-    record = tmp_path / "trials" / src.name
-    shutil.copy(src, record)
+    record = write_record(tmp_path, record_at(src))  # the file, or its row once packed
     _, scenario, _ = recorded_pile(record)  # no run.json: the scenario as recorded
     assert scenario.controller.weights == ""
     info = json.loads((src.parents[1] / "run.json").read_text())
