@@ -33,7 +33,7 @@ def _parse_profile(profile: str) -> tuple[str, str, str]:
 
 
 def _scene_task(args) -> dict:
-    record_file, profile, out_file, force_mode, close = args
+    record, profile, out_file, force_mode, close = args
     import numpy as np
 
     from drake_grasp.evaluation.lab import LabConfig, check_grasp
@@ -42,7 +42,6 @@ def _scene_task(args) -> dict:
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.world.scene import SceneSpec
 
-    record = json.loads(Path(record_file).read_text())
     name, step, approximation = _parse_profile(profile)
     scenario = load_scenario(physics_profile=name)
     if step:
@@ -124,7 +123,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="results folder (re-running resumes)")
     args = p.parse_args(argv)
 
-    from drake_grasp.evaluation.labelcheck import record_path
+    from drake_grasp.evaluation.labelcheck import read_records
     from drake_grasp.core.files import atomic_write_text
     from drake_grasp.config.sections import PHYSICS_PROFILES
 
@@ -137,17 +136,20 @@ def main(argv=None) -> int:
         raise SystemExit(f"--profiles: unknown contact approximation in {bad}; "
                          f"expected one of {APPROXIMATIONS}")
     src, out = Path(args.label_check), Path(args.out)
-    records = [record_path(src, i) for i in range(args.scenes)]
-    missing = [str(r) for r in records if not r.is_file()]
+    records = read_records(src, args.scenes)  # its scenes/*.json or scenes.parquet
+    have = {r["scene_index"] for r in records}
+    missing = [i for i in range(args.scenes) if i not in have]
     if missing:
-        raise SystemExit(f"{src}: no record {missing[0]} (expected {args.scenes} scene records)")
+        raise SystemExit(f"{src}: no record of scene {missing[0]} (expected {args.scenes} "
+                         "scene records)")
+    names = [f"scene-{r['scene_index']:05d}.json" for r in records]
     todo = []
     for profile in profiles:
         (out / profile).mkdir(parents=True, exist_ok=True)
-        for r in records:
-            target = out / profile / r.name
+        for r, name in zip(records, names):
+            target = out / profile / name
             if not target.is_file():
-                todo.append((str(r), profile, str(target), args.force_mode, args.close))
+                todo.append((r, profile, str(target), args.force_mode, args.close))
     print(f"{len(todo)} scene checks to run ({args.scenes} scenes x {len(profiles)} profiles, "
           f"{args.scenes * len(profiles) - len(todo)} done)", flush=True)
     t0 = time.perf_counter()
@@ -159,7 +161,7 @@ def main(argv=None) -> int:
         with mp.get_context("spawn").Pool(args.workers) as pool:
             for _ in tqdm(pool.imap_unordered(_scene_task, todo), total=len(todo)):
                 pass
-    results = {profile: [json.loads((out / profile / r.name).read_text()) for r in records]
+    results = {profile: [json.loads((out / profile / name).read_text()) for name in names]
                for profile in profiles}
     summary = summarize(results)
     summary.update({"label_check": str(src), "scenes": args.scenes,

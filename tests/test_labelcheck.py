@@ -99,8 +99,12 @@ def test_label_check_runs_resumes_and_refuses_another_run(tmp_path, library):
                               library=library, config=config, show_progress=False)
     assert summary["scenes"] == 1 and summary["checked"] == 1
     assert summary["held"] in (0, 1) and summary["precision"] in (0.0, 1.0)
-    record = out / "scenes" / "scene-00000.json"
-    check = json.loads(record.read_text())["checks"][0]
+    # The run ends packed: its scene files moved into one table.
+    from drake_grasp.evaluation.labelcheck import read_records
+
+    assert not (out / "scenes").exists()
+    record = out / "scenes.parquet"
+    check = read_records(out)[0]["checks"][0]
     assert check["kind"] == "accepted" and check["details"]["grip_force_n"] == 60.0
     assert (out / "report.md").read_text().startswith("# Label check")
     stamp = record.stat().st_mtime_ns

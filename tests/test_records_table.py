@@ -220,13 +220,21 @@ def test_results_pack_command_finds_nested_folders(tmp_path, capsys):
     for name in ("a/run1", "a/b/run2"):
         for r in fabricated()[:2]:
             write_record(tmp_path / name, r)
+    # a label check's folder: run.json and scenes/*.json
+    scenes = tmp_path / "a" / "lc" / "scenes"
+    scenes.mkdir(parents=True)
+    (scenes.parent / "run.json").write_text("{}")
+    (scenes / "scene-00000.json").write_text(json.dumps({"format": "f", "scene_index": 0}))
     assert main(["results", "pack", str(tmp_path), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert f"{tmp_path / 'a' / 'b' / 'run2'}: 2 trial files" in out
+    assert f"{tmp_path / 'a' / 'lc'}: 1 scene files" in out
     assert all((tmp_path / n / "trials").is_dir() for n in ("a/run1", "a/b/run2"))
     assert main(["results", "pack", str(tmp_path / "a"), "--no-progress"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    assert summary["folders"] == 2 and summary["trial_files_packed"] == 4
+    assert summary["folders"] == 3 and summary["trial_files_packed"] == 4
+    assert summary["scene_files_packed"] == 1 and not scenes.exists()
+    assert (scenes.parent / "scenes.parquet").is_file()
     for n in ("a/run1", "a/b/run2"):
         assert not (tmp_path / n / "trials").exists()
         assert load_records(tmp_path / n) == sorted(fabricated()[:2], key=lambda r: r.trial_id)

@@ -11,7 +11,8 @@ objects present. A label's "true" is then compared with what physics does:
     precision = held / checked among accepted grasps   (how often "true" holds)
     rejected_held / rejected_checked                   (grasps the test throws away)
 
-Each scene is one JSON record under `OUT/scenes/`, written atomically; `OUT/run.json`
+Each scene is one JSON record under `OUT/scenes/`, written atomically, and packed into
+`OUT/scenes.parquet` when the run ends (`scene_records`); `OUT/run.json`
 holds the run's identity (seed, scenario, dataset and lab settings, sample sizes, object
 library, code version), so a killed run re-run with the same command skips finished
 scenes and counts nothing twice, and a different run is refused. `OUT/summary.json` and
@@ -32,9 +33,11 @@ import numpy as np
 from drake_grasp.geometry.contact_physics import MAX_TORQUE_RATIO
 from drake_grasp.evaluation.records import wilson_interval
 from drake_grasp.core.files import atomic_write_bytes, atomic_write_text
+from drake_grasp.evaluation import scene_records
+from drake_grasp.evaluation.scene_records import (RECORDS, done_scene_indices,
+                                                  pack_scene_records, record_path)
 
 FORMAT = "drake_grasp.label_check/1"
-RECORDS = "scenes"
 
 
 @dataclass
@@ -64,11 +67,6 @@ class LabelCheckConfig:
         if not 0 < self.max_torque_ratio < float("inf"):
             raise ValueError(f"max_torque_ratio: expected a finite number > 0, got "
                              f"{self.max_torque_ratio}")
-
-
-def record_path(out: Path, scene_index: int) -> Path:
-    """Where scene `scene_index`'s record lives in a run folder."""
-    return out / RECORDS / f"scene-{scene_index:05d}.json"
 
 
 def check_scene(scene_index: int, *, seed: int, scenario, library, config: LabelCheckConfig,
@@ -225,7 +223,8 @@ def run_label_check(*, num_scenes: int, seed: int, out, scenario, library,
     out = Path(out)
     identity = _identity(seed=seed, scenario=scenario, library=library, config=config, lab=lab)
     prepare_run_folder(out, identity, what="label-check")
-    todo = [i for i in range(num_scenes) if not record_path(out, i).exists()]
+    done_before = done_scene_indices(out)
+    todo = [i for i in range(num_scenes) if i not in done_before]
     bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="label-check",
                unit="scene", disable=not show_progress)
     t0 = time.perf_counter()
@@ -254,6 +253,7 @@ def run_label_check(*, num_scenes: int, seed: int, out, scenario, library,
             for f in as_completed(futures):
                 done(f.result())
     bar.close()
+    pack_scene_records(out)
     return make_label_report(out, num_scenes=num_scenes, wall_s=time.perf_counter() - t0,
                              library=library)
 
@@ -265,20 +265,9 @@ def _rate(held: int, n: int) -> dict:
 
 
 def read_records(out, num_scenes: int | None = None, *, format: str = FORMAT) -> list[dict]:
-    """The scene records of a run folder (the first `num_scenes`, or all), each checked to
-    be of `format` (a label check's by default)."""
-    out = Path(out)
-    records = []
-    for path in sorted((out / RECORDS).glob("scene-*.json")):
-        try:
-            record = json.loads(path.read_text())
-        except ValueError as e:
-            raise ValueError(f"{path}: not a valid record ({e})") from None
-        if record.get("format") != format:
-            raise ValueError(f"{path}: format {record.get('format')!r}, expected {format!r}")
-        if num_scenes is None or record["scene_index"] < num_scenes:
-            records.append(record)
-    return records
+    """The scene records of a run folder (the first `num_scenes`, or all; files or
+    `scenes.parquet`), each checked to be of `format` (a label check's by default)."""
+    return scene_records.read_records(out, num_scenes, format=format)
 
 
 def summarize(records: list[dict]) -> dict:

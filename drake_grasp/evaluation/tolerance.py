@@ -25,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.evaluation.labelcheck import prepare_run_folder, read_records, record_path
+from drake_grasp.evaluation.labelcheck import prepare_run_folder, read_records
+from drake_grasp.evaluation.scene_records import (done_scene_indices, pack_scene_records,
+                                                  record_path)
 from drake_grasp.evaluation.records import wilson_interval
 from drake_grasp.core.files import atomic_write_bytes, atomic_write_text
 
@@ -145,8 +147,8 @@ def run_grasp_tolerance(*, num_scenes: int, seed: int, out, scenario, library,
                 "lab": dataclasses.asdict(lab), "object_library_hash": library.content_hash(),
                 "code_version": code_version()}
     prepare_run_folder(out, identity, what="grasp-tolerance")
-    todo = [i for i in range(num_scenes)
-            if not record_path(out, i).exists()]
+    done_before = done_scene_indices(out)
+    todo = [i for i in range(num_scenes) if i not in done_before]
     args = dict(out=str(out), seed=int(seed), scenario_yaml=dump_scenario(scenario),
                 objects_dir=str(objects_dir or ""), offsets_mm=offsets_mm,
                 max_verify=int(max_verify), lab=dataclasses.asdict(lab))
@@ -165,6 +167,7 @@ def run_grasp_tolerance(*, num_scenes: int, seed: int, out, scenario, library,
                 f.result()
                 bar.update(1)
     bar.close()
+    pack_scene_records(out)
     return make_tolerance_report(out, num_scenes=num_scenes)
 
 
