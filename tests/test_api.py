@@ -49,6 +49,11 @@ README_BLOCKS = {
                    r"report: out/smoke/report\.md"],
         "writes": ["out/smoke/run.json", "out/smoke/report.md"],
     },
+    "Run it on a cluster": {
+        "prints": [r"\b2 records, written by this process in out/smoke-dask"],
+        "writes": ["out/smoke-dask/run.json", "out/smoke-dask/report.md",
+                   "out/smoke-dask/trials.parquet"],
+    },
     "Run your own policy next to CTR and GPD": {
         "prints": [r"lifted: (True|False) final distance \[m\]: ", r"ctr: [01] of 1 lifted",
                    r"gpd: [01] of 1 lifted", r"centroid_policy\.make_policy: [01] of 1 lifted"],

@@ -354,7 +354,12 @@ def _scripted_simulate(outcomes, calls, grasped=None, *, seen=lambda scenario, s
 def _fake_clutter(monkeypatch, outcomes, grasped=None):
     import drake_grasp.world.scene as scene_module
 
+    from drake_grasp.evaluation import hermetic
+
     calls = []
+    # The scripted attempts count their calls in this process: run them here, as on a
+    # platform without fork (forked attempts are tested with real trials).
+    monkeypatch.setattr(hermetic, "available", lambda: False)
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))
@@ -664,6 +669,9 @@ def test_clutter_piles_are_settled_with_the_episode_sheet(tmp_path, monkeypatch,
         seen.append(("settle", k.get("sheet_moves")))
         return dataclasses.replace(spec, settled=True)
 
+    from drake_grasp.evaluation import hermetic
+
+    monkeypatch.setattr(hermetic, "available", lambda: False)  # `seen` is this process's
     monkeypatch.setattr(scene_module, "make_scene", make_scene)
     monkeypatch.setattr(scene_module, "settle_scene", settle_scene)
     monkeypatch.setattr(trial_worker, "_simulate", _scripted_simulate(["ok", "fail", "fail", "fail"], []))

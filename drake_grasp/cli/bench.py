@@ -17,6 +17,8 @@ Keys:
         image, 128 actions, shipped weights, 1 thread each; torch vs onnxruntime side by
         side, interleaved), cnn_onnx_speedup = torch / onnxruntime. null without the
         optional packages onnx + onnxruntime.
+    worker_rss_mb_per_trial: a Monte Carlo worker's memory growth per trial
+        (`bench_scaling`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from drake_grasp.cli.bench_scaling import bench_worker_rss
 
 BENCH_SEED = 3
 
@@ -459,6 +463,7 @@ BENCHMARKS = {
     "trials_per_hour": bench_trials_per_hour,
     "grasp_checks_per_s": bench_grasp_checks_per_s,
     "gpd_detect": bench_gpd_detect,
+    "worker_rss_mb_per_trial": bench_worker_rss,
 }
 
 # Every key each benchmark prints (besides "machine" and "date"), so that `--only` takes
@@ -491,6 +496,8 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
                            "grasp_checks_fast10_speedup", "grasp_checks_fast10_verdicts_agree"),
     "gpd_detect": ("gpd_detect_s_isolation", "gpd_detect_s_isolation_detail",
                    "gpd_detect_s_clutter5", "gpd_detect_s_clutter5_detail"),
+    "worker_rss_mb_per_trial": ("worker_rss_mb_per_trial", "worker_rss_mb_per_trial_in_process",
+                                "worker_rss_mb_per_trial_detail"),
 }
 
 

@@ -105,11 +105,12 @@ def _parser_diagram(sub) -> None:
 
 
 def _parser_bench(sub) -> None:
+    from drake_grasp.cli.bench import BENCHMARKS
+
     p = sub.add_parser("bench", help="run the benchmarks and print one JSON object")
     p.add_argument("--only", default="",
-                   help="comma-separated benchmark groups (rtf_isolation, rtf_clutter5, "
-                        "depth_frame_ms, labels_per_s, cnn, cnn_onnx, controller_step_ms, "
-                        "rtf_ctr_clutter5, trials_per_hour) or any key that bench prints "
+                   help=f"comma-separated benchmark groups ({', '.join(BENCHMARKS)}) "
+                        "or any key that bench prints "
                         "(e.g. cnn_infer_ms_128, train_samples_per_s): a key runs its group "
                         "and prints only that key (default: everything)")
     p.add_argument("--out", default=None, help="also write the JSON (with the machine) here")

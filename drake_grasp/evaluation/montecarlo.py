@@ -1,10 +1,12 @@
 """Drives an experiment's trials on a local process pool or a Dask cluster, resumably.
 
-Every finished trial is one record file (`drake_grasp.evaluation.records`), written
-atomically by the worker that ran it (`drake_grasp.evaluation.trial_worker`); re-running
-into the same folder skips finished trials, so a killed run loses nothing and counts
-nothing twice, and an exception inside a trial becomes a "simulation-error" record, the run
-going on. `evaluate` applies the call's settings to the experiment, plans its tasks
+Workers (`drake_grasp.evaluation.trial_worker`) return each task's records and this
+process, the driver, writes them, one atomic file per trial
+(`drake_grasp.evaluation.records`): workers need no access to the results folder, and a
+user object library reaches Dask workers by content (`objects.bundle`). Re-running into
+the same folder skips finished trials, so a killed run loses at most the tasks in flight
+and counts nothing twice; an exception inside a trial, or a trial process that dies,
+becomes a "simulation-error" record, the run going on. `evaluate` applies the call's settings to the experiment, plans its tasks
 (`trial_plan`), checks that the folder holds this very run (`run_folder`: run.json's
 identity, refused naming the first differing key unless `force_new`), runs what is left
 with a progress bar and records the session in run.json; `pooled_map` / `parallel_map`
@@ -214,6 +216,8 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
              initial):
     from tqdm import tqdm
 
+    from drake_grasp.evaluation.records import TrialRecord, write_record
+
     # Running successes / attempts / simulation errors per condition, this session
     # (attempts exclude simulation errors, as in the report).
     stats: dict = {}
@@ -221,7 +225,8 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
                desc="evaluate", dynamic_ncols=True)
 
     def tick(recs):
-        for r in recs:
+        for r in recs:  # the driver owns the folder: it writes what the workers return
+            write_record(out, TrialRecord.from_dict(r, source=f"worker result {r.get('trial_id')}"))
             s = stats.setdefault(r["condition"], [0, 0, 0])
             if r["failure_class"] == "simulation-error":
                 s[2] += 1
@@ -235,30 +240,56 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
     try:
         if not todo:
             return
+        prior = _prior_attempts(out, todo)
+        args = [(t, objects_dir, fail_trials, prior.get(t.trial_id, ())) for t in todo]
         if scheduler:
-            from dask.distributed import Client, as_completed
-
-            with Client(scheduler) as client:
-                futures = [client.submit(run_task, t, out, objects_dir, fail_trials, pure=False)
-                           for t in todo]
-                for fut in as_completed(futures):
-                    tick(fut.result())
+            _on_dask(scheduler, args, objects_dir, tick)
         elif workers <= 1:
-            for t in todo:
-                tick(run_task(t, out, objects_dir, fail_trials))
+            for a in args:
+                tick(run_task(*a))
         else:
-            pooled_map(run_task, [(t, out, objects_dir, fail_trials) for t in todo],
-                       workers=workers, on_result=tick)
+            pooled_map(run_task, args, workers=workers, on_result=tick)
     finally:
         bar.close()
 
 
-# A worker's memory grows by about 15 MB per trial (2,000 sim-distance trials on 2 workers:
-# one worker reached 12 GB and was killed by the kernel): with drake 1.51 a Python
-# LeafSystem that declares a port is never freed, and the episode Diagram holding it stays
-# alive with its plant, SceneGraph and renderer (Drake issues 22515 and 24162). So worker
-# processes are replaced after about this many trials; a fresh one reloads the CNN and
-# meshes in seconds.
+def _prior_attempts(out, todo) -> dict:
+    """{clutter run's trial id: its attempt records written before (dicts)}: what a
+    resumed run continues from, handed to the worker with the task."""
+    from drake_grasp.evaluation.records import load_records
+
+    runs = {t.trial_id for t in todo}
+    prior: dict = {}
+    for r in load_records(out):
+        run_id = r.trial_id.rsplit("/attempt", 1)[0]
+        if r.attempt_index is not None and run_id in runs:
+            prior.setdefault(run_id, []).append(r.to_dict())
+    return {k: tuple(v) for k, v in prior.items()}
+
+
+def _on_dask(scheduler: str, args, objects_dir, tick) -> None:
+    """Runs the tasks on a Dask cluster; a user object library goes to the workers once,
+    by content (`objects.bundle`), so they need not see `objects_dir`."""
+    from dask.distributed import Client, as_completed
+
+    with Client(scheduler) as client:
+        objects = None
+        if objects_dir:
+            from drake_grasp.objects.bundle import make_bundle
+
+            objects = client.scatter(make_bundle(objects_dir), broadcast=True)
+        pending = as_completed([client.submit(run_task, *a, objects=objects, pure=False)
+                                for a in args])
+        for fut in pending:
+            tick(fut.result())
+            fut.release()  # written by this process: the cluster may forget it
+
+
+# With drake 1.51 a Python LeafSystem that declares a port is never freed, and the episode
+# Diagram holding it stays alive with its plant, SceneGraph and renderer (Drake issues 22515
+# and 24162): about 6-15 MB per trial run in one process. Trials run in forked children
+# (`hermetic`), which take that memory with them; where fork is unavailable they run in
+# the worker itself, so the local pool still replaces its workers after this many trials.
 WORKER_MAX_TRIALS = 200
 
 

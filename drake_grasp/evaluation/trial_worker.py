@@ -1,10 +1,15 @@
-"""The worker side of a Monte Carlo run: `run_task` runs one `TrialTask` in this process
-and writes its record(s) - an episode, or a whole clutter run of attempts on one pile that
-ends by `clutter_run_status` - turning any exception inside a trial (building its scenario
-or scene, simulating, settling the pile left for the next attempt) into a
-"simulation-error" record with its reason and stage. Each worker process caches what does
-not change between trials (the object library and its meshes, the CNN) and builds only the
-plant per trial.
+"""The worker side of a Monte Carlo run: `run_task` runs one `TrialTask` and returns its
+record(s) - an episode, or a whole clutter run of attempts on one pile that ends by
+`clutter_run_status` - for the driver to write (the driver owns the results folder).
+
+Any exception inside a trial (building its scenario or scene, simulating, settling the
+pile left for the next attempt) becomes a "simulation-error" record with its reason and
+stage. Each episode or clutter attempt runs in a child forked from the worker
+(`hermetic.run_forked`): a child that dies (a signal, the out-of-memory killer) becomes a
+"simulation-error" record naming the signal and stage, and what a trial allocates goes
+with its child, so the worker's memory stays flat. The worker caches what does not change
+between trials (the object library and its meshes, the CNN) before it forks, so every
+child starts warm.
 """
 
 from __future__ import annotations
@@ -40,10 +45,30 @@ def _cached(key, make):
     return _WORKER_CACHE[key]
 
 
-def _library(objects_dir):
+def _library(objects_dir, objects=None):
+    """The object library of `objects_dir` (None: the built-in objects). `objects`, an
+    `object_bundle.ObjectBundle` from the driver, makes it reach a worker that cannot see
+    that folder: by content, checked by hash."""
+    if objects is not None:
+        from drake_grasp.objects.bundle import library_from_bundle
+
+        return _cached(("library", objects.content_hash), lambda: library_from_bundle(objects))
     from drake_grasp.objects import load_library
 
     return _cached(("library", objects_dir), lambda: load_library(objects_dir))
+
+
+def _warm(experiment, condition, objects_dir) -> None:
+    """Loads in this process what every trial of the condition uses (the CNN, the modules
+    of an episode), so that forked trial children start with it."""
+    import drake_grasp.evaluation.episode  # noqa: F401 - imported once, before forking
+
+    try:
+        scenario = condition_scenario(experiment, condition, objects_dir=objects_dir)
+    except Exception:  # noqa: BLE001 - the trial records its own error
+        return
+    if scenario.policy in CNN_POLICIES:
+        _model(scenario.controller.weights, scenario.controller.torch_threads)
 
 
 def _model(weights: str, threads: int = 1):
@@ -126,28 +151,85 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
                **(extra or {})})
 
 
-def run_task(task: TrialTask, out: str, objects_dir: str | None = None,
-             fail_trials: tuple = ()) -> list[dict]:
-    """Runs one task in this process and writes its record(s); returns them as dicts.
+def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple = (),
+             prior: tuple = (), *, objects=None, hermetic: bool = True) -> list[dict]:
+    """Runs one task and returns its record(s) as dicts, in order; writes nothing.
 
-    `fail_trials` (for testing the error path): "<trial id>" makes that trial's (or clutter
-    attempt's) simulation raise; "<trial id>:scene" makes building its scenario and scene
-    raise (for a clutter run: the run's trial id, e.g. "clutter/ctr/0000:scene");
-    "<attempt id>:settle" makes settling the pile that clutter attempt leaves raise.
+    Args:
+        task: The trial (or clutter run) to run.
+        objects_dir: The run's object library folder as the driver names it (recorded in
+            the scenarios); None for the built-in objects.
+        fail_trials: For testing the error paths: "<trial id>" makes that trial's (or
+            clutter attempt's) simulation raise; "<trial id>:scene" makes building its
+            scenario and scene raise (for a clutter run: the run's trial id, e.g.
+            "clutter/ctr/0000:scene"); "<attempt id>:settle" makes settling the pile that
+            clutter attempt leaves raise; "<trial id>:segfault" makes its process die of
+            SIGSEGV in the simulation.
+        prior: A clutter run's attempt records written before (dicts), to resume after.
+        objects: The library's `ObjectBundle` when the worker may not see `objects_dir`.
+        hermetic: Run each episode / attempt in a forked child (`hermetic.run_forked`);
+            False runs it in this process (where fork is unavailable, always).
     """
-    from drake_grasp.evaluation.records import write_record
+    from drake_grasp.evaluation import hermetic as H
 
     experiment = task_experiment(task)
     condition = task_condition(task, experiment)
-    library = _library(objects_dir)
+    library = _library(objects_dir, objects)
+    fork = hermetic and H.available()
+    if fork:
+        _warm(experiment, condition, objects_dir)
+    ctx = _TrialContext(task, experiment, condition, objects_dir, library, tuple(fail_trials),
+                        fork)
     if experiment.kind == "clutter-runs":
-        records = _run_clutter(task, experiment, condition, out, objects_dir, library,
-                               tuple(fail_trials))
+        from drake_grasp.evaluation.records import TrialRecord
+
+        records = _run_clutter(ctx, [TrialRecord.from_dict(d, source="prior record")
+                                     for d in prior])
     else:
-        records = [_run_episode_task(task, experiment, condition, objects_dir, library,
-                                     tuple(fail_trials))]
-        write_record(out, records[0])
+        records = [ctx.isolated(_run_episode_task, ctx, stage="scene")]
     return [r.to_dict() for r in records]
+
+
+@dataclasses.dataclass
+class _TrialContext:
+    """What every stage of one task needs, and how it isolates a trial."""
+
+    task: TrialTask
+    experiment: Experiment
+    condition: Condition
+    objects_dir: str | None
+    library: object
+    fail_trials: tuple
+    fork: bool
+
+    def error_record(self, error, *, scenario=None, stage="simulation", wall=0.0, **kw):
+        return _record_for(self.task, self.condition, scenario, error=error, stage=stage,
+                           wall=wall, objects_dir=self.objects_dir, **kw)
+
+    def isolated(self, fn, *args, stage: str, scenario=None, **record_kw):
+        """`fn(*args)` (which returns a record and records its own exceptions), in a forked
+        child when `fork`; a child that dies becomes a simulation-error record naming the
+        signal (or exit code) and the last stage it reported."""
+        from drake_grasp.evaluation import hermetic as H
+
+        if not self.fork:
+            return fn(*args)
+        t0 = time.perf_counter()
+        try:
+            return H.run_forked(fn, *args)
+        except H.TrialProcessDied as e:
+            if scenario is None:
+                scenario = self._scenario_or_none()
+            return self.error_record(e, scenario=scenario, stage=e.stage,
+                                     wall=time.perf_counter() - t0, **record_kw)
+
+    def _scenario_or_none(self):
+        try:
+            return trial_scenario(self.experiment, self.condition, self.task.index,
+                                  base_seed=self.task.base_seed, objects_dir=self.objects_dir,
+                                  library=self.library)
+        except Exception:  # noqa: BLE001 - the record then has no scenario
+            return None
 
 
 def _simulate(scenario, library, *, scene=None):
@@ -159,22 +241,37 @@ def _simulate(scenario, library, *, scene=None):
                             visualize=False, model=model)
 
 
-def _run_episode_task(task, experiment, condition, objects_dir, library, fail_trials):
+def _stage(ctx: _TrialContext, trial_id: str, stage: str) -> None:
+    """Enters `stage` of a trial: reported to the worker (named if the child dies), and
+    the forced failures of tests (`run_task`'s fail_trials) raised or died of here."""
+    from drake_grasp.evaluation import hermetic as H
+
+    H.stage(stage)
+    _forced(ctx.fail_trials, trial_id, None if stage == "simulation" else stage)
+    if stage == "simulation" and f"{trial_id}:segfault" in ctx.fail_trials:
+        import ctypes
+
+        ctypes.string_at(0)  # reads address 0: SIGSEGV, as a crash in a native library
+
+
+def _run_episode_task(ctx: _TrialContext):
+    task = ctx.task
     t0 = time.perf_counter()
     scenario = None
     stage = "scene"
     try:
-        _forced(fail_trials, task.trial_id, "scene")
-        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
-                                  objects_dir=objects_dir, library=library)
+        stage = "scene"
+        _stage(ctx, task.trial_id, stage)
+        scenario = trial_scenario(ctx.experiment, ctx.condition, task.index,
+                                  base_seed=task.base_seed, objects_dir=ctx.objects_dir,
+                                  library=ctx.library)
         stage = "simulation"
-        _forced(fail_trials, task.trial_id)
-        run = _simulate(scenario, library)
-        return _record_for(task, condition, scenario, run.result, objects_dir=objects_dir,
-                           wall=time.perf_counter() - t0)
+        _stage(ctx, task.trial_id, stage)
+        run = _simulate(scenario, ctx.library)
+        return _record_for(task, ctx.condition, scenario, run.result,
+                           objects_dir=ctx.objects_dir, wall=time.perf_counter() - t0)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
-        return _record_for(task, condition, scenario, error=e, objects_dir=objects_dir,
-                           stage=stage, wall=time.perf_counter() - t0)
+        return ctx.error_record(e, scenario=scenario, stage=stage, wall=time.perf_counter() - t0)
 
 
 def _objects_in_view(scene, half_extent_m: float = IN_VIEW_HALF_EXTENT_M) -> bool:
@@ -252,86 +349,109 @@ def failed_closings(records) -> list[float]:
     return out
 
 
-def _run_clutter(task, experiment, condition, out, objects_dir, library, fail_trials):
+def _run_clutter(ctx: _TrialContext, prior: list) -> list:
     """One clutter run: attempts on one pile, each grasped object removed, until
     `clutter_run_status` says it has ended (its docstring has the rule). Resumes after the
-    last recorded attempt (each record carries the scene left for the next one). Building
-    the scenario and pile, every attempt and the settling of the pile it leaves run inside
-    the error capture: an exception becomes a "simulation-error" record. The record that
-    ends the run has the reason in `extra["run_end"]`."""
-    from drake_grasp.evaluation.records import load_records, write_record
-    from drake_grasp.world.scene import SceneSpec, scenario_scene, settle_options, settle_scene
+    `prior` attempts (each record carries the scene left for the next one). Building the
+    scenario and pile, every attempt and the settling of the pile it leaves run inside the
+    error capture, each attempt in its own forked child: an exception, or a child that
+    dies, becomes a "simulation-error" record. The record that ends the run has the reason
+    in `extra["run_end"]`. Returns the attempts run now."""
+    from drake_grasp.world.scene import SceneSpec
 
+    task = ctx.task
     prefix = f"{task.trial_id}/attempt"
-    records = sorted((r for r in load_records(out)
-                      if r.trial_id.startswith(prefix)), key=lambda r: r.attempt_index)
-    status = clutter_run_status(records, experiment)
+    records = sorted(prior, key=lambda r: r.attempt_index)
+    status = clutter_run_status(records, ctx.experiment)
+    new: list = []
     if status is not None:
-        return records
+        return new
     attempt = len(records)
 
     def finish(rec):
         nonlocal status
-        status = clutter_run_status(records + [rec], experiment)
+        status = clutter_run_status(records + [rec], ctx.experiment)
         if status is not None:
             rec.extra["run_end"] = status
-        write_record(out, rec)
         records.append(rec)
+        new.append(rec)
 
     t0 = time.perf_counter()
     scenario = None
     try:
         if not records:
-            _forced(fail_trials, task.trial_id, "scene")
-        scenario = trial_scenario(experiment, condition, task.index, base_seed=task.base_seed,
-                                  objects_dir=objects_dir, library=library)
+            _forced(ctx.fail_trials, task.trial_id, "scene")
+        scenario = trial_scenario(ctx.experiment, ctx.condition, task.index,
+                                  base_seed=task.base_seed, objects_dir=ctx.objects_dir,
+                                  library=ctx.library)
         if records:
             scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
         else:
-            scene = scenario_scene(scenario, library)
+            scene = ctx.isolated(_pour_pile, scenario, ctx.library, stage="scene")
+            if not isinstance(scene, SceneSpec):  # the child died pouring the pile
+                raise RuntimeError(scene.failure_reason)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
-        finish(_record_for(task, condition, scenario, error=e, wall=time.perf_counter() - t0,
-                           run_index=task.index, attempt_index=attempt,
-                           trial_id=f"{prefix}{attempt:02d}", objects_dir=objects_dir,
-                           stage="scene", extra={"scene": None, "next_scene": None}))
-        return records
+        finish(ctx.error_record(e, scenario=scenario, stage="scene",
+                                wall=time.perf_counter() - t0, run_index=task.index,
+                                attempt_index=attempt, trial_id=f"{prefix}{attempt:02d}",
+                                extra={"scene": None, "next_scene": None}))
+        return new
 
     while status is None:
-        t0 = time.perf_counter()
         attempt_scenario = dataclasses.replace(scenario, seed=scenario.seed + 1000 * attempt)
         if scenario.failure_memory.radius_m > 0.0:
             attempt_scenario.failure_memory = dataclasses.replace(
                 scenario.failure_memory, failed_xy_yaw=failed_closings(records))
         trial_id = f"{prefix}{attempt:02d}"
-        stage = "simulation"
-        try:
-            _forced(fail_trials, trial_id)
-            run = _simulate(attempt_scenario, library, scene=scene)
-            remaining = run.final_scene
-            grasped = run.result.details.get("grasped_object_id") if run.result.success else None
-            objects = [o for o in remaining.objects
-                       if o.object_id != grasped and o.xyz[2] > -0.05]
-            stage = "settle"
-            _forced(fail_trials, trial_id, "settle")
-            next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), library,
-                                      plant_config=scenario.plant,
-                                      physics=scenario.physics,
-                                      sheet_moves=scenario.sheet_moves,
-                                      **settle_options(scenario.scene)) if objects else \
-                dataclasses.replace(remaining, objects=[], settled=True)
-            rec = _record_for(task, condition, attempt_scenario, run.result,
-                              wall=time.perf_counter() - t0, run_index=task.index,
-                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
-                              extra={"next_scene": next_scene.to_dict(),
-                                     "scene": scene.to_dict()})
-        except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
-            next_scene = scene  # the pile is as it was; try again
-            rec = _record_for(task, condition, attempt_scenario, error=e, stage=stage,
-                              wall=time.perf_counter() - t0, run_index=task.index,
-                              attempt_index=attempt, trial_id=trial_id, objects_dir=objects_dir,
-                              extra={"next_scene": scene.to_dict(), "scene": scene.to_dict()})
+        rec = ctx.isolated(_clutter_attempt, ctx, attempt_scenario, scene, attempt,
+                           stage="simulation", scenario=attempt_scenario, run_index=task.index,
+                           attempt_index=attempt, trial_id=trial_id,
+                           extra={"next_scene": scene.to_dict(), "scene": scene.to_dict()})
         finish(rec)
-        scene = next_scene
+        scene = SceneSpec.from_dict(rec.extra["next_scene"])
         attempt += 1
-    return records
+    return new
 
+
+def _pour_pile(scenario, library):
+    """The scenario's pile, poured and settled (a clutter run's first scene)."""
+    from drake_grasp.evaluation import hermetic as H
+    from drake_grasp.world.scene import scenario_scene
+
+    H.stage("scene")
+    return scenario_scene(scenario, library)
+
+
+def _clutter_attempt(ctx: _TrialContext, attempt_scenario, scene, attempt: int):
+    """One clutter attempt on `scene` and the settling of the pile it leaves: its record,
+    with the scene it faced and the next one (the same pile when it raised)."""
+    from drake_grasp.world.scene import settle_options, settle_scene
+
+    task, scenario = ctx.task, attempt_scenario
+    trial_id = f"{task.trial_id}/attempt{attempt:02d}"
+    t0 = time.perf_counter()
+    stage = "simulation"
+    try:
+        stage = "simulation"
+        _stage(ctx, trial_id, stage)
+        run = _simulate(attempt_scenario, ctx.library, scene=scene)
+        remaining = run.final_scene
+        grasped = run.result.details.get("grasped_object_id") if run.result.success else None
+        objects = [o for o in remaining.objects if o.object_id != grasped and o.xyz[2] > -0.05]
+        stage = "settle"
+        _stage(ctx, trial_id, stage)
+        next_scene = settle_scene(dataclasses.replace(remaining, objects=objects), ctx.library,
+                                  plant_config=scenario.plant, physics=scenario.physics,
+                                  sheet_moves=scenario.sheet_moves,
+                                  **settle_options(scenario.scene)) if objects else \
+            dataclasses.replace(remaining, objects=[], settled=True)
+        return _record_for(task, ctx.condition, attempt_scenario, run.result,
+                           wall=time.perf_counter() - t0, run_index=task.index,
+                           attempt_index=attempt, trial_id=trial_id,
+                           objects_dir=ctx.objects_dir,
+                           extra={"next_scene": next_scene.to_dict(), "scene": scene.to_dict()})
+    except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
+        return ctx.error_record(e, scenario=attempt_scenario, stage=stage,
+                                wall=time.perf_counter() - t0, run_index=task.index,
+                                attempt_index=attempt, trial_id=trial_id,
+                                extra={"next_scene": scene.to_dict(), "scene": scene.to_dict()})

@@ -1,0 +1,77 @@
+"""evaluation/hermetic: every trial in a forked child of its worker. A child that dies
+becomes a simulation-error record naming the signal and stage, and the run goes on; what a
+child allocates leaves with it."""
+
+import os
+import signal
+
+import pytest
+
+from drake_grasp.evaluation import hermetic as H
+from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.evaluation.records import load_records
+
+pytestmark = pytest.mark.skipif(not H.available(), reason="needs os.fork (POSIX)")
+
+
+def _stages_then(how):
+    H.stage("scene")
+    H.stage("simulation")
+    if how == "segv":
+        os.kill(os.getpid(), signal.SIGSEGV)
+    if how == "exit":
+        os._exit(3)
+    if how == "raise":
+        raise KeyError("no such object (test)")
+    return {"pid": os.getpid(), "big": list(range(5))}
+
+
+def _rss_kb():
+    with open(f"/proc/{os.getpid()}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+
+
+def _allocate(mb):
+    block = bytearray(mb << 20)
+    block[::4096] = b"x" * len(block[::4096])  # touch every page
+    return len(block)
+
+
+def test_a_child_returns_raises_or_dies_by_name():
+    got = H.run_forked(_stages_then, "return")
+    assert got["big"] == [0, 1, 2, 3, 4] and got["pid"] != os.getpid()
+    with pytest.raises(KeyError, match="no such object"):
+        H.run_forked(_stages_then, "raise")
+    with pytest.raises(H.TrialProcessDied, match=r"killed by signal SIGSEGV \(11\) in stage "
+                                                 r"'simulation'") as died:
+        H.run_forked(_stages_then, "segv")
+    assert (died.value.signal_name, died.value.stage, died.value.exit_code) == (
+        "SIGSEGV", "simulation", None)
+    with pytest.raises(H.TrialProcessDied, match="exited with code 3 without a result") as died:
+        H.run_forked(_stages_then, "exit")
+    assert died.value.exit_code == 3
+    H.stage("outside a child")  # a no-op here
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux /proc")
+def test_what_a_child_allocates_leaves_with_it():
+    before = _rss_kb()
+    for _ in range(3):
+        assert H.run_forked(_allocate, 200) == 200 << 20
+    assert _rss_kb() - before < 20 * 1024  # KB: 600 MB allocated in children, none here
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_trial_that_segfaults_is_recorded_and_the_run_goes_on(tmp_path, workers):
+    out = tmp_path / f"w{workers}"
+    evaluate(experiment="smoke", out=out, trials=2, workers=workers, seed=3, progress=False,
+             report=False, fail_trials=("smoke/scripted/0001:segfault",))
+    records = {r.trial_id: r for r in load_records(out)}
+    assert len(records) == 4
+    bad = records["smoke/scripted/0001"]
+    assert (bad.success, bad.failure_class) == (False, "simulation-error")
+    assert "killed by signal SIGSEGV (11) in stage 'simulation'" in bad.failure_reason
+    assert bad.extra["error_stage"] == "simulation" and bad.seed == records[
+        "smoke/init/0001"].seed and bad.scenario_yaml  # named by its scenario
+    good = records["smoke/scripted/0000"]
+    assert good.failure_class != "simulation-error" and good.sim_time_s > 0
