@@ -75,3 +75,38 @@ def test_a_trial_that_segfaults_is_recorded_and_the_run_goes_on(tmp_path, worker
         "smoke/init/0001"].seed and bad.scenario_yaml  # named by its scenario
     good = records["smoke/scripted/0000"]
     assert good.failure_class != "simulation-error" and good.sim_time_s > 0
+
+
+def _parallel_torch_op():
+    import signal as s
+
+    import torch
+
+    s.alarm(60)  # a hung child dies of SIGALRM instead of hanging the test
+    torch.set_num_threads(2)
+    x = torch.ones(1 << 22)
+    y = torch.empty_like(x)
+    y.copy_(x)  # a parallel region when torch has 2 threads
+    return float(y.sum())
+
+
+def test_a_warm_worker_leaves_its_children_free_to_run_torch_on_threads():
+    """GNU OpenMP's thread team does not survive a fork: `_warm` loads the CNN without
+    one, so a child's multi-threaded torch op (GPD's classifier) does not hang."""
+    import torch
+
+    from drake_grasp.evaluation import trial_worker
+    from drake_grasp.evaluation.experiments import get_experiment
+    from drake_grasp.evaluation.trial_plan import plan_tasks, task_condition
+
+    (task,) = plan_tasks(get_experiment("sim-distance"), trials=1, seed=0, conditions=["ctr"])
+    experiment = get_experiment("sim-distance")
+    trial_worker._WORKER_CACHE.clear()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        trial_worker._warm(experiment, task_condition(task, experiment), None)
+        assert torch.get_num_threads() == 2
+        assert H.run_forked(_parallel_torch_op) == float(1 << 22)
+    finally:
+        torch.set_num_threads(threads)

@@ -60,7 +60,13 @@ def _library(objects_dir, objects=None):
 
 def _warm(experiment, condition, objects_dir) -> None:
     """Loads in this process what every trial of the condition uses (the CNN, the modules
-    of an episode), so that forked trial children start with it."""
+    of an episode), so that forked trial children start with it.
+
+    Nothing here runs torch on more than one thread: GNU OpenMP's thread team does not
+    survive a fork, and a child whose parent had one hangs in its first parallel torch op
+    (seen: GPD's classifier after the CNN was loaded with 2 threads)."""
+    import torch
+
     import drake_grasp.evaluation.episode  # noqa: F401 - imported once, before forking
 
     try:
@@ -68,7 +74,12 @@ def _warm(experiment, condition, objects_dir) -> None:
     except Exception:  # noqa: BLE001 - the trial records its own error
         return
     if scenario.policy in CNN_POLICIES:
-        _model(scenario.controller.weights, scenario.controller.torch_threads)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            _model(scenario.controller.weights, scenario.controller.torch_threads)
+        finally:
+            torch.set_num_threads(threads)  # what the children start with, as before
 
 
 def _model(weights: str, threads: int = 1):
