@@ -144,6 +144,24 @@ def test_robot_profile_stops_at_14_cm():
     assert s.phase == Phase.DESCEND and "within 0.14 m" in s.stop_reason
 
 
+def test_paper_sim_profile_runs_all_75_iterations_whatever_the_image_shows():
+    """Section 5 as written: an object nearer than 14 cm does not stop the descent, and the
+    hand grasps where the 75th iteration leaves it, with no convergence."""
+    scenario = load_scenario(scenario_name="isolation",
+                             scenario_text="{seed: 2, controller: {profile: paper-sim}}")
+    c = scenario.controller
+    assert (c.step_ratio, c.iterations, c.stop_distance_m, c.converge_iterations) == (
+        0.2, 75, 0.0, 0)
+    sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=0.05))
+    sim.AdvanceTo(c.period_s * 10.5)
+    assert ctrl.get_controller_state(ctx).phase == Phase.SERVO  # "sim" would have stopped
+    sim.AdvanceTo(c.period_s * (c.iterations + 1.5))
+    s = ctrl.get_controller_state(ctx)
+    assert s.phase == Phase.DESCEND and s.stop_reason == "hand at its lowest height"
+    assert s.iteration == c.iterations and s.converging == 0
+    assert s.hand[2] + 0.115 == pytest.approx(c.end_camera_height_m, abs=1e-9)
+
+
 @pytest.mark.parametrize("near,stops", [(0.139, True), (0.141, False)])
 def test_stop_rule_fires_at_14_cm(scenario, near, stops):
     sim, ctrl, ctx = _controller_diagram(scenario, _image(0.3, center=near))

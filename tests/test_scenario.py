@@ -61,6 +61,15 @@ def test_controller_profiles_resolve_to_the_papers_numbers(tmp_path):
                           scenario_text="{controller: {profile: robot}}").controller
     assert (robot.profile, robot.step_ratio, robot.z_step_m, robot.stop_distance_m) == (
         "robot", 0.5, 0.01, 0.14)
+    # "paper-sim": Section 5 as written, no stop rule and no convergence; "sim" after it
+    # has both again.
+    paper = load_scenario(scenario_name="isolation",
+                          scenario_text="{controller: {profile: paper-sim}}").controller
+    assert (paper.step_ratio, paper.iterations, paper.stop_distance_m,
+            paper.converge_iterations) == (0.2, 75, 0.0, 0)
+    again = load_scenario(scenario_name="isolation", controller_profile="paper-sim",
+                          scenario_text="{controller: {profile: sim}}").controller
+    assert (again.stop_distance_m, again.converge_iterations) == (0.14, 20)
     # Keys given beside the profile win; keys given elsewhere are overridden by it.
     mixed = load_scenario(scenario_name="isolation",
                           scenario_text="{controller: {profile: robot, step_ratio: 0.3}}").controller
@@ -87,7 +96,7 @@ def test_controller_profiles_resolve_to_the_papers_numbers(tmp_path):
 @pytest.mark.parametrize("text", ["{controller: {profile: robt}}", "{controller: {profile: real}}"])
 def test_unknown_controller_profile_names_the_key_and_the_profiles(text):
     with pytest.raises(ValueError, match=r"controller\.profile: got '(robt|real)'.*expected one of "
-                                         r"\('sim', 'robot'\)"):
+                                         r"\('sim', 'robot', 'paper-sim'\)"):
         load_scenario(scenario_name="isolation", scenario_text=text)
     with pytest.raises(ValueError, match=r"controller\.profile"):
         load_scenario(scenario_name="isolation", controller_profile="robt")

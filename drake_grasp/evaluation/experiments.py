@@ -67,7 +67,7 @@ class Condition:
     offset_m: float = 0.0        # constant-offset size (along the closing direction)
     depth_noise: float = 0.0     # 0 = clean depth; k = k x the default sensor noise model
     disturbance: str = "none"    # none | shift | moving
-    # A controller profile (scenario.CONTROLLER_PROFILES: sim | robot); "" = the
+    # A controller profile (scenario.CONTROLLER_PROFILES: sim | robot | paper-sim); "" = the
     # experiment's `controller_profile`.
     controller_profile: str = ""
     # The loop's timing and the camera's calibration (scenario.TimingConfig,

@@ -88,8 +88,9 @@ class CTRController(GraspController):
         c = self._s.controller
         hand = s.hand
         depth = np.array(self._depth.Eval(context).data[:, :, 0], copy=True)
-        near = min_depth_under_axis(depth, self._focal, self._X_GC.translation()[:2],
-                                    c.stop_distance_m, c.stop_window_half_m)
+        near = (min_depth_under_axis(depth, self._focal, self._X_GC.translation()[:2],
+                                     c.stop_distance_m, c.stop_window_half_m)
+                if c.stop_distance_m > 0 else np.inf)  # 0: no stop rule (paper-sim)
         cam_z = self._camera_height(hand)
         reason = ""
         if s.converging:
