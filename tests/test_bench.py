@@ -47,3 +47,33 @@ def test_an_unknown_key_is_named(capsys):
     assert main(["bench", "--only", "cnn_infer_ms_129"]) == 2
     err = capsys.readouterr().err
     assert "cnn_infer_ms_129" in err and "cnn_infer_ms_128" in err
+
+
+def test_rss_slope_is_the_least_squares_growth_after_the_warmup():
+    from drake_grasp.cli.bench_scaling import rss_slope_mb
+
+    rss = [900.0] * 3 + [400.0 + 2.5 * k for k in range(20)]
+    assert rss_slope_mb(rss, warmup=3) == pytest.approx(2.5)
+    with pytest.raises(ValueError, match="expected more than 4 samples, got 4"):
+        rss_slope_mb(rss[:4], warmup=3)
+
+
+@pytest.mark.slow
+def test_a_worker_series_runs_forked_trials_and_reads_its_memory():
+    from drake_grasp.cli.bench_scaling import worker_series
+
+    out = worker_series(2, 3, True)
+    assert len(out["rss_mb"]) == len(out["wall_s"]) == len(out["outcomes"]) == 2
+    assert all(r > 50 for r in out["rss_mb"]) and out["child_max_rss_mb"] > out["rss_mb"][0]
+    assert all(isinstance(o[0], bool) and o[2] > 0 for o in out["outcomes"])
+
+
+@pytest.mark.slow
+def test_the_overhead_fraction_is_a_share_of_the_trial():
+    from drake_grasp.cli.bench_scaling import bench_trial_overhead
+
+    out = bench_trial_overhead(seeds=(0,))
+    detail = out["trial_overhead_fraction_detail"]
+    assert 0.0 < out["trial_overhead_fraction"] < 1.0
+    assert 0.0 < detail["advance_cpp_s_per_trial"] < detail["wall_s_per_trial_profiled"]
+    assert detail["python_s_per_trial"]["cnn"] > 0.0

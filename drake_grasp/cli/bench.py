@@ -17,8 +17,8 @@ Keys:
         image, 128 actions, shipped weights, 1 thread each; torch vs onnxruntime side by
         side, interleaved), cnn_onnx_speedup = torch / onnxruntime. null without the
         optional packages onnx + onnxruntime.
-    worker_rss_mb_per_trial: a Monte Carlo worker's memory growth per trial
-        (`bench_scaling`).
+    worker_rss_mb_per_trial, trial_overhead_fraction: a Monte Carlo worker's memory growth
+        per trial, and the share of a trial outside the plant's advance (`bench_scaling`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_grasp.cli.bench_scaling import bench_worker_rss
+from drake_grasp.cli.bench_scaling import bench_trial_overhead, bench_worker_rss
 
 BENCH_SEED = 3
 
@@ -464,6 +464,7 @@ BENCHMARKS = {
     "grasp_checks_per_s": bench_grasp_checks_per_s,
     "gpd_detect": bench_gpd_detect,
     "worker_rss_mb_per_trial": bench_worker_rss,
+    "trial_overhead_fraction": bench_trial_overhead,
 }
 
 # Every key each benchmark prints (besides "machine" and "date"), so that `--only` takes
@@ -498,6 +499,7 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
                    "gpd_detect_s_clutter5", "gpd_detect_s_clutter5_detail"),
     "worker_rss_mb_per_trial": ("worker_rss_mb_per_trial", "worker_rss_mb_per_trial_in_process",
                                 "worker_rss_mb_per_trial_detail"),
+    "trial_overhead_fraction": ("trial_overhead_fraction", "trial_overhead_fraction_detail"),
 }
 
 

@@ -1,5 +1,5 @@
-"""Benchmarks of a Monte Carlo worker over many trials (`drake-grasp bench --only
-worker_rss_mb_per_trial`).
+"""Benchmarks of a Monte Carlo worker and its trials (`drake-grasp bench --only
+worker_rss_mb_per_trial,trial_overhead_fraction`).
 
 Keys:
     worker_rss_mb_per_trial: growth of one worker process's resident memory per trial
@@ -10,6 +10,8 @@ Keys:
         the same machine). `_detail`: trials, the RSS at the start and the end, the mean
         trial wall time of each side, the largest child RSS, and how many trials had the
         same outcome, failure class and control steps on both sides.
+    trial_overhead_fraction: the share of a `fast` CTR isolation trial's wall time spent
+        outside the plant's advance (`bench_trial_overhead`).
 """
 
 from __future__ import annotations
@@ -88,3 +90,61 @@ def bench_worker_rss(trials: int = 200, seed: int = 3) -> dict:
                 "trials": trials, "warmup_trials_left_out": WARMUP,
                 "forked": {**side(a), "child_max_rss_mb": a["child_max_rss_mb"]},
                 "in_process": side(b), "same_outcome_class_steps": same}}
+
+
+# Where a trial's time goes besides the plant's advance (cumulative seconds of these calls):
+OVERHEAD_BUCKETS = {
+    "cnn": ("evaluator.py", "score_candidates"),
+    "final_distance": ("episode.py", "final_distance"),
+    "controller_update": ("controller.py", "_Update"),
+    "controller_pose_output": ("controller.py", "_CalcPose"),
+    "gripper": ("gripper.py", "_CalcDesiredState"),
+    "judge": ("judge.py", "_Update"),
+    "depth_postprocess": ("depth.py", "_CalcDepthImage"),
+    "build_diagram": ("episode.py", "build_episode_diagram"),
+    "scene": ("scene.py", "scenario_scene"),
+}
+
+
+def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
+    """`trial_overhead_fraction`: the share of a `fast` CTR isolation trial's wall time
+    spent outside the plant's advance, i.e. 1 - (own time of `Simulator.AdvanceTo`, the
+    C++ simulation without the Python systems it calls) / (the trial's wall time), over
+    `seeds` run one after another in this process under cProfile (after one warm-up
+    trial). cProfile slows the Python parts, not the C++ ones, so the fraction is an upper
+    bound; `_detail` has the same trials' wall time without the profiler and the Python
+    buckets per trial."""
+    import cProfile
+    import pstats
+
+    from drake_grasp.api import load_library, load_scenario, simulate_episode
+    from drake_grasp.policies.evaluator import load_cnn
+
+    library, model = load_library(), load_cnn("", threads=1)
+
+    def run(seed):
+        scenario = load_scenario(scenario_name="isolation",
+                                 scenario_text=f"{{seed: {seed}, policy: ctr}}")
+        t0 = time.perf_counter()
+        simulate_episode(scenario, library=library, record_depth=False, model=model)
+        return time.perf_counter() - t0
+
+    run(999)  # imports, first render, caches
+    plain = sum(run(s) for s in seeds)
+    profiler, profiled = cProfile.Profile(), 0.0
+    for seed in seeds:
+        profiler.enable()
+        profiled += run(seed)
+        profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    advance = sum(v[2] for k, v in stats.items() if "AdvanceTo" in k[2])
+    buckets = {key: round(sum(v[3] for k, v in stats.items()
+                              if k[0].endswith(suffix) and k[2] == name) / len(seeds), 3)
+               for key, (suffix, name) in OVERHEAD_BUCKETS.items()}
+    return {"trial_overhead_fraction": round(1.0 - advance / profiled, 3),
+            "trial_overhead_fraction_detail": {
+                "trials": len(seeds), "physics_profile": "fast",
+                "wall_s_per_trial": round(plain / len(seeds), 3),
+                "wall_s_per_trial_profiled": round(profiled / len(seeds), 3),
+                "advance_cpp_s_per_trial": round(advance / len(seeds), 3),
+                "python_s_per_trial": buckets}}
