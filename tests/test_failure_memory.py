@@ -80,6 +80,9 @@ def test_the_protocol_passes_each_attempt_the_runs_failed_closings(tmp_path, mon
         details=lambda k, what: {"hand_at_close_xy_yaw": [0.5, 0.01 * k, 10.0 * k],
                                  "gripper_closed": what != "no closing"})
 
+    from drake_grasp.evaluation import hermetic
+
+    monkeypatch.setattr(hermetic, "available", lambda: False)  # `seen` is this process's
     monkeypatch.setattr(scene_module, "make_scene", lambda *a, **k: _pile())
     monkeypatch.setattr(scene_module, "settle_scene",
                         lambda spec, *a, **k: dataclasses.replace(spec, settled=True))

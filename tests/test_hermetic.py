@@ -77,36 +77,67 @@ def test_a_trial_that_segfaults_is_recorded_and_the_run_goes_on(tmp_path, worker
     assert good.failure_class != "simulation-error" and good.sim_time_s > 0
 
 
-def _parallel_torch_op():
-    import signal as s
+_WARM_THEN_FORK = """
+import signal, torch
+from drake_grasp.evaluation import hermetic as H, trial_worker
+from drake_grasp.evaluation.experiments import get_experiment
+from drake_grasp.evaluation.trial_plan import plan_tasks, task_condition
 
-    import torch
-
-    s.alarm(60)  # a hung child dies of SIGALRM instead of hanging the test
-    torch.set_num_threads(2)
+def parallel_copy():
+    signal.alarm(60)  # a hung child dies of SIGALRM instead of hanging the test
     x = torch.ones(1 << 22)
     y = torch.empty_like(x)
-    y.copy_(x)  # a parallel region when torch has 2 threads
+    y.copy_(x)  # a parallel region: torch has 2 threads
     return float(y.sum())
+
+torch.set_num_threads(2)
+experiment = get_experiment("sim-distance")
+(task,) = plan_tasks(experiment, trials=1, seed=0, conditions=["ctr"])
+trial_worker._warm(experiment, task_condition(task, experiment), None)
+assert torch.get_num_threads() == 2
+print("child copied", H.run_forked(parallel_copy))
+"""
 
 
 def test_a_warm_worker_leaves_its_children_free_to_run_torch_on_threads():
     """GNU OpenMP's thread team does not survive a fork: `_warm` loads the CNN without
-    one, so a child's multi-threaded torch op (GPD's classifier) does not hang."""
-    import torch
+    one, so a child's multi-threaded torch op (GPD's classifier) does not hang. In a fresh
+    process: this one may have run torch on threads already."""
+    import subprocess
+    import sys
 
-    from drake_grasp.evaluation import trial_worker
-    from drake_grasp.evaluation.experiments import get_experiment
-    from drake_grasp.evaluation.trial_plan import plan_tasks, task_condition
+    done = subprocess.run([sys.executable, "-c", _WARM_THEN_FORK], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"child copied {float(1 << 22)}" in done.stdout
 
-    (task,) = plan_tasks(get_experiment("sim-distance"), trials=1, seed=0, conditions=["ctr"])
-    experiment = get_experiment("sim-distance")
-    trial_worker._WORKER_CACHE.clear()
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        trial_worker._warm(experiment, task_condition(task, experiment), None)
-        assert torch.get_num_threads() == 2
-        assert H.run_forked(_parallel_torch_op) == float(1 << 22)
-    finally:
-        torch.set_num_threads(threads)
+
+def _fds():
+    return len(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/fd"), reason="Linux /proc")
+def test_a_hung_child_is_killed_at_the_limit_and_a_failed_fork_is_named(monkeypatch):
+    import time
+
+    before = _fds()
+    with pytest.raises(H.TrialProcessDied, match=r"killed after 1 s \(the time limit\) in "
+                                                 r"stage 'simulation'"):
+        H.run_forked(_sleep_in_stage, 30, timeout_s=1.0)
+    assert _fds() == before
+
+    def no_fork():
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(os, "fork", no_fork)
+    with pytest.raises(H.TrialProcessDied, match="could not fork a trial process: .*"
+                                                 "Resource temporarily unavailable") as died:
+        H.run_forked(time.sleep, 0, stage="scene")
+    assert died.value.stage == "scene" and _fds() == before
+
+
+def _sleep_in_stage(seconds):
+    import time
+
+    H.stage("simulation")
+    time.sleep(seconds)

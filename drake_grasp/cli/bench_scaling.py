@@ -4,10 +4,10 @@ worker_rss_mb_per_trial,trial_overhead_fraction`).
 Keys:
     worker_rss_mb_per_trial: growth of one worker process's resident memory per trial
         (least-squares slope of its RSS after each trial, the first `WARMUP` trials left
-        out), `fast` CTR isolation trials, each in a forked child (`hermetic`), as
-        `evaluate` runs them. `_in_process`: the same trials run in the worker itself, as
-        before the forked children, in a second worker at the same time (side by side on
-        the same machine). `_detail`: trials, the RSS at the start and the end, the mean
+        out), 200 `fast` CTR isolation trials, each in a forked child (`hermetic`), as
+        `evaluate` runs them (about 30 min on 2 cores). `_in_process`: the same trials
+        run in the worker itself, as before the forked children, in a second worker at the
+        same time (side by side on the same machine). `_detail`: trials, the RSS at the start and the end, the mean
         trial wall time of each side, the largest child RSS, and how many trials had the
         same outcome, failure class and control steps on both sides.
     trial_overhead_fraction: the share of a `fast` CTR isolation trial's wall time spent
@@ -117,7 +117,9 @@ def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
     import cProfile
     import pstats
 
-    from drake_grasp.api import load_library, load_scenario, simulate_episode
+    from drake_grasp.config.scenario import load_scenario
+    from drake_grasp.evaluation.episode import simulate_episode
+    from drake_grasp.objects import load_library
     from drake_grasp.policies.evaluator import load_cnn
 
     library, model = load_library(), load_cnn("", threads=1)

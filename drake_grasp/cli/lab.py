@@ -77,8 +77,9 @@ def _parser_label_check(sub) -> None:
                    help="scenes sampled and labelled as `generate` does (1-5 objects)")
     p.add_argument("--seed", type=int, required=True, help="seed of the scenes and the picks")
     p.add_argument("--out", required=True, metavar="DIR",
-                   help="folder for run.json, scenes/*.json, summary.json, report.md; "
-                   "re-running the same command resumes")
+                   help="folder for run.json, the scene records (scenes/*.json while it "
+                   "runs, scenes.parquet when done), summary.json, report.md; re-running "
+                   "the same command resumes")
     p.add_argument("--grasps-per-scene", type=int, default=3,
                    help="ground-truth grasps executed per scene (default: 3)")
     p.add_argument("--rejected-per-scene", type=int, default=1,

@@ -13,19 +13,28 @@ processes for the same reasons.
 
 POSIX only (`os.fork`). The worker should not have run torch on several threads or made
 a GL context before forking (children inherit them in an undefined state): trial workers
-load the CNN with one thread and render only in children.
+load the CNN with one thread and render only in children. A child still running after
+`DEFAULT_TIMEOUT_S` is killed and recorded, and on Linux a child dies with its worker.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import select
 import signal
 import struct
+import sys
+import threading
+import time
 import warnings
 
 _HEADER = struct.Struct("!cQ")  # kind (b"S": stage, b"R": result), payload length
 _CHILD_FD: int | None = None  # the pipe to the worker, in a forked child
+_FORK_LOCK = threading.Lock()
+# A trial still running after this long is killed and recorded (a hung child would hold
+# its worker for ever): 30 minutes, about 100 times a trial's usual wall time.
+DEFAULT_TIMEOUT_S = 1800.0
 
 
 class TrialProcessDied(RuntimeError):
@@ -57,9 +66,15 @@ def _send(fd: int, kind: bytes, payload: bytes) -> None:
         data = data[os.write(fd, data):]
 
 
-def _read_exact(fd: int, n: int) -> bytes | None:
+def _read_exact(fd: int, n: int, deadline: float | None) -> bytes | None:
+    """`n` bytes from the pipe; None at end of file. Raises TimeoutError past `deadline`
+    (time.monotonic())."""
     chunks, left = [], n
     while left:
+        if deadline is not None:
+            wait = deadline - time.monotonic()
+            if wait <= 0 or not select.select([fd], [], [], wait)[0]:
+                raise TimeoutError
         chunk = os.read(fd, min(left, 1 << 20))
         if not chunk:
             return None
@@ -68,11 +83,23 @@ def _read_exact(fd: int, n: int) -> bytes | None:
     return b"".join(chunks)
 
 
+def _die_with_parent() -> None:
+    """Linux: the child gets SIGKILL when its worker dies, instead of simulating on."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+
 def _child(fd: int, fn, args, kwargs) -> None:
-    global _CHILD_FD
+    global _CHILD_FD, _FORK_LOCK
     _CHILD_FD = fd
+    _FORK_LOCK = threading.Lock()  # the worker's was held when it forked
     code = 0
     try:
+        _die_with_parent()
         try:
             payload = pickle.dumps(("ok", fn(*args, **kwargs)))
         except BaseException as e:  # noqa: BLE001 - handed to the worker to raise there
@@ -84,41 +111,70 @@ def _child(fd: int, fn, args, kwargs) -> None:
     except BaseException:  # noqa: BLE001 - nothing may unwind into the worker's code
         code = 70
     finally:
-        os._exit(code)  # no atexit handlers, no flushing of the worker's buffers
+        for stream in (sys.stdout, sys.stderr):  # what the trial printed
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001 - a closed stream: nothing to keep
+                pass
+        os._exit(code)  # no atexit handlers, nothing of the worker's run twice
 
 
-def run_forked(fn, *args, **kwargs):
-    """`fn(*args, **kwargs)` run in a forked child; its return value (pickled back).
-
-    Raises:
-        TrialProcessDied: The child died or exited without a result (signal or exit code
-            and its last `stage` named).
-        BaseException: What `fn` raised in the child, re-raised here.
-    """
-    read_fd, write_fd = os.pipe()
+def _fork() -> int:
+    for stream in (sys.stdout, sys.stderr):  # else the child would print them again
+        try:
+            stream.flush()
+        except Exception:  # noqa: BLE001
+            pass
     with warnings.catch_warnings():
         # Python 3.12+ warns when a process with threads forks; the child runs only the
         # trial and leaves with os._exit.
         warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
-    if pid == 0:  # pragma: no cover - the child; coverage of children is not collected
-        os.close(read_fd)
-        _child(write_fd, fn, args, kwargs)
-    os.close(write_fd)
-    last_stage, result = "start", None
+        return os.fork()
+
+
+def run_forked(fn, *args, stage: str = "start", timeout_s: float | None = DEFAULT_TIMEOUT_S,
+               **kwargs):
+    """`fn(*args, **kwargs)` run in a forked child; its return value (pickled back).
+
+    `stage` names the child's stage until it reports one (`stage()`); a child still running
+    after `timeout_s` seconds (None: no limit) is killed. Threads of one process may call
+    it at once: the pipe is made and the fork done under a lock, so that no child holds
+    another's pipe open.
+
+    Raises:
+        TrialProcessDied: The child could not be forked, died, exited without a result or
+            was killed at the timeout (named, with its last stage).
+        BaseException: What `fn` raised in the child, re-raised here.
+    """
+    with _FORK_LOCK:
+        read_fd, write_fd = os.pipe()
+        try:
+            pid = _fork()
+        except OSError as e:
+            os.close(read_fd)
+            os.close(write_fd)
+            raise TrialProcessDied(f"could not fork a trial process: {e}", stage=stage,
+                                   signal_name=None, exit_code=None) from e
+        if pid == 0:  # pragma: no cover - the child; coverage of children is not collected
+            os.close(read_fd)
+            _child(write_fd, fn, args, kwargs)
+        os.close(write_fd)
+    deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
+    last_stage, result, timed_out = stage, None, False
     try:
-        while True:
-            header = _read_exact(read_fd, _HEADER.size)
-            if header is None:
-                break
-            kind, n = _HEADER.unpack(header)
-            payload = _read_exact(read_fd, n)
+        while result is None:
+            header = _read_exact(read_fd, _HEADER.size, deadline)
+            payload = None if header is None else _read_exact(
+                read_fd, _HEADER.unpack(header)[1], deadline)
             if payload is None:
                 break
-            if kind == b"S":
+            if _HEADER.unpack(header)[0] == b"S":
                 last_stage = payload.decode()
             else:
                 result = pickle.loads(payload)
+    except TimeoutError:
+        timed_out = True
+        os.kill(pid, signal.SIGKILL)
     finally:
         os.close(read_fd)
         _, status = os.waitpid(pid, 0)
@@ -127,6 +183,10 @@ def run_forked(fn, *args, **kwargs):
         if outcome == "ok":
             return value
         raise value
+    if timed_out:
+        raise TrialProcessDied(f"trial process killed after {timeout_s:g} s (the time limit) in "
+                               f"stage {last_stage!r}", stage=last_stage, signal_name="SIGKILL",
+                               exit_code=None)
     if os.WIFSIGNALED(status):
         sig = os.WTERMSIG(status)
         name = signal.Signals(sig).name if sig in signal.valid_signals() else str(sig)

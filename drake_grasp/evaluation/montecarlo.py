@@ -5,12 +5,14 @@ process, the driver, writes them, one atomic file per trial
 (`drake_grasp.evaluation.records`): workers need no access to the results folder, and a
 user object library reaches Dask workers by content (`objects.bundle`). Re-running into
 the same folder skips finished trials, so a killed run loses at most the tasks in flight
-and counts nothing twice; an exception inside a trial, or a trial process that dies,
-becomes a "simulation-error" record, the run going on. `evaluate` applies the call's settings to the experiment, plans its tasks
-(`trial_plan`), checks that the folder holds this very run (`run_folder`: run.json's
-identity, refused naming the first differing key unless `force_new`), runs what is left
-with a progress bar and records the session in run.json; `pooled_map` / `parallel_map`
-are the spawned process pools it and the analysis scripts run on.
+(a clutter run is one task: its attempts are written when the run ends) and counts
+nothing twice; an exception inside a trial, or a trial process that dies, becomes a
+"simulation-error" record, the run going on. `evaluate` applies the call's settings to
+the experiment, plans its tasks (`trial_plan`), checks that the folder holds this very
+run (`run_folder`: run.json's identity, refused naming the first differing key unless
+`force_new`), runs what is left with a progress bar and records the session in run.json;
+`pooled_map` / `parallel_map` are the spawned process pools it and the analysis scripts
+run on.
 """
 
 from __future__ import annotations
@@ -75,8 +77,8 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
             their groups runs with, after the experiment's own: other CNN or GPD weights,
             controller settings of the closed-loop conditions, the judge's search, the
             failure memory (`experiments.option_patches` makes them of the command's
-            options, checking each). They are part of the run's identity through the conditions' resolved
-            scenarios (and the weights files' sha256).
+            options, checking each). They are part of the run's identity through the
+            conditions' resolved scenarios (and the weights files' sha256).
 
     Returns:
         {"out": the folder used, "new_folder_because": why `out` was not used (None when it
@@ -311,8 +313,13 @@ def pooled_map(fn, arg_tuples, *, workers: int, on_result,
     for start in range(0, len(arg_tuples), chunk):
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
             futures = [pool.submit(fn, *a) for a in arg_tuples[start:start + chunk]]
-            for fut in as_completed(futures):
-                on_result(fut.result())
+            try:
+                for fut in as_completed(futures):
+                    on_result(fut.result())
+            except BaseException:
+                # Do not wait for the rest of the chunk when its results cannot be kept.
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
 
 
 def parallel_map(fn, arg_tuples, *, workers: int = 2, desc: str = "") -> list:

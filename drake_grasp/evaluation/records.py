@@ -22,8 +22,8 @@ Layout::
 
 The per-trial JSON files are the crash-safe write path while a run goes on: each is
 written under a temporary name in the same folder and renamed into place when complete,
-so a killed worker leaves no half-written record, and each worker writes only its own
-trials, so parallel workers never contend for a file. A trial counts as done iff it is a
+so a killed run leaves no half-written record; the driver of a run writes them all
+(`montecarlo`: workers return their records), so no two processes contend for a file. A trial counts as done iff it is a
 row of the table or its file exists and parses; one in both (a pack killed between the
 table's rename and the files' removal) counts once, as its file says (`pack_records`).
 Both forms are plain data (no pickle): a results directory from someone else can be read

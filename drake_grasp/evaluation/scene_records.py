@@ -10,12 +10,13 @@ column        what
 ============  ===============================================================
 scene_index   int64: the scene's index in the run
 format        string: the record's format (`drake_grasp.label_check/1`, ...)
-record        string: the whole record as compact JSON (its checks are nested
+record        string: the whole record as compact JSON text (its checks are nested
               lists; read with `json.loads` or DuckDB's `->` / `->>`)
 ============  ===============================================================
 
 `read_records` and `done_scene_indices` read both forms; a scene in both counts once, as
-its file says. The table is written with `records_table.write_table` (hidden temporary
+its file says. The record column is Python's JSON text, as the files are: a NaN in a
+record stays `NaN` (which strict JSON readers refuse). The table is written with `records_table.write_table` (hidden temporary
 name, fsync, rename), and a file is removed only once the table reads its record back
 equal: a kill at any point leaves every scene readable exactly once.
 """
@@ -30,7 +31,8 @@ from drake_grasp.evaluation.records_table import folder_lock, read_table, write_
 
 RECORDS = "scenes"
 SCENES_TABLE = "scenes.parquet"
-_KINDS = {"scene_index": ("int", False), "format": ("str", False), "record": ("dict", False)}
+# The record column is JSON text written here (Python's JSON: a NaN in a record stays NaN).
+_KINDS = {"scene_index": ("int", False), "format": ("str", False), "record": ("str", False)}
 
 
 def record_path(out: Path, scene_index: int) -> Path:
@@ -44,7 +46,10 @@ def _table_records(out: Path) -> dict[int, dict]:
         return {}
     found = {}
     for i, row in enumerate(read_table(path, _KINDS)):
-        record = row["record"]
+        try:
+            record = json.loads(row["record"])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path} row {i}: the record is not JSON text ({e})") from None
         if not isinstance(record, dict) or record.get("scene_index") != row["scene_index"]:
             raise ValueError(f"{path} row {i}: the record does not hold scene "
                              f"{row['scene_index']}")
@@ -110,15 +115,15 @@ def pack_scene_records(out) -> dict:
     out = Path(out)
     with folder_lock(out):
         files, merged = _file_records(out), _table_records(out)
-        if not files:
-            return {"folder": str(out), "rows": len(merged), "packed": 0}
-        merged.update({i: r for i, (_, r) in files.items()})
-        rows = [{"scene_index": i, "format": str(merged[i].get("format")), "record": merged[i]}
-                for i in sorted(merged)]
-        write_table(out / SCENES_TABLE, rows, _KINDS)
+        if files:
+            merged.update({i: r for i, (_, r) in files.items()})
+            rows = [{"scene_index": i, "format": str(merged[i].get("format")),
+                     "record": json.dumps(merged[i], separators=(",", ":"))}
+                    for i in sorted(merged)]
+            write_table(out / SCENES_TABLE, rows, _KINDS)
         back = _table_records(out)
         for i, (path, record) in files.items():
-            if json.dumps(back.get(i), allow_nan=False) != json.dumps(record, allow_nan=False):
+            if json.dumps(back.get(i)) != json.dumps(record):
                 raise ValueError(f"{path}: its record does not read back equal from "
                                  f"{out / SCENES_TABLE}; the file is kept")
         for path, _ in files.values():

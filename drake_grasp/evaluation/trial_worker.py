@@ -220,14 +220,15 @@ class _TrialContext:
     def isolated(self, fn, *args, stage: str, scenario=None, **record_kw):
         """`fn(*args)` (which returns a record and records its own exceptions), in a forked
         child when `fork`; a child that dies becomes a simulation-error record naming the
-        signal (or exit code) and the last stage it reported."""
+        signal (or exit code) and the last stage it reported (`stage` until it reports
+        one)."""
         from drake_grasp.evaluation import hermetic as H
 
         if not self.fork:
             return fn(*args)
         t0 = time.perf_counter()
         try:
-            return H.run_forked(fn, *args)
+            return H.run_forked(fn, *args, stage=stage)
         except H.TrialProcessDied as e:
             if scenario is None:
                 scenario = self._scenario_or_none()
@@ -397,10 +398,12 @@ def _run_clutter(ctx: _TrialContext, prior: list) -> list:
                                   library=ctx.library)
         if records:
             scene = SceneSpec.from_dict(records[-1].extra["next_scene"])
+        elif ctx.fork:  # a child that dies pouring raises TrialProcessDied here
+            from drake_grasp.evaluation import hermetic as H
+
+            scene = H.run_forked(_pour_pile, scenario, ctx.library, stage="scene")
         else:
-            scene = ctx.isolated(_pour_pile, scenario, ctx.library, stage="scene")
-            if not isinstance(scene, SceneSpec):  # the child died pouring the pile
-                raise RuntimeError(scene.failure_reason)
+            scene = _pour_pile(scenario, ctx.library)
     except Exception as e:  # noqa: BLE001 - any failure inside a trial is recorded
         finish(ctx.error_record(e, scenario=scenario, stage="scene",
                                 wall=time.perf_counter() - t0, run_index=task.index,

@@ -40,7 +40,8 @@ def make_bundle(objects_dir: str | os.PathLike) -> ObjectBundle:
     folder = Path(objects_dir)
     content_hash = load_library(folder).content_hash()
     buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+    # Links are stored as the files they point to, as the library's hash reads them.
+    with tarfile.open(fileobj=buf, mode="w:gz", dereference=True) as tar:
         for path in sorted(p for p in folder.rglob("*") if p.is_file()):
             tar.add(path, arcname=path.relative_to(folder).as_posix(), recursive=False)
     return ObjectBundle(content_hash=content_hash, archive=buf.getvalue(), source=str(folder))
