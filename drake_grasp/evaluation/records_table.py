@@ -188,9 +188,11 @@ def read_table(path: str | os.PathLike, kinds: dict[str, tuple[str, bool]]) -> l
     return rows
 
 
-def unpacked_folders(paths: list[str | os.PathLike]) -> list[tuple[Path, int]]:
-    """Results folders under `paths` (each a folder, searched recursively) that hold trial
-    files not packed yet: (folder, number of `trials/*.json`), sorted by folder.
+def folders_with_files(paths: list[str | os.PathLike], subdir: str, pattern: str, *,
+                       beside: str = "") -> list[tuple[Path, int]]:
+    """Folders under `paths` (each searched recursively) whose `subdir/` holds files
+    matching `pattern` (hidden names left out: writes in progress), with `beside` next to
+    `subdir` when given: (folder, number of files), sorted by folder.
 
     Raises:
         FileNotFoundError: A path is not a folder (named in the message).
@@ -201,12 +203,22 @@ def unpacked_folders(paths: list[str | os.PathLike]) -> list[tuple[Path, int]]:
             raise FileNotFoundError(f"{root}: not a folder")
         for here, dirs, _ in os.walk(root):
             here = Path(here)
-            if here.name == TRIALS_DIR:
-                n = sum(1 for f in here.iterdir() if f.suffix == ".json"
-                        and not f.name.startswith(".") and f.is_file())
-                if n:
+            if here.name == subdir:
+                n = sum(1 for f in here.glob(pattern) if not f.name.startswith(".")
+                        and f.is_file())
+                if n and (not beside or (here.parent / beside).is_file()):
                     found[here.parent] = n
-                dirs.clear()  # trial files only below
+                dirs.clear()  # record files only below
             else:
                 dirs.sort()
     return sorted(found.items())
+
+
+def unpacked_folders(paths: list[str | os.PathLike]) -> list[tuple[Path, int]]:
+    """Results folders under `paths` (each a folder, searched recursively) that hold trial
+    files not packed yet: (folder, number of `trials/*.json`), sorted by folder.
+
+    Raises:
+        FileNotFoundError: A path is not a folder (named in the message).
+    """
+    return folders_with_files(paths, TRIALS_DIR, "*.json")

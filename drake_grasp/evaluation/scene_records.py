@@ -27,7 +27,8 @@ import json
 import os
 from pathlib import Path
 
-from drake_grasp.evaluation.records_table import folder_lock, read_table, write_table
+from drake_grasp.evaluation.records_table import (folder_lock, folders_with_files,
+                                                  read_table, write_table)
 
 RECORDS = "scenes"
 SCENES_TABLE = "scenes.parquet"
@@ -135,19 +136,6 @@ def pack_scene_records(out) -> dict:
 
 
 def unpacked_scene_folders(paths) -> list[tuple[Path, int]]:
-    """Run folders under `paths` (searched recursively) whose `scenes/` holds record files:
-    (folder, number of files), sorted."""
-    found = {}
-    for root in map(Path, paths):
-        if not root.is_dir():
-            raise FileNotFoundError(f"{root}: not a folder")
-        for here, dirs, _ in os.walk(root):
-            here = Path(here)
-            if here.name == RECORDS:
-                n = sum(1 for _ in here.glob("scene-*.json"))
-                if n and (here.parent / "run.json").is_file():
-                    found[here.parent] = n
-                dirs.clear()
-            else:
-                dirs.sort()
-    return sorted(found.items())
+    """Run folders under `paths` (searched recursively) whose `scenes/` holds record files
+    beside their run.json: (folder, number of files), sorted."""
+    return folders_with_files(paths, RECORDS, "scene-*.json", beside="run.json")
