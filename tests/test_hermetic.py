@@ -61,13 +61,28 @@ def test_what_a_child_allocates_leaves_with_it():
     assert _rss_kb() - before < 20 * 1024  # KB: 600 MB allocated in children, none here
 
 
+_SEGFAULT_RUN = """
+import sys
+from drake_grasp.evaluation.montecarlo import evaluate
+from drake_grasp.evaluation.records import load_records
+evaluate(experiment="smoke", out=sys.argv[1], trials=2, workers=int(sys.argv[2]), seed=3,
+         progress=False, report=False, fail_trials=("smoke/scripted/0001:segfault",))
+print("records", len(load_records(sys.argv[1])))
+"""
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_trial_that_segfaults_is_recorded_and_the_run_goes_on(tmp_path, workers):
+    """In a fresh process (workers=1 runs the trials in it: this one may have rendered,
+    and a process that has rendered does not fork its trials)."""
+    import subprocess
+    import sys
+
     out = tmp_path / f"w{workers}"
-    evaluate(experiment="smoke", out=out, trials=2, workers=workers, seed=3, progress=False,
-             report=False, fail_trials=("smoke/scripted/0001:segfault",))
+    done = subprocess.run([sys.executable, "-c", _SEGFAULT_RUN, str(out), str(workers)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and "records 4" in done.stdout, done.stderr[-2000:]
     records = {r.trial_id: r for r in load_records(out)}
-    assert len(records) == 4
     bad = records["smoke/scripted/0001"]
     assert (bad.success, bad.failure_class) == (False, "simulation-error")
     assert "killed by signal SIGSEGV (11) in stage 'simulation'" in bad.failure_reason
@@ -75,6 +90,21 @@ def test_a_trial_that_segfaults_is_recorded_and_the_run_goes_on(tmp_path, worker
         "smoke/init/0001"].seed and bad.scenario_yaml  # named by its scenario
     good = records["smoke/scripted/0000"]
     assert good.failure_class != "simulation-error" and good.sim_time_s > 0
+
+
+def test_a_process_that_has_rendered_runs_its_trials_itself(tmp_path):
+    """A GL driver's threads do not survive a fork: once this process has rendered, its
+    trials run in it (a forced segfault is then refused, not done)."""
+    from drake_grasp.api import load_library, load_scenario, simulate_episode
+    from drake_grasp.core.native import gl_driver_loaded
+
+    simulate_episode(load_scenario(scenario_name="isolation", scenario_text="{seed: 3}"),
+                     library=load_library(), record_depth=False)
+    assert gl_driver_loaded()
+    evaluate(experiment="smoke", out=tmp_path / "r", trials=1, workers=1, seed=3,
+             progress=False, report=False, fail_trials=("smoke/scripted/0000:segfault",))
+    bad = {r.trial_id: r for r in load_records(tmp_path / "r")}["smoke/scripted/0000"]
+    assert "forced segfault (test) asked of a trial not in a forked child" in bad.failure_reason
 
 
 _WARM_THEN_FORK = """

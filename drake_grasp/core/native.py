@@ -47,6 +47,21 @@ def mesa_llvm_loaded() -> bool:
         return False
 
 
+_GL_DRIVER_MARKS = ("_dri.so", "libEGL_mesa", "libEGL_nvidia", "libGLX_", "libnvidia-egl")
+
+
+def gl_driver_loaded() -> bool:
+    """Whether a GL driver (Mesa's llvmpipe or a GPU's EGL/GLX) is mapped into this
+    process: it has rendered. A child forked from such a process must not render: the
+    driver's threads (llvmpipe's rasterizers) and contexts do not survive the fork, and
+    the child's first frame waits for them for ever."""
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
+            return any(mark in line for line in f for mark in _GL_DRIVER_MARKS)
+    except OSError:  # pragma: no cover - not Linux: no /proc; assume it may have
+        return True
+
+
 def load_llvm_users_first() -> list[str]:
     """Loads the installed modules that carry their own LLVM (triton) before rendering.
 

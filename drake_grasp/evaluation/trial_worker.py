@@ -179,14 +179,20 @@ def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple
         prior: A clutter run's attempt records written before (dicts), to resume after.
         objects: The library's `ObjectBundle` when the worker may not see `objects_dir`.
         hermetic: Run each episode / attempt in a forked child (`hermetic.run_forked`);
-            False runs it in this process (where fork is unavailable, always).
+            False runs it in this process (so does a process without fork, or one that
+            has rendered: `core.native.gl_driver_loaded`).
     """
     from drake_grasp.evaluation import hermetic as H
 
     experiment = task_experiment(task)
     condition = task_condition(task, experiment)
+    from drake_grasp.core.native import gl_driver_loaded
+
     library = _library(objects_dir, objects)
-    fork = hermetic and H.available()
+    # A process that has rendered (a GL driver's threads and contexts do not survive a
+    # fork) runs its trials itself, as before: a worker of `evaluate` never renders, but
+    # workers=1 runs in the caller's process, which may have.
+    fork = hermetic and H.available() and not gl_driver_loaded()
     if fork:
         _warm(experiment, condition, objects_dir)
     ctx = _TrialContext(task, experiment, condition, objects_dir, library, tuple(fail_trials),
@@ -261,6 +267,8 @@ def _stage(ctx: _TrialContext, trial_id: str, stage: str) -> None:
     H.stage(stage)
     _forced(ctx.fail_trials, trial_id, None if stage == "simulation" else stage)
     if stage == "simulation" and f"{trial_id}:segfault" in ctx.fail_trials:
+        if not ctx.fork:
+            raise RuntimeError("forced segfault (test) asked of a trial not in a forked child")
         import ctypes
 
         ctypes.string_at(0)  # reads address 0: SIGSEGV, as a crash in a native library
