@@ -110,8 +110,8 @@ def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
     """`trial_overhead_fraction`: the share of a `fast` CTR isolation trial's wall time
     spent outside the plant's advance, i.e. 1 - (own time of `Simulator.AdvanceTo`, the
     C++ simulation without the Python systems it calls) / (the trial's wall time), over
-    `seeds` run one after another in this process under cProfile (after one warm-up
-    trial). cProfile slows the Python parts, not the C++ ones, so the fraction is an upper
+    `seeds` run one after another in this process under cProfile (after a first pass over
+    the same seeds, which fills the caches). cProfile slows the Python parts, not the C++ ones, so the fraction is an upper
     bound; `_detail` has the same trials' wall time without the profiler and the Python
     buckets per trial."""
     import cProfile
@@ -131,13 +131,14 @@ def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
         simulate_episode(scenario, library=library, record_depth=False, model=model)
         return time.perf_counter() - t0
 
-    run(999)  # imports, first render, caches
-    plain = sum(run(s) for s in seeds)
+    for seed in seeds:  # imports, first render, and each scene's caches (its objects)
+        run(seed)
     profiler, profiled = cProfile.Profile(), 0.0
     for seed in seeds:
         profiler.enable()
         profiled += run(seed)
         profiler.disable()
+    plain = sum(run(s) for s in seeds)
     stats = pstats.Stats(profiler).stats
     advance = sum(v[2] for k, v in stats.items() if "AdvanceTo" in k[2])
     buckets = {key: round(sum(v[3] for k, v in stats.items()
