@@ -50,6 +50,10 @@ def test_a_child_returns_raises_or_dies_by_name():
     with pytest.raises(H.TrialProcessDied, match="exited with code 3 without a result") as died:
         H.run_forked(_stages_then, "exit")
     assert died.value.exit_code == 3
+    import pickle
+
+    again = pickle.loads(pickle.dumps(died.value))
+    assert (str(again), again.stage, again.exit_code) == (str(died.value), "simulation", 3)
     H.stage("outside a child")  # a no-op here
 
 

@@ -47,6 +47,13 @@ class TrialProcessDied(RuntimeError):
         self.signal_name = signal_name
         self.exit_code = exit_code
 
+    def __reduce__(self):  # pickles with its keyword arguments (Dask, process pools)
+        return (_died, (str(self), self.stage, self.signal_name, self.exit_code))
+
+
+def _died(message, stage, signal_name, exit_code) -> TrialProcessDied:
+    return TrialProcessDied(message, stage=stage, signal_name=signal_name, exit_code=exit_code)
+
 
 def available() -> bool:
     """Whether this platform can fork (POSIX)."""
