@@ -409,6 +409,21 @@ def test_clutter_simulation_errors_are_not_failed_grasps(tmp_path, monkeypatch):
     assert _clutter(tmp_path / "c", report=False)["ran"] == 0  # finished, on resume too
 
 
+def test_a_clutter_runs_attempts_are_written_as_they_finish(tmp_path, monkeypatch):
+    """The driver runs a clutter run one attempt per task and writes each record before
+    the next attempt starts: a killed run loses at most the attempt in flight."""
+    _fake_clutter(monkeypatch, ["fail", "ok", "fail", "fail", "fail"])
+    scripted, on_disk = trial_worker._simulate, []
+
+    def spy(scenario, library, *, scene=None):
+        on_disk.append(len(load_records(tmp_path / "c")))
+        return scripted(scenario, library, scene=scene)
+
+    monkeypatch.setattr(trial_worker, "_simulate", spy)
+    _clutter(tmp_path / "c", report=False)
+    assert on_disk == [0, 1, 2, 3, 4] and len(load_records(tmp_path / "c")) == 5
+
+
 def test_clutter_run_whose_attempts_keep_raising_ends(tmp_path, monkeypatch):
     calls = _fake_clutter(monkeypatch, ["ok"] + ["raise"] * 20)
     _clutter(tmp_path / "c", report=False)
@@ -641,7 +656,8 @@ def test_pool_workers_are_recycled_without_deadlock():
     code = ("import collections, os\n"
             "from drake_grasp.evaluation.montecarlo import pooled_map\n"
             "pids = []\n"
-            "pooled_map(os.getpid, [()] * 10, workers=2, per_worker=2, on_result=pids.append)\n"
+            "pooled_map(os.getpid, [()] * 10, workers=2, per_worker=2,\n"
+            "           on_result=lambda pid, args: pids.append(pid))\n"
             "print(len(pids), len(set(pids)), max(collections.Counter(pids).values()))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)

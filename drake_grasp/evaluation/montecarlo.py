@@ -4,15 +4,14 @@ Workers (`drake_grasp.evaluation.trial_worker`) return each task's records and t
 process, the driver, writes them, one atomic file per trial
 (`drake_grasp.evaluation.records`): workers need no access to the results folder, and a
 user object library reaches Dask workers by content (`objects.bundle`). Re-running into
-the same folder skips finished trials, so a killed run loses at most the tasks in flight
-(a clutter run is one task: its attempts are written when the run ends) and counts
-nothing twice; an exception inside a trial, or a trial process that dies, becomes a
-"simulation-error" record, the run going on. `evaluate` applies the call's settings to
-the experiment, plans its tasks (`trial_plan`), checks that the folder holds this very
-run (`run_folder`: run.json's identity, refused naming the first differing key unless
-`force_new`), runs what is left with a progress bar and records the session in run.json;
-`pooled_map` / `parallel_map` are the spawned process pools it and the analysis scripts
-run on.
+the same folder skips finished trials, so a killed run loses at most the trials (clutter
+attempts: one per task) in flight and counts nothing twice; an exception inside a trial,
+or a trial process that dies, becomes a "simulation-error" record, the run going on.
+`evaluate` applies the call's settings to the experiment, plans its tasks (`trial_plan`),
+checks that the folder holds this very run (`run_folder`: run.json's identity, refused
+naming the first differing key unless `force_new`), runs what is left with a progress
+bar and records the session in run.json; `pooled_map` / `parallel_map` are the spawned
+process pools it and the analysis scripts run on.
 """
 
 from __future__ import annotations
@@ -101,9 +100,9 @@ def evaluate(*, experiment: str, out: str | Path, trials: int | None = None, wor
     out, replaced = choose_folder(Path(out), identity, force_new=force_new)
     info = _open_run_info(out, exp, identity, trials)
     todo, done_ids = _pending_tasks(out, exp, tasks)
-    _run_session(todo, info, done_ids, out=out, workers=workers, scheduler=scheduler,
-                 objects_dir=objects_dir, progress=progress, fail_trials=fail_trials,
-                 total=len(tasks))
+    _run_session(todo, info, done_ids, experiment=exp, out=out, workers=workers,
+                 scheduler=scheduler, objects_dir=objects_dir, progress=progress,
+                 fail_trials=fail_trials, total=len(tasks))
     # The per-trial files were the crash-safe path while the call ran; a finished call
     # packs them into the folder's table (an interrupted one leaves them for its resume).
     from drake_grasp.evaluation.records import pack_records
@@ -167,8 +166,8 @@ def _pending_tasks(out: Path, exp: Experiment, tasks) -> tuple:
     return todo, done_ids
 
 
-def _run_session(todo, info: dict, done_ids, *, out: Path, workers, scheduler, objects_dir,
-                 progress, fail_trials, total) -> None:
+def _run_session(todo, info: dict, done_ids, *, experiment, out: Path, workers, scheduler,
+                 objects_dir, progress, fail_trials, total) -> None:
     """Runs `todo` (`_execute`) and, when there was anything to run, adds this session to
     run.json, also when it was interrupted."""
     from drake_grasp.evaluation.records import done_trial_ids, write_run_info
@@ -177,9 +176,9 @@ def _run_session(todo, info: dict, done_ids, *, out: Path, workers, scheduler, o
     t0 = time.perf_counter()
     completed = False
     try:
-        _execute(todo, out=str(out), workers=workers, scheduler=scheduler,
-                 objects_dir=objects_dir, progress=progress, fail_trials=tuple(fail_trials),
-                 total=total, initial=total - len(todo))
+        _execute(todo, experiment=experiment, out=str(out), workers=workers,
+                 scheduler=scheduler, objects_dir=objects_dir, progress=progress,
+                 fail_trials=tuple(fail_trials), total=total, initial=total - len(todo))
         completed = True
     finally:
         # The wall time of this call, for the report's experiment time (a call killed
@@ -214,8 +213,12 @@ def _result(out: Path, tasks, todo, replaced, report: bool) -> dict:
     return result
 
 
-def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trials, total,
-             initial):
+def _execute(todo, *, experiment, out, workers, scheduler, objects_dir, progress, fail_trials,
+             total, initial):
+    """Runs `todo` and writes every record as it comes back. A clutter run goes one
+    attempt per task: when an attempt's record is written and `clutter_run_status` says
+    the run goes on, its next attempt is submitted with the attempts so far, so a killed
+    run loses at most the attempts in flight."""
     from tqdm import tqdm
 
     from drake_grasp.evaluation.records import TrialRecord, write_record
@@ -225,8 +228,10 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
     stats: dict = {}
     bar = tqdm(total=total, initial=initial, unit="trial", disable=not progress,
                desc="evaluate", dynamic_ncols=True)
+    per_attempt = experiment.kind == "clutter-runs"
 
-    def tick(recs):
+    def done(recs, args):
+        """Writes a task's records; returns its run's next attempt's args, or None."""
         for r in recs:  # the driver owns the folder: it writes what the workers return
             write_record(out, TrialRecord.from_dict(r, source=f"worker result {r.get('trial_id')}"))
             s = stats.setdefault(r["condition"], [0, 0, 0])
@@ -235,22 +240,31 @@ def _execute(todo, *, out, workers, scheduler, objects_dir, progress, fail_trial
                 continue
             s[0] += int(r["success"])
             s[1] += 1
-        bar.update(1)
         bar.set_postfix_str(" ".join(f"{k}:{v[0]}/{v[1]}" + (f"({v[2]} err)" if v[2] else "")
                                      for k, v in sorted(stats.items())))
+        if per_attempt:
+            so_far = tuple(args[3]) + tuple(recs)
+            if recs and clutter_run_status([TrialRecord.from_dict(r, source="record")
+                                            for r in so_far], experiment) is None:
+                return args[:3] + (so_far, 1)
+        bar.update(1)
+        return None
 
     try:
         if not todo:
             return
         prior = _prior_attempts(out, todo)
-        args = [(t, objects_dir, fail_trials, prior.get(t.trial_id, ())) for t in todo]
+        args = [(t, objects_dir, fail_trials, prior.get(t.trial_id, ()), 1 if per_attempt else 0)
+                for t in todo]
         if scheduler:
-            _on_dask(scheduler, args, objects_dir, tick)
+            _on_dask(scheduler, args, objects_dir, done)
         elif workers <= 1:
-            for a in args:
-                tick(run_task(*a))
+            queue = list(args)
+            while queue:
+                follow = done(run_task(*queue[0]), queue[0])
+                queue = queue[1:] + ([follow] if follow is not None else [])
         else:
-            pooled_map(run_task, args, workers=workers, on_result=tick)
+            pooled_map(run_task, args, workers=workers, on_result=done)
     finally:
         bar.close()
 
@@ -269,9 +283,10 @@ def _prior_attempts(out, todo) -> dict:
     return {k: tuple(v) for k, v in prior.items()}
 
 
-def _on_dask(scheduler: str, args, objects_dir, tick) -> None:
-    """Runs the tasks on a Dask cluster; a user object library goes to the workers once,
-    by content (`objects.bundle`), so they need not see `objects_dir`."""
+def _on_dask(scheduler: str, args, objects_dir, done) -> None:
+    """Runs the tasks on a Dask cluster (`done` as `pooled_map`'s on_result); a user object
+    library goes to the workers once, by content (`objects.bundle`), so they need not see
+    `objects_dir`."""
     from dask.distributed import Client, as_completed
 
     with Client(scheduler) as client:
@@ -280,11 +295,19 @@ def _on_dask(scheduler: str, args, objects_dir, tick) -> None:
             from drake_grasp.objects.bundle import make_bundle
 
             objects = client.scatter(make_bundle(objects_dir), broadcast=True)
-        pending = as_completed([client.submit(run_task, *a, objects=objects, pure=False)
-                                for a in args])
+
+        def submit(a):
+            fut = client.submit(run_task, *a, objects=objects, pure=False)
+            submitted[fut.key] = a
+            return fut
+
+        submitted: dict = {}
+        pending = as_completed([submit(a) for a in args])
         for fut in pending:
-            tick(fut.result())
+            follow = done(fut.result(), submitted.pop(fut.key))
             fut.release()  # written by this process: the cluster may forget it
+            if follow is not None:
+                pending.add(submit(follow))
 
 
 # With drake 1.51 a Python LeafSystem that declares a port is never freed, and the episode
@@ -298,24 +321,30 @@ WORKER_MAX_TRIALS = 200
 def pooled_map(fn, arg_tuples, *, workers: int, on_result,
                per_worker: int = WORKER_MAX_TRIALS) -> None:
     """Calls `fn(*args)` for every tuple on `workers` spawned processes and
-    `on_result(value)` in completion order, with fresh processes for every
-    `workers * per_worker` tasks (so no process runs more than that many).
+    `on_result(value, args)` in completion order, with fresh processes for every
+    `workers * per_worker` tasks (so no process runs much more than that many).
+    `on_result` may return the arguments of a follow-up task (a clutter run's next
+    attempt), which runs in the same pool; None otherwise.
 
     Not ProcessPoolExecutor's `max_tasks_per_child`: in Python 3.11 to 3.15.0b3 a pool
     with a backlog deadlocks once a worker exits at that limit (CPython gh-115634): an
     `evaluate` on 2 workers hung after exactly 400 of 480 trials, both workers gone. A new
     pool per chunk needs no worker replacement."""
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     arg_tuples = list(arg_tuples)
     chunk = max(1, int(workers) * int(per_worker))
     for start in range(0, len(arg_tuples), chunk):
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-            futures = [pool.submit(fn, *a) for a in arg_tuples[start:start + chunk]]
+            pending = {pool.submit(fn, *a): a for a in arg_tuples[start:start + chunk]}
             try:
-                for fut in as_completed(futures):
-                    on_result(fut.result())
+                while pending:
+                    done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        follow = on_result(fut.result(), pending.pop(fut))
+                        if follow is not None:
+                            pending[pool.submit(fn, *follow)] = follow
             except BaseException:
                 # Do not wait for the rest of the chunk when its results cannot be kept.
                 pool.shutdown(wait=False, cancel_futures=True)

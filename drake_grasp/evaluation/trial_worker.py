@@ -163,7 +163,8 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
 
 
 def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple = (),
-             prior: tuple = (), *, objects=None, hermetic: bool = True) -> list[dict]:
+             prior: tuple = (), attempts: int = 0, *, objects=None,
+             hermetic: bool = True) -> list[dict]:
     """Runs one task and returns its record(s) as dicts, in order; writes nothing.
 
     Args:
@@ -177,6 +178,8 @@ def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple
             clutter attempt leaves raise; "<trial id>:segfault" makes its process die of
             SIGSEGV in the simulation.
         prior: A clutter run's attempt records written before (dicts), to resume after.
+        attempts: A clutter run's attempts to run in this call at most (0: until the run
+            ends); the driver runs one per task.
         objects: The library's `ObjectBundle` when the worker may not see `objects_dir`.
         hermetic: Run each episode / attempt in a forked child (`hermetic.run_forked`);
             False runs it in this process (so does a process without fork, or one that
@@ -201,7 +204,7 @@ def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple
         from drake_grasp.evaluation.records import TrialRecord
 
         records = _run_clutter(ctx, [TrialRecord.from_dict(d, source="prior record")
-                                     for d in prior])
+                                     for d in prior], attempts)
     else:
         records = [ctx.isolated(_run_episode_task, ctx, stage="scene")]
     return [r.to_dict() for r in records]
@@ -369,14 +372,15 @@ def failed_closings(records) -> list[float]:
     return out
 
 
-def _run_clutter(ctx: _TrialContext, prior: list) -> list:
+def _run_clutter(ctx: _TrialContext, prior: list, attempts: int = 0) -> list:
     """One clutter run: attempts on one pile, each grasped object removed, until
     `clutter_run_status` says it has ended (its docstring has the rule). Resumes after the
     `prior` attempts (each record carries the scene left for the next one). Building the
     scenario and pile, every attempt and the settling of the pile it leaves run inside the
     error capture, each attempt in its own forked child: an exception, or a child that
     dies, becomes a "simulation-error" record. The record that ends the run has the reason
-    in `extra["run_end"]`. Returns the attempts run now."""
+    in `extra["run_end"]`. Runs at most `attempts` attempts (0: until the run ends) and
+    returns the attempts run now."""
     from drake_grasp.world.scene import SceneSpec
 
     task = ctx.task
@@ -419,7 +423,7 @@ def _run_clutter(ctx: _TrialContext, prior: list) -> list:
                                 extra={"scene": None, "next_scene": None}))
         return new
 
-    while status is None:
+    while status is None and not (attempts and len(new) >= attempts):
         attempt_scenario = dataclasses.replace(scenario, seed=scenario.seed + 1000 * attempt)
         if scenario.failure_memory.radius_m > 0.0:
             attempt_scenario.failure_memory = dataclasses.replace(
