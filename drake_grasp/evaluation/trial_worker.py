@@ -168,7 +168,7 @@ def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple
     """Runs one task and returns its record(s) as dicts, in order; writes nothing.
 
     Args:
-        task: The trial (or clutter run) to run.
+        task: The trial (or clutter run: its next `attempts`) to run.
         objects_dir: The run's object library folder as the driver names it (recorded in
             the scenarios); None for the built-in objects.
         fail_trials: For testing the error paths: "<trial id>" makes that trial's (or
@@ -185,12 +185,11 @@ def run_task(task: TrialTask, objects_dir: str | None = None, fail_trials: tuple
             False runs it in this process (so does a process without fork, or one that
             has rendered: `core.native.gl_driver_loaded`).
     """
+    from drake_grasp.core.native import gl_driver_loaded
     from drake_grasp.evaluation import hermetic as H
 
     experiment = task_experiment(task)
     condition = task_condition(task, experiment)
-    from drake_grasp.core.native import gl_driver_loaded
-
     library = _library(objects_dir, objects)
     # A process that has rendered (a GL driver's threads and contexts do not survive a
     # fork) runs its trials itself, as before: a worker of `evaluate` never renders, but
