@@ -4,6 +4,11 @@ self-describing metadata (`WEIGHTS_FORMAT`, the `NetworkConfig`, the code versio
 SHA-256 of the tensor data from `tensors_sha256`, and the user's metadata), atomically;
 `load_weights` verifies all of it and rebuilds the net from the stored config, so a
 corrupted or mismatched file fails loudly instead of loading garbage.
+
+A file may store its tensors in half precision (`save_weights(..., storage_dtype=
+torch.float16)`, `half_precision_copy`): half the bytes on disk and in the wheel. Such a
+net is loaded into a float32 model (`COMPUTE_DTYPES`), so it computes in float32 with
+weights rounded to float16; the file's sha256 is its identity, like any other net's.
 """
 
 import dataclasses
@@ -35,7 +40,11 @@ _KEY_TENSORS_SHA256 = "tensors_sha256"
 _KEY_USER = "user_metadata"
 
 # load_weights adds these to the returned metadata, so users may not set them.
-_RESERVED_USER_KEYS = ("config", "code_version", "format")
+_RESERVED_USER_KEYS = ("config", "code_version", "format", "storage_dtype")
+
+COMPUTE_DTYPES = {torch.float16: torch.float32, torch.bfloat16: torch.float32}
+"""Stored dtype -> the dtype `load_weights` builds the net in, where they differ: half
+precision is a storage format here (CPU float16 arithmetic is slow and coarse)."""
 
 
 def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
@@ -53,7 +62,8 @@ def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
 
 
 def save_weights(
-    model: DistanceCNN, path: Union[str, os.PathLike], *, metadata: dict[str, Any]
+    model: DistanceCNN, path: Union[str, os.PathLike], *, metadata: dict[str, Any],
+    storage_dtype: Optional[torch.dtype] = None,
 ) -> None:
     """Writes the weights as a safetensors file with self-describing metadata.
 
@@ -68,10 +78,16 @@ def save_weights(
         model: The network.
         path: Destination, conventionally ``*.safetensors``.
         metadata: JSON-serialisable user metadata (may be empty).
+        storage_dtype: The dtype the tensors are stored in (torch.float16 halves the
+            file; `load_weights` computes in float32 all the same); None keeps the
+            model's own dtype.
 
     Raises:
-        ValueError: `metadata` is not a dict or not JSON-serialisable.
+        ValueError: `metadata` is not a dict or not JSON-serialisable, or
+            `storage_dtype` is not a floating dtype.
     """
+    if storage_dtype is not None and not storage_dtype.is_floating_point:
+        raise ValueError(f"storage_dtype: expected a floating torch dtype, got {storage_dtype}")
     if not isinstance(metadata, dict):
         raise ValueError(f"metadata: expected a dict, got {type(metadata).__name__}")
     reserved = sorted(set(metadata) & set(_RESERVED_USER_KEYS))
@@ -81,7 +97,8 @@ def save_weights(
         user_json = json.dumps(metadata, sort_keys=True, allow_nan=False)
     except (TypeError, ValueError) as e:
         raise ValueError(f"metadata: must be JSON-serialisable: {e}") from e
-    tensors = {k: v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
+    tensors = {k: v.detach().cpu().to(storage_dtype or v.dtype).contiguous().clone()
+               for k, v in model.state_dict().items()}
     header = {
         _KEY_FORMAT: WEIGHTS_FORMAT,
         _KEY_CONFIG: json.dumps(model.config.to_dict(), sort_keys=True),
@@ -110,7 +127,8 @@ def load_weights(
     expected format and parses; the tensor data matches its SHA-256; the stored config
     is valid and (if given) equals `expected_config`; the tensors' names and shapes
     equal the state dict of the net that config builds. The model gets the dtype of
-    the stored tensors and is returned in eval mode.
+    the stored tensors (float32 for half-precision storage, `COMPUTE_DTYPES`) and is
+    returned in eval mode.
 
     Args:
         path: A ``.safetensors`` file from `save_weights`.
@@ -118,7 +136,8 @@ def load_weights(
 
     Returns:
         (model, metadata): metadata is the user metadata given to `save_weights`,
-        plus ``config`` (dict), ``code_version`` and ``format``.
+        plus ``config`` (dict), ``code_version``, ``format`` and ``storage_dtype``
+        (e.g. "float16").
 
     Raises:
         FileNotFoundError: No file at `path`.
@@ -176,7 +195,8 @@ def load_weights(
             f"{path}: expected all tensors to share one floating dtype, got "
             + ", ".join(f"{k}: {t.dtype}" for k, t in sorted(tensors.items()))
         )
-    model = DistanceCNN(config, dtype=next(iter(dtypes)))
+    stored_dtype = next(iter(dtypes))
+    model = DistanceCNN(config, dtype=COMPUTE_DTYPES.get(stored_dtype, stored_dtype))
     expected = model.state_dict()
     for key in sorted(set(expected) | set(tensors)):
         if key not in tensors:
@@ -188,12 +208,38 @@ def load_weights(
                 f"{path}: tensor {key!r} has shape {tuple(tensors[key].shape)}, the stored "
                 f"config needs {tuple(expected[key].shape)}"
             )
-    model.load_state_dict(tensors, strict=True)
+    model.load_state_dict(tensors, strict=True)  # copies, casting to the model's dtype
     model.eval()
     metadata = dict(parsed[_KEY_USER])
     metadata.update(
         config=config.to_dict(),
         code_version=header[_KEY_CODE_VERSION],
         format=header[_KEY_FORMAT],
+        storage_dtype=str(stored_dtype).removeprefix("torch."),
     )
     return model, metadata
+
+
+def half_precision_copy(src: Union[str, os.PathLike], dst: Union[str, os.PathLike]) -> dict:
+    """Writes `src`'s net with its tensors stored in float16 to `dst` (atomically).
+
+    The copy keeps `src`'s config and user metadata and adds ``half_precision_of`` (the
+    sha256 of `src`'s file) to the user metadata; ``code_version`` is this package's.
+
+    Returns:
+        The largest absolute change of any weight, as {"max_abs_change": float}.
+
+    Raises:
+        FileNotFoundError, ValueError: As `load_weights` for `src`; `dst` equals `src`.
+    """
+    src, dst = Path(src), Path(dst)
+    if src.resolve() == dst.resolve():
+        raise ValueError(f"half_precision_copy: {dst} is the source file itself")
+    model, meta = load_weights(src)
+    user = {k: v for k, v in meta.items() if k not in _RESERVED_USER_KEYS}
+    user["half_precision_of"] = hashlib.sha256(src.read_bytes()).hexdigest()
+    save_weights(model, dst, metadata=user, storage_dtype=torch.float16)
+    with torch.no_grad():
+        change = max(float((p - p.half().to(p.dtype)).abs().max())
+                     for p in model.state_dict().values())
+    return {"max_abs_change": change}
