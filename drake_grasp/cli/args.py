@@ -90,6 +90,19 @@ def trunk_widths(text: str) -> tuple[int, int, int]:
     return widths
 
 
+def add_initial_pose_flag(p) -> None:
+    """`--initial-pose` of `generate` and `label-check` (`DatasetConfig.initial_pose`)."""
+    from drake_grasp.learning.dataset import INITIAL_POSES, DatasetConfig
+
+    default = DatasetConfig().initial_pose
+    p.add_argument("--initial-pose", choices=list(INITIAL_POSES), default=default,
+                   help="the objects' orientation before the settle: stable, a resting pose "
+                   "of each object drawn with its probability and a random yaw (default "
+                   f"{default}); uniform, a uniformly random rotation that tumbles when "
+                   "dropped (the datasets and label checks made before 2026-12-07: give it "
+                   "to resume or reproduce them)")
+
+
 def add_torque_ratio_flag(p) -> None:
     from drake_grasp.learning.dataset import DatasetConfig
 

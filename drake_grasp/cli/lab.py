@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 
-from drake_grasp.cli.args import add_scenario_flags, load_scenario_from_args, add_torque_ratio_flag
+from drake_grasp.cli.args import (add_scenario_flags, load_scenario_from_args, add_torque_ratio_flag,
+                                  add_initial_pose_flag)
 
 
 def _cmd_grasp_check(args) -> int:
@@ -30,7 +31,8 @@ def _cmd_label_check(args) -> int:
     library = load_library(args.objects)
     config = LabelCheckConfig(grasps_per_scene=args.grasps_per_scene,
                               rejected_per_scene=args.rejected_per_scene, split=args.split,
-                              max_torque_ratio=args.max_torque_ratio)
+                              max_torque_ratio=args.max_torque_ratio,
+                              initial_pose=args.initial_pose)
     summary = run_label_check(num_scenes=args.scenes, seed=args.seed, out=args.out,
                               scenario=scenario, library=library, config=config,
                               workers=args.workers, objects_dir=args.objects or "")
@@ -87,6 +89,7 @@ def _parser_label_check(sub) -> None:
     p.add_argument("--split", choices=("train", "test"), default="train",
                    help="object split of the scenes (default: train)")
     add_torque_ratio_flag(p)
+    add_initial_pose_flag(p)
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
     p.set_defaults(func=_cmd_label_check)
 

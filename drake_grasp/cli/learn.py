@@ -7,7 +7,7 @@ import sys
 
 from drake_grasp.cli.args import (add_scenario_flags, load_scenario_from_args, positive_float,
                                   non_negative_float, positive_int, trunk_widths,
-                                  add_torque_ratio_flag)
+                                  add_torque_ratio_flag, add_initial_pose_flag)
 
 
 def _cmd_generate(args) -> int:
@@ -21,7 +21,7 @@ def _cmd_generate(args) -> int:
                            max_torque_ratio=args.max_torque_ratio,
                            grasp_samples=args.grasp_samples,
                            near_grasp_fraction=args.near_grasp_fraction,
-                           scene_kind=args.scene_kind,
+                           scene_kind=args.scene_kind, initial_pose=args.initial_pose,
                            settle_max_time_s=args.settle_max_time)
     manifest = generate_dataset(out=args.out, num_scenes=args.scenes, split=args.split,
                                 seed=args.seed, scenario=scenario, config=config,
@@ -124,6 +124,7 @@ def _parser_generate(sub) -> None:
     p.add_argument("--images-per-scene", type=int, default=40,
                    help="camera poses per scene (paper: 40)")
     add_torque_ratio_flag(p)
+    add_initial_pose_flag(p)
     from drake_grasp.learning.dataset import SCENE_KINDS, DatasetConfig
 
     p.add_argument("--grasp-samples", type=positive_int, default=DatasetConfig().grasp_samples,

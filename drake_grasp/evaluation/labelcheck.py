@@ -55,6 +55,17 @@ class LabelCheckConfig:
     # The ground truth's torque limit (`dataset.DatasetConfig.max_torque_ratio`) the
     # grasps checked are labelled with.
     max_torque_ratio: float = MAX_TORQUE_RATIO
+    # The objects' orientation before the settle (`dataset.DatasetConfig.initial_pose`,
+    # `label-check --initial-pose`): "stable" as `generate` now samples, "uniform" as the
+    # runs made before 2026-12-07 (those folders resume with it).
+    initial_pose: str = "stable"
+
+    def dataset_config(self):
+        """The `dataset.DatasetConfig` this check samples and labels with."""
+        from drake_grasp.learning.dataset import DatasetConfig
+
+        return DatasetConfig(max_torque_ratio=self.max_torque_ratio,
+                             initial_pose=self.initial_pose)
 
     def validate(self) -> None:
         if self.grasps_per_scene < 0 or self.rejected_per_scene < 0:
@@ -67,6 +78,7 @@ class LabelCheckConfig:
         if not 0 < self.max_torque_ratio < float("inf"):
             raise ValueError(f"max_torque_ratio: expected a finite number > 0, got "
                              f"{self.max_torque_ratio}")
+        self.dataset_config().validate()  # initial_pose
 
 
 def check_scene(scene_index: int, *, seed: int, scenario, library, config: LabelCheckConfig,
@@ -74,13 +86,13 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     """Samples, settles and labels scene `scene_index` as the dataset would, then executes
     a random sample of its accepted and rejected candidates in the lab. Returns the record.
     """
-    from drake_grasp.learning.dataset import DatasetConfig, sample_dataset_scene
+    from drake_grasp.learning.dataset import sample_dataset_scene
     from drake_grasp.geometry.grasps import find_grasps
     from drake_grasp.evaluation.lab import check_grasp
     from drake_grasp.world.scene import settle_scene
 
-    dataset_config = dataset_config if dataset_config is not None else DatasetConfig(
-        max_torque_ratio=config.max_torque_ratio)
+    dataset_config = (dataset_config if dataset_config is not None
+                      else config.dataset_config())
     t0 = time.perf_counter()
     # As `dataset.generate_scene`: the profile's sheet, the dataset config's settling step.
     physics = dataclasses.replace(scenario.physics,
@@ -89,7 +101,8 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     for attempt in range(dataset_config.max_attempts_per_scene):
         sampled = sample_dataset_scene(scenario, split=config.split, seed=seed,
                                        scene_index=scene_index, attempt=attempt,
-                                       library=library)
+                                       library=library,
+                                       initial_pose=dataset_config.initial_pose)
         s_seed = sampled.seed  # scene_seed(seed, scene_index, attempt)
         spec = settle_scene(sampled, library,
                             plant_config=scenario.plant, physics=physics,
@@ -151,13 +164,15 @@ def _task(scene_index: int, out: str, seed: int, scenario_yaml: str, objects_dir
 
 
 def _identity(*, seed, scenario, library, config, lab) -> dict:
-    from drake_grasp.learning.dataset import DatasetConfig
     from drake_grasp.core.provenance import code_version
     from drake_grasp.config.scenario import dump_scenario
 
+    # initial_pose enters through the dataset's identity (left out there at "uniform"), so
+    # that the folders made before it resume with `--initial-pose uniform`.
+    label_check = {k: v for k, v in dataclasses.asdict(config).items() if k != "initial_pose"}
     return {"format": FORMAT, "seed": int(seed), "scenario": dump_scenario(scenario),
-            "label_check": dataclasses.asdict(config), "lab": dataclasses.asdict(lab),
-            "dataset": DatasetConfig(max_torque_ratio=config.max_torque_ratio).identity(),
+            "label_check": label_check, "lab": dataclasses.asdict(lab),
+            "dataset": config.dataset_config().identity(),
             "object_library_hash": library.content_hash(), "code_version": code_version()}
 
 

@@ -1,7 +1,8 @@
 """The simulated training set (the paper's section "Generating training data"): one scene.
 
 Per scene (a `random` scene of 1-5 objects from one split, the count uniform over the
-scenes, settled by physics until verified at rest: `scene.settle_world`): the
+scenes, each object placed in one of its stable resting poses (`DatasetConfig.initial_pose`),
+then settled by physics until verified at rest: `scene.settle_world`): the
 ground-truth grasps (`grasps.find_grasps`), then K wrist depth images from hand poses
 drawn at random in (x, y, z, theta) above the objects, each rendered by Drake's VTK
 renderer and post-processed by the same `sensing.postprocess_depth` the Diagram uses,
@@ -55,8 +56,11 @@ MANIFEST = "manifest.json"
 # (`DatasetConfig.identity` leaves them out at that value).
 _LATER_FIELD_DEFAULTS = {"grasp_samples": 400, "near_grasp_fraction": 0.0,
                          "near_grasp_xy_m": 0.04, "near_grasp_theta_deg": 45.0,
-                         "scene_kind": "random"}
+                         "scene_kind": "random", "initial_pose": "uniform"}
 SCENE_KINDS = ("random", "clutter")
+# `DatasetConfig.initial_pose` (as `scene.INITIAL_POSES`, which this module does not import
+# at load time).
+INITIAL_POSES = ("stable", "uniform")
 
 
 
@@ -105,6 +109,13 @@ class DatasetConfig:
     # scene.clutter_objects poured into a pile over its region, as the clutter
     # experiments' piles; not in the paper's training set).
     scene_kind: str = "random"
+    # How the objects are oriented before the settle (`scene.sample_scene`): "stable", a
+    # resting pose of each object on a plane drawn with its probability, random yaw
+    # (`objects.stable_poses`), so the settle only has to bring a pile to rest;
+    # "uniform", a uniformly random rotation, dropped to tumble (the datasets and
+    # label checks made before 2026-12-07; about a third of its scenes were still moving
+    # at the time cap and were replaced). `generate --initial-pose`.
+    initial_pose: str = "stable"
     # Seeds tried for one scene (unsettled or without a true grasp -> the next one)
     # before generation stops with an error naming the scene.
     max_attempts_per_scene: int = 20
@@ -137,6 +148,9 @@ class DatasetConfig:
         for name in ("near_grasp_xy_m", "near_grasp_theta_deg"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if self.initial_pose not in INITIAL_POSES:
+            raise ValueError(f"initial_pose: expected one of {', '.join(INITIAL_POSES)}, "
+                             f"got {self.initial_pose!r}")
         if self.scene_kind not in SCENE_KINDS:
             raise ValueError(f"scene_kind: expected one of {', '.join(SCENE_KINDS)}, "
                              f"got {self.scene_kind!r}")
@@ -177,12 +191,14 @@ def scene_object_count(seed: int, scene_index: int, low: int, high: int) -> int:
 
 
 def sample_dataset_scene(scenario, *, split: str, seed: int, scene_index: int, attempt: int,
-                         library, kind: str = "random"):
+                         library, kind: str = "random", initial_pose: str = "uniform"):
     """The (unsettled) scene of attempt `attempt` of dataset scene `scene_index`, drawn
     with `scene_seed(seed, scene_index, attempt)` from the `split`'s objects: for `kind`
     `random`, a random scene of the scenario's scene config with `scene_object_count`
     objects; for `clutter`, the scenario's pile of scene.clutter_objects objects (poured
-    when settled). `generate` and `label-check` both sample through it."""
+    when settled). The objects' orientation: `initial_pose` (`scene.sample_scene`; the
+    dataset passes `DatasetConfig.initial_pose`). `generate` and `label-check` both sample
+    through it."""
     from drake_grasp.world.scene import sample_scene
 
     if kind == "clutter":
@@ -194,7 +210,8 @@ def sample_dataset_scene(scenario, *, split: str, seed: int, scene_index: int, a
                                   num_objects_min=count, num_objects_max=count)
     else:
         raise ValueError(f"scene kind: expected one of {', '.join(SCENE_KINDS)}, got {kind!r}")
-    return sample_scene(cfg, scene_seed(seed, scene_index, attempt), library)
+    return sample_scene(cfg, scene_seed(seed, scene_index, attempt), library,
+                        initial_pose=initial_pose)
 
 
 def shard_scene_range(shard_index: int, *, num_scenes: int, scenes_per_shard: int) -> range:
@@ -295,7 +312,8 @@ def generate_scene(scene_index: int, *, seed: int, split: str, scenario, config:
 
     s_seed = scene_seed(seed, scene_index, attempt)
     spec = sample_dataset_scene(scenario, split=split, seed=seed, scene_index=scene_index,
-                                attempt=attempt, library=library, kind=config.scene_kind)
+                                attempt=attempt, library=library, kind=config.scene_kind,
+                                initial_pose=config.initial_pose)
     plant_config = copy.deepcopy(scenario.plant)  # a Drake config: no dataclasses.replace
     plant_config.time_step = config.settle_time_step_s
     # The profile's sheet collision (the half space for `fast`); the step is the config's.

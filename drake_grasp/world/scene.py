@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_grasp.objects import ObjectLibrary, visual_mesh
+from drake_grasp.objects.stable_poses import stable_poses
 from drake_grasp.config.physics import sheet_collision, table_collision
 from drake_grasp.config.sections import SceneConfig
 from drake_grasp.world.table import (SHEET_THICKNESS_M, add_table_and_sheet, connect_sheet_hold,
@@ -178,14 +179,24 @@ def _pick_ids(config: SceneConfig, library: ObjectLibrary, count: int,
     return [pool[int(i)] for i in picked]
 
 
-def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary) -> SceneSpec:
+INITIAL_POSES = ("uniform", "stable")
+
+
+def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary, *,
+                 initial_pose: str = "uniform") -> SceneSpec:
     """Draws an unsettled scene from a config and a seed (deterministic).
 
     isolation: one object, lying (rotated 90 deg about a horizontal axis) or upright,
-    random yaw; random: 1-5 objects with uniformly random orientation, spread over the
-    region; clutter: objects with random orientation stacked in a column above a small
-    region, so they pour into a pile when settled.
+    random yaw; random: 1-5 objects spread over the region; clutter: objects stacked in a
+    column above a small region, so they pour into a pile when settled. The random and
+    clutter objects' orientation (`initial_pose`): "uniform", uniformly random (they
+    tumble when dropped); "stable", one of the object's resting poses on a plane drawn
+    with its probability, random yaw (`objects.stable_poses`; an object that does not
+    land on another is then already at rest, 2 mm above the sheet).
     """
+    if initial_pose not in INITIAL_POSES:
+        raise ValueError(f"initial_pose: expected one of {', '.join(INITIAL_POSES)}, "
+                         f"got {initial_pose!r}")
     rng = np.random.default_rng([int(seed), 7919])
     cx, cy = (float(v) for v in config.center_xy_m)
     half = float(config.region_half_extent_m)
@@ -214,6 +225,8 @@ def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary) -> Scen
             if pose == "lying":
                 tilt = _rot_x(np.pi / 2) if rng.random() < 0.5 else _rot_y(np.pi / 2)
                 R = R @ tilt
+        elif initial_pose == "stable":
+            R = stable_poses(library.get(object_id)).sample(rng)
         else:
             R = _random_rotation(rng)
         Vr = V @ R.T
