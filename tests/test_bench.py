@@ -81,5 +81,36 @@ def test_the_overhead_fraction_is_a_share_of_the_trial():
     out = bench_trial_overhead(seeds=(0,))
     detail = out["trial_overhead_fraction_detail"]
     assert 0.0 < out["trial_overhead_fraction"] < 1.0
-    assert 0.0 < detail["advance_cpp_s_per_trial"] < detail["wall_s_per_trial_profiled"]
-    assert detail["python_s_per_trial"]["cnn"] > 0.0
+    assert 0.0 < out["trial_overhead_fraction_profiled"] < 1.0
+    assert 0.0 < detail["advance_cpp_s_per_trial"] < detail["advance_s_per_trial"]
+    assert detail["advance_s_per_trial"] < detail["wall_s_per_trial"]
+    assert 0.0 < detail["python_in_advance_s_per_trial"] < detail["advance_s_per_trial"]
+    assert 0.0 < detail["advance_cpp_s_per_trial_profiled"] < detail["wall_s_per_trial_profiled"]
+    assert detail["python_s_per_trial_profiled"]["cnn"] > 0.0
+
+
+def test_the_callback_clock_times_the_python_systems_inside_the_advance_and_restores_them():
+    from pydrake.systems.analysis import Simulator, Simulator_
+    from pydrake.systems.framework import DiagramBuilder
+
+    from drake_grasp.cli.bench_scaling import CallbackClock
+    from drake_grasp.systems.gripper import GripperController
+
+    original = (GripperController._UpdateRamp, Simulator_[float].AdvanceTo)
+    with CallbackClock() as clock:
+        builder = DiagramBuilder()
+        gripper = builder.AddSystem(GripperController(
+            kp=2000.0, closing_speed_m_s=0.1, initial_width_m=0.085, time_step=0.001))
+        builder.ExportInput(gripper.get_input_port(0))
+        builder.ExportInput(gripper.get_input_port(1))
+        diagram = builder.Build()
+        simulator = Simulator(diagram)
+        context = simulator.get_mutable_context()
+        diagram.get_input_port(0).FixValue(context, [0.0, 20.0])
+        diagram.get_input_port(1).FixValue(context, [0.04, 0.04, 0.0, 0.0])
+        gripper.GetOutputPort("desired_state").Eval(
+            gripper.GetMyContextFromRoot(context))  # outside the advance: not counted
+        assert clock.callbacks_s == 0.0
+        simulator.AdvanceTo(0.2)  # 200 ramp updates
+    assert 0.0 < clock.callbacks_s < clock.advance_s
+    assert (GripperController._UpdateRamp, Simulator_[float].AdvanceTo) == original

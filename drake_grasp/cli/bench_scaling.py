@@ -11,12 +11,15 @@ Keys:
         trial wall time of each side, the largest child RSS, and how many trials had the
         same outcome, failure class and control steps on both sides.
     trial_overhead_fraction: the share of a `fast` CTR isolation trial's wall time spent
-        outside the plant's advance (`bench_trial_overhead`).
+        outside the plant's advance, timed without a profiler (`bench_trial_overhead`);
+        `_profiled`: the same under cProfile, an upper bound.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import re
 import resource
 import time
 
@@ -106,14 +109,97 @@ OVERHEAD_BUCKETS = {
 }
 
 
+class CallbackClock:
+    """Times, without a profiler, what a trial spends in the plant's advance and in the
+    Python systems the advance calls: while active (a context manager), every
+    `_Calc*` / `_Update*` / `_Initialize*` / `_Do*` method of drake_grasp's LeafSystems
+    (`CALLBACK_MODULES`) and `Simulator.AdvanceTo` run through a timer. A callback that
+    another one calls (through an input port's Eval) counts once, in the outermost.
+    Install it before the Diagram is built: a system declares its bound callbacks then.
+
+    Attributes:
+        advance_s: wall seconds inside `AdvanceTo`.
+        callbacks_s: wall seconds of those inside the outermost Python callbacks
+            (rendering, the CNN and anything else they evaluate included).
+    """
+
+    CALLBACK_MODULES = ("drake_grasp.systems.depth", "drake_grasp.systems.disturbance",
+                        "drake_grasp.systems.frames", "drake_grasp.systems.gripper",
+                        "drake_grasp.systems.judge", "drake_grasp.systems.kinematic_noise",
+                        "drake_grasp.systems.monitor", "drake_grasp.systems.supervisor",
+                        "drake_grasp.policies.controller", "drake_grasp.policies.ctr",
+                        "drake_grasp.policies.cnn_first_look", "drake_grasp.policies.evaluator",
+                        "drake_grasp.policies.detector_controllers")
+    _NAME = re.compile(r"^_(Calc|Update|Initialize|Do)")
+
+    def __init__(self) -> None:
+        self.advance_s = self.callbacks_s = 0.0
+        self._in_advance, self._depth, self._saved = False, 0, []
+
+    def _timed_callback(self, f):
+        @functools.wraps(f)
+        def timed(*args, **kwargs):
+            if self._depth or not self._in_advance:
+                self._depth += 1
+                try:
+                    return f(*args, **kwargs)
+                finally:
+                    self._depth -= 1
+            self._depth, t0 = 1, time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                self.callbacks_s += time.perf_counter() - t0
+                self._depth = 0
+        return timed
+
+    def _timed_advance(self, f):
+        @functools.wraps(f)
+        def timed(simulator, *args, **kwargs):
+            self._in_advance, t0 = True, time.perf_counter()
+            try:
+                return f(simulator, *args, **kwargs)
+            finally:
+                self.advance_s += time.perf_counter() - t0
+                self._in_advance = False
+        return timed
+
+    def __enter__(self) -> "CallbackClock":
+        import importlib
+
+        from pydrake.systems.analysis import Simulator_
+        from pydrake.systems.framework import LeafSystem
+
+        for name in self.CALLBACK_MODULES:
+            module = importlib.import_module(name)
+            for cls in vars(module).values():
+                if (isinstance(cls, type) and issubclass(cls, LeafSystem)
+                        and cls.__module__ == name):
+                    for attr, f in list(vars(cls).items()):
+                        if self._NAME.match(attr) and callable(f):
+                            self._saved.append((cls, attr, f))
+                            setattr(cls, attr, self._timed_callback(f))
+        simulator = Simulator_[float]
+        self._saved.append((simulator, "AdvanceTo", simulator.AdvanceTo))
+        simulator.AdvanceTo = self._timed_advance(simulator.AdvanceTo)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for owner, attr, f in reversed(self._saved):
+            setattr(owner, attr, f)
+        self._saved.clear()
+
+
 def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
     """`trial_overhead_fraction`: the share of a `fast` CTR isolation trial's wall time
-    spent outside the plant's advance, i.e. 1 - (own time of `Simulator.AdvanceTo`, the
-    C++ simulation without the Python systems it calls) / (the trial's wall time), over
-    `seeds` run one after another in this process under cProfile (after a first pass over
-    the same seeds, which fills the caches). cProfile slows the Python parts, not the C++ ones, so the fraction is an upper
-    bound; `_detail` has the same trials' wall time without the profiler and the Python
-    buckets per trial."""
+    spent outside the plant's advance, 1 - (C++ advance) / (the trial's wall time), over
+    `seeds` run one after another in this process after a first pass over the same seeds
+    (imports, the first render, each scene's caches). The C++ advance is `AdvanceTo`'s
+    wall time less that of the Python systems it calls (`CallbackClock`, timers without
+    a profiler). `_profiled`: the same under cProfile, 1 - `AdvanceTo`'s own time / the
+    trial's wall time (cProfile slows the Python parts, not the C++ ones, so that one is
+    an upper bound); `_detail` has both runs' figures and cProfile's Python buckets per
+    trial."""
     import cProfile
     import pstats
 
@@ -133,21 +219,28 @@ def bench_trial_overhead(seeds=(0, 1, 2, 3, 4, 5)) -> dict:
 
     for seed in seeds:  # imports, first render, and each scene's caches (its objects)
         run(seed)
+    with CallbackClock() as clock:
+        timed = sum(run(s) for s in seeds)
+    cpp = clock.advance_s - clock.callbacks_s
     profiler, profiled = cProfile.Profile(), 0.0
     for seed in seeds:
         profiler.enable()
         profiled += run(seed)
         profiler.disable()
-    plain = sum(run(s) for s in seeds)
     stats = pstats.Stats(profiler).stats
     advance = sum(v[2] for k, v in stats.items() if "AdvanceTo" in k[2])
     buckets = {key: round(sum(v[3] for k, v in stats.items()
                               if k[0].endswith(suffix) and k[2] == name) / len(seeds), 3)
                for key, (suffix, name) in OVERHEAD_BUCKETS.items()}
-    return {"trial_overhead_fraction": round(1.0 - advance / profiled, 3),
+    n = len(seeds)
+    return {"trial_overhead_fraction": round(1.0 - cpp / timed, 3),
+            "trial_overhead_fraction_profiled": round(1.0 - advance / profiled, 3),
             "trial_overhead_fraction_detail": {
-                "trials": len(seeds), "physics_profile": "fast",
-                "wall_s_per_trial": round(plain / len(seeds), 3),
-                "wall_s_per_trial_profiled": round(profiled / len(seeds), 3),
-                "advance_cpp_s_per_trial": round(advance / len(seeds), 3),
-                "python_s_per_trial": buckets}}
+                "trials": n, "physics_profile": "fast",
+                "wall_s_per_trial": round(timed / n, 3),
+                "advance_s_per_trial": round(clock.advance_s / n, 3),
+                "python_in_advance_s_per_trial": round(clock.callbacks_s / n, 3),
+                "advance_cpp_s_per_trial": round(cpp / n, 3),
+                "wall_s_per_trial_profiled": round(profiled / n, 3),
+                "advance_cpp_s_per_trial_profiled": round(advance / n, 3),
+                "python_s_per_trial_profiled": buckets}}

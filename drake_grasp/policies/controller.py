@@ -38,7 +38,8 @@ from drake_grasp.geometry.hand_model import (
     STROKE_M,
 )
 from drake_grasp.policies.controller_state import (MOTION_PHASE, ControllerState,
-                                                   Phase, hand_pose_memo, hand_to_pose)
+                                                   Phase, hand_pose_memo, hand_segment_pose,
+                                                   hand_to_pose)
 from drake_grasp.policies.decisions import (
     grasp_height,
     heights_in_hand_box,
@@ -49,7 +50,6 @@ from drake_grasp.policies.decisions import (
 from drake_grasp.config.scenario import Scenario
 from drake_grasp.systems.supervisor import (
     grasp_motion_next,
-    interpolate_pose,
     min_jerk,
     motion_phase_code,
 )
@@ -294,25 +294,21 @@ class GraspController(LeafSystem):
         if s.phase == Phase.START:
             return hand_pose_memo(tuple(self._start))
         if s.phase in (Phase.VIEW, Phase.APPROACH):
-            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
-                                    hand_pose_memo(tuple(s.hand)),
-                                    min_jerk(elapsed / m.approach_time_s))
+            return hand_segment_pose(tuple(s.segment_from), tuple(s.hand),
+                                     min_jerk(elapsed / m.approach_time_s))
         if s.phase == Phase.SERVO:
             # Move to the new target within one control period.
-            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
-                                    hand_pose_memo(tuple(s.hand)),
-                                    min_jerk(elapsed / (0.8 * self._period)))
+            return hand_segment_pose(tuple(s.segment_from), tuple(s.hand),
+                                     min_jerk(elapsed / (0.8 * self._period)))
         if s.phase == Phase.DESCEND:
-            return interpolate_pose(hand_pose_memo(tuple(s.segment_from)),
-                                    hand_pose_memo(tuple(s.grasp)),
-                                    min_jerk(elapsed / m.descend_time_s))
+            return hand_segment_pose(tuple(s.segment_from), tuple(s.grasp),
+                                     min_jerk(elapsed / m.descend_time_s))
         if s.phase == Phase.CLOSE:
             return hand_pose_memo(tuple(s.grasp))
         if s.phase == Phase.LIFT:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
-            return interpolate_pose(hand_pose_memo(tuple(s.grasp)),
-                                    hand_pose_memo(tuple(lifted)),
-                                    min_jerk(elapsed / m.lift_time_s))
+            return hand_segment_pose(tuple(s.grasp), tuple(lifted),
+                                     min_jerk(elapsed / m.lift_time_s))
         if s.grasp is not None:
             lifted = (s.grasp[0], s.grasp[1], s.grasp[2] + m.lift_height_m, s.grasp[3])
             return hand_pose_memo(tuple(lifted))

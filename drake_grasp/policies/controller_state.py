@@ -13,6 +13,7 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_grasp.geometry.hand_model import topdown_rotation
@@ -91,6 +92,33 @@ def hand_pose_memo(hand: tuple) -> RigidTransform:
     """`hand_to_pose` memoized for `_CalcPose`, which runs at every plant step with the
     same few segment end points. The result is shared: read it, never modify it."""
     return hand_to_pose(hand)
+
+
+@functools.lru_cache(maxsize=32)
+def _segment_ends(a: tuple, b: tuple) -> tuple:
+    """The end points of a move from hand `a` to hand `b`, as `interpolate_pose` uses them:
+    positions, and quaternions on the same hemisphere."""
+    X_a, X_b = hand_pose_memo(a), hand_pose_memo(b)
+    qa, qb = X_a.rotation().ToQuaternion(), X_b.rotation().ToQuaternion()
+    if np.dot(qa.wxyz(), qb.wxyz()) < 0.0:
+        qb = Quaternion(-qb.wxyz())
+    return X_a.translation(), X_b.translation(), qa, qb
+
+
+def hand_segment_pose(a: tuple, b: tuple, s: float) -> RigidTransform:
+    """`supervisor.interpolate_pose(hand_pose_memo(a), hand_pose_memo(b), s)`, the same
+    arithmetic on end points memoized for `_CalcPose` (every plant step); at s = 0 or 1
+    (before or after the move) the pose itself is memoized. Shared: never modify it."""
+    if s == 0.0 or s == 1.0:
+        return _segment_end(a, b, s)
+    pa, pb, qa, qb = _segment_ends(a, b)
+    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), (1.0 - s) * pa + s * pb)
+
+
+@functools.lru_cache(maxsize=32)
+def _segment_end(a: tuple, b: tuple, s: float) -> RigidTransform:
+    pa, pb, qa, qb = _segment_ends(a, b)
+    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), (1.0 - s) * pa + s * pb)
 
 
 def pose_to_hand(X_WG) -> tuple:
