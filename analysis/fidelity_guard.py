@@ -33,10 +33,10 @@ def _parse_profile(profile: str) -> tuple[str, str, str]:
 
 
 def _scene_task(args) -> dict:
-    record, profile, out_file, force_mode, close = args
+    record, profile, out_file, force_mode, close, shake_axes = args
     import numpy as np
 
-    from drake_grasp.evaluation.lab import LabConfig, check_grasp
+    from drake_grasp.evaluation.lab import LabConfig, check_grasps
     from drake_grasp.objects import load_library
     from drake_grasp.core.files import atomic_write_text
     from drake_grasp.config.scenario import load_scenario
@@ -53,15 +53,20 @@ def _scene_task(args) -> dict:
     library = load_library(None)
     scene = SceneSpec.from_dict(record["scene"])
     t0 = time.perf_counter()
-    lab = LabConfig(close_settle_s=None) if close == "fixed" else LabConfig()
+    options = {} if shake_axes is None else {"shake_axes": tuple(shake_axes)}
+    lab = (LabConfig(close_settle_s=None, **options) if close == "fixed"
+           else LabConfig(**options))
+    # One lab Diagram for the scene, reused by its checks (each in a fresh Context).
+    results = check_grasps(None, [np.asarray(c["X_WG"]) for c in record["checks"]],
+                           scene=scene, scenario=scenario, library=library, lab=lab,
+                           object_indices=[c["object_index"] for c in record["checks"]],
+                           neighbours=True)
     checks = []
-    for c in record["checks"]:
-        r = check_grasp(None, np.asarray(c["X_WG"]), scene=scene, scenario=scenario,
-                        library=library, object_index=c["object_index"], neighbours=True,
-                        lab=lab)
+    for c, r in zip(record["checks"], results):
         checks.append({"kind": c["kind"], "category": c["category"], "held": bool(r.held),
                        "failure": r.failure, "recorded_held": bool(c["held"]),
-                       "sim_time_s": r.details["sim_time_s"]})
+                       "sim_time_s": r.details["sim_time_s"],
+                       "shake_failed_after": r.details.get("shake_failed_after", "")})
     out = {"scene_index": record["scene_index"], "profile": profile, "checks": checks,
            "wall_s": round(time.perf_counter() - t0, 2)}
     atomic_write_text(out_file, json.dumps(out))
@@ -119,6 +124,12 @@ def main(argv=None) -> int:
                    help="the lab's closing phase: ends once the grasp has settled (the "
                         "default, `LabConfig.close_settle_s`) or lasts the fixed `close_s` "
                         "(every check before 2026-11-25)")
+    p.add_argument("--shake-axes", default=None,
+                   help="comma-separated shake segments in order (LabConfig.shake_axes, from "
+                        "x,y,z,yaw,pitch,roll; default: LabConfig's)")
+    p.add_argument("--scene-list", default=None,
+                   help="comma-separated scene indices among the first --scenes: only these "
+                        "(default: all)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--out", required=True, help="results folder (re-running resumes)")
     args = p.parse_args(argv)
@@ -135,6 +146,7 @@ def main(argv=None) -> int:
     if bad:
         raise SystemExit(f"--profiles: unknown contact approximation in {bad}; "
                          f"expected one of {APPROXIMATIONS}")
+    shake_axes = None if args.shake_axes is None else [a for a in args.shake_axes.split(",") if a]
     src, out = Path(args.label_check), Path(args.out)
     records = read_records(src, args.scenes)  # its scenes/*.json or scenes.parquet
     have = {r["scene_index"] for r in records}
@@ -142,6 +154,11 @@ def main(argv=None) -> int:
     if missing:
         raise SystemExit(f"{src}: no record of scene {missing[0]} (expected {args.scenes} "
                          "scene records)")
+    if args.scene_list:
+        wanted = {int(x) for x in args.scene_list.split(",") if x}
+        if not wanted <= have:
+            raise SystemExit(f"--scene-list: no record of scenes {sorted(wanted - have)}")
+        records = [r for r in records if r["scene_index"] in wanted]
     names = [f"scene-{r['scene_index']:05d}.json" for r in records]
     todo = []
     for profile in profiles:
@@ -149,9 +166,9 @@ def main(argv=None) -> int:
         for r, name in zip(records, names):
             target = out / profile / name
             if not target.is_file():
-                todo.append((r, profile, str(target), args.force_mode, args.close))
-    print(f"{len(todo)} scene checks to run ({args.scenes} scenes x {len(profiles)} profiles, "
-          f"{args.scenes * len(profiles) - len(todo)} done)", flush=True)
+                todo.append((r, profile, str(target), args.force_mode, args.close, shake_axes))
+    print(f"{len(todo)} scene checks to run ({len(records)} scenes x {len(profiles)} profiles, "
+          f"{len(records) * len(profiles) - len(todo)} done)", flush=True)
     t0 = time.perf_counter()
     if todo:
         import multiprocessing as mp
@@ -165,8 +182,9 @@ def main(argv=None) -> int:
                for profile in profiles}
     summary = summarize(results)
     summary.update({"label_check": str(src), "scenes": args.scenes,
+                    "scene_list": args.scene_list or "all",
                     "force_mode": args.force_mode or "scenario default",
-                    "close": args.close,
+                    "close": args.close, "shake_axes": args.shake_axes or "LabConfig's",
                     "wall_s_this_call": round(time.perf_counter() - t0, 1),
                     "date": time.strftime("%Y-%m-%d")})
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))

@@ -56,9 +56,8 @@ class LabelCheckConfig:
     # grasps checked are labelled with.
     max_torque_ratio: float = MAX_TORQUE_RATIO
     # The objects' orientation before the settle (`dataset.DatasetConfig.initial_pose`,
-    # `label-check --initial-pose`): "stable" as `generate` now samples, "uniform" as the
-    # runs made before 2026-12-07 (those folders resume with it).
-    initial_pose: str = "stable"
+    # `label-check --initial-pose`), as `generate` samples it.
+    initial_pose: str = "uniform"
 
     def dataset_config(self):
         """The `dataset.DatasetConfig` this check samples and labels with."""
@@ -88,7 +87,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
     """
     from drake_grasp.learning.dataset import sample_dataset_scene
     from drake_grasp.geometry.grasps import find_grasps
-    from drake_grasp.evaluation.lab import check_grasp
+    from drake_grasp.evaluation.lab import scene_labs
     from drake_grasp.world.scene import settle_scene
 
     dataset_config = (dataset_config if dataset_config is not None
@@ -122,6 +121,9 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
         raise RuntimeError(f"scene {scene_index}: no settled scene with a true grasp in "
                            f"{dataset_config.max_attempts_per_scene} seeds")
     pick = np.random.default_rng([s_seed, 53])
+    # The scene's lab Diagram, built once and reused by its checks (each a fresh Context).
+    labs = scene_labs(spec, scenario=scenario, library=library, lab=lab,
+                      neighbours=config.neighbours)
     checks = []
     for kind, grasps, count in (("accepted", accepted, config.grasps_per_scene),
                                 ("rejected", rejected, config.rejected_per_scene)):
@@ -129,9 +131,7 @@ def check_scene(scene_index: int, *, seed: int, scenario, library, config: Label
                   if len(grasps) else [])
         for i in sorted(int(c) for c in chosen):
             index = int(grasps.object_index[i])
-            result = check_grasp(None, grasps.poses[i], scene=spec, scenario=scenario,
-                                 library=library, lab=lab, object_index=index,
-                                 neighbours=config.neighbours)
+            result = labs(index).check(grasps.poses[i], object_index=index)
             object_id = spec.objects[index].object_id
             checks.append({
                 "kind": kind, "grasp_index": i, "object_index": index,
@@ -168,7 +168,7 @@ def _identity(*, seed, scenario, library, config, lab) -> dict:
     from drake_grasp.config.scenario import dump_scenario
 
     # initial_pose enters through the dataset's identity (left out there at "uniform"), so
-    # that the folders made before it resume with `--initial-pose uniform`.
+    # that the folders made before it resume.
     label_check = {k: v for k, v in dataclasses.asdict(config).items() if k != "initial_pose"}
     return {"format": FORMAT, "seed": int(seed), "scenario": dump_scenario(scenario),
             "label_check": label_check, "lab": dataclasses.asdict(lab),
