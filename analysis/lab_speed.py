@@ -33,7 +33,7 @@ library = load_library(None)
 rng = np.random.default_rng(BENCH_SEED)
 scene = isolated_scene("can_000", library, lying=True)
 found = find_grasps(scene, library, rng)
-chosen = rng.choice(len(found), size=min(6, len(found)), replace=False)
+chosen = rng.choice(len(found), size=min(6, len(found)), replace=False)[:GRASPS]
 scenario = load_scenario(physics_profile="")
 """
 
@@ -54,16 +54,24 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=2, help="alternated rounds (default 2)")
     p.add_argument("--old-tree", default=None,
                    help="a checkout of an earlier commit whose check_grasps is timed too")
+    p.add_argument("--grasps", type=int, default=6,
+                   help="the first N of the bench's six grasps (default 6)")
+    p.add_argument("--variants", default="rebuild_six,reuse_six,rebuild_five,reuse_five",
+                   help="comma-separated variants to time, in this order in each round")
     p.add_argument("--out", required=True, help="JSON file to write")
     args = p.parse_args(argv)
 
-    namespace: dict = {}
+    namespace: dict = {"GRASPS": args.grasps}
     exec(_SETUP, namespace)  # the bench's scene, grasps and scenario
     from drake_grasp.core.files import atomic_write_text
     from drake_grasp.evaluation.lab import SHAKE_AXES, LabConfig, check_grasps
 
-    variants = {"rebuild_six": (False, SHAKE_AXES), "reuse_six": (True, SHAKE_AXES),
-                "rebuild_five": (False, None), "reuse_five": (True, None)}
+    known = {"rebuild_six": (False, SHAKE_AXES), "reuse_six": (True, SHAKE_AXES),
+             "rebuild_five": (False, None), "reuse_five": (True, None)}
+    names = [v for v in args.variants.split(",") if v]
+    if not set(names) <= set(known):
+        raise SystemExit(f"--variants: expected names from {sorted(known)}, got {names}")
+    variants = {k: known[k] for k in names}
     n = namespace
     runs: dict[str, list] = {k: [] for k in variants}
     if args.old_tree:
@@ -82,11 +90,15 @@ def main(argv=None) -> int:
             runs[name].append({"wall_s": time.perf_counter() - t0,
                                "held": [bool(r.held) for r in results],
                                "sim_s": [r.details["sim_time_s"] for r in results]})
+            print(name, json.dumps(runs[name][-1]), os.getloadavg(), flush=True)
         if args.old_tree:
+            # Run from the old tree: "python -c" puts the working folder first on sys.path.
             env = dict(os.environ, PYTHONPATH=args.old_tree)
-            done = subprocess.run([sys.executable, "-c", _OLD], env=env, check=True,
+            done = subprocess.run([sys.executable, "-c", f"GRASPS = {args.grasps}\n" + _OLD],
+                                  env=env, check=True, cwd=args.old_tree,
                                   capture_output=True, text=True)
             runs["old_code"].append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print("old_code", json.dumps(runs["old_code"][-1]), os.getloadavg(), flush=True)
     checks = len(n["chosen"])
     summary = {name: {"checks_per_s": [round(checks / r["wall_s"], 3) for r in rs],
                       "held": rs[0]["held"], "sim_s_per_check": round(sum(rs[0]["sim_s"]) / checks, 3)}
