@@ -171,7 +171,9 @@ def _identity(*, seed, scenario, library, config, lab) -> dict:
     # that the folders made before it resume.
     label_check = {k: v for k, v in dataclasses.asdict(config).items() if k != "initial_pose"}
     return {"format": FORMAT, "seed": int(seed), "scenario": dump_scenario(scenario),
-            "label_check": label_check, "lab": dataclasses.asdict(lab),
+            "label_check": label_check,
+            # In run.json's JSON form (shake_axes a list), so a resumed run compares equal.
+            "lab": {**dataclasses.asdict(lab), "shake_axes": list(lab.shake_axes)},
             "dataset": config.dataset_config().identity(),
             "object_library_hash": library.content_hash(), "code_version": code_version()}
 
