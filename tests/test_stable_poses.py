@@ -67,10 +67,11 @@ def test_same_seed_same_scene_and_the_setting(library):
     assert a.to_dict() == b.to_dict()
     uniform = sample_dataset_scene(scenario, **kw)  # the sampler's own default: uniform
     assert uniform.object_ids() == a.object_ids() and uniform.to_dict() != a.to_dict()
-    # The dataset's default is stable; datasets made before it (uniform) keep their identity.
-    assert DatasetConfig().initial_pose == "stable"
-    assert DatasetConfig().identity()["initial_pose"] == "stable"
-    assert "initial_pose" not in DatasetConfig(initial_pose="uniform").identity()
+    # The dataset's default stays uniform, with the identity it always had; stable is
+    # another dataset.
+    assert DatasetConfig().initial_pose == "uniform"
+    assert "initial_pose" not in DatasetConfig().identity()
+    assert DatasetConfig(initial_pose="stable").identity()["initial_pose"] == "stable"
     with pytest.raises(ValueError, match="initial_pose.*'tumbling'"):
         DatasetConfig(initial_pose="tumbling").validate()
     with pytest.raises(ValueError, match="initial_pose.*'tumbling'"):

@@ -96,11 +96,12 @@ def add_initial_pose_flag(p) -> None:
 
     default = DatasetConfig().initial_pose
     p.add_argument("--initial-pose", choices=list(INITIAL_POSES), default=default,
-                   help="the objects' orientation before the settle: stable, a resting pose "
-                   "of each object drawn with its probability and a random yaw (default "
-                   f"{default}); uniform, a uniformly random rotation that tumbles when "
-                   "dropped (the datasets and label checks made before 2026-12-07: give it "
-                   "to resume or reproduce them)")
+                   help="the objects' orientation before the settle: uniform, a uniformly "
+                   "random rotation that tumbles when dropped (every dataset and label check "
+                   "so far); stable, a resting pose of each object drawn with its "
+                   "probability and a random yaw: faster, fewer scenes replaced, label "
+                   f"precision still being measured (default {default}; docs/guide/"
+                   "data-training.md *Stable initial poses*)")
 
 
 def add_torque_ratio_flag(p) -> None:

@@ -9,8 +9,8 @@ Keys:
     depth_frame_ms: render + post-process one 64x64 wrist depth frame (median).
     labels_per_s: dataset generation, 2 workers, paper settings, start-up included;
         labels_per_s_sustained: the same run without each worker's first task (the rate
-        of a long run); `_uniform`: the same with the earlier uniform initial poses, in
-        the same call.
+        of a long run); `_stable`: the same with stable initial poses
+        (`DatasetConfig.initial_pose`), in the same call.
     gpd_detect_s_isolation / _clutter5: the GPD baseline's one decision (image -> grasp).
     cnn: cnn_infer_ms_128 / cnn_infer_direct_ms_128 (one image, 128 actions),
         train_samples_per_s / train_direct_samples_per_s (2 threads).
@@ -216,11 +216,11 @@ def bench_labels_per_s(num_scenes: int = 24, workers: int = 2) -> dict:
     """Dataset generation rate with 2 local workers, paper settings (40 images x 10
     offsets per scene): labels / wall time of the whole command (worker start-up
     included), plus the worker seconds spent in each stage (where the time goes) and the
-    scene attempts thrown away. The default stable initial poses (`labels_per_s`) and the
-    earlier uniform ones (`labels_per_s_uniform`) side by side in one call, the same
-    scenes; the stable poses' cache (`objects.stable_poses`) as this machine has it."""
+    scene attempts thrown away. The default uniform initial poses (`labels_per_s`) and the
+    stable ones (`labels_per_s_stable`) side by side in one call, the same scenes; the
+    stable poses' cache (`objects.stable_poses`) as this machine has it."""
     out = {}
-    for pose, key in (("uniform", "labels_per_s_uniform"), ("stable", "labels_per_s")):
+    for pose, key in (("uniform", "labels_per_s"), ("stable", "labels_per_s_stable")):
         run = _labels_run(pose, num_scenes, workers)
         out[key], out[f"{key}_sustained"] = run["rate"], run["sustained"]
         out[f"{key}_detail"] = run["detail"]
@@ -495,8 +495,8 @@ PRINTED_KEYS: dict[str, tuple[str, ...]] = {
                      "rtf_clutter5_reference_detail", "rtf_clutter5_speedup"),
     "depth_frame_ms": ("depth_frame_ms",),
     "labels_per_s": ("labels_per_s", "labels_per_s_sustained", "labels_per_s_detail",
-                     "labels_per_s_uniform", "labels_per_s_uniform_sustained",
-                     "labels_per_s_uniform_detail"),
+                     "labels_per_s_stable", "labels_per_s_stable_sustained",
+                     "labels_per_s_stable_detail"),
     "cnn": ("cnn_infer_ms_128", "cnn_infer_direct_ms_128", "cnn_infer_speedup",
             "train_samples_per_s", "train_direct_samples_per_s", "train_speedup",
             "cnn_ip1_gflops_infer", "cnn_ip1_gflops_train"),
