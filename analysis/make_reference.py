@@ -44,9 +44,10 @@ COMMAND = "python analysis/make_reference.py"
 # (folder under analysis/results/, condition). Table 1: CTR and GPD (with its fallback; GPD
 # does not use the CNN) on Table 1's seeds, re-run with the package after the layout
 # refactor, whose start height comes from the wrist camera (layout-2026-12-07/). Figure 5:
-# the CTR and perception arms with the default CNN (models/cnn-grid-bn12500-ep3/) before
-# the layout refactor, GPD's with the fallback, INIT (no motion, no policy) from the first
-# 400-trial run.
+# the left panel's five arms (INIT, CTR and GPD with and without kinematic noise) from one
+# run at one code version (figure5-2026-12-07/, 4e97cd8a1, the default CNN
+# models/cnn-grid-bn12500-ep3/); the right panel's two arms (the CNN's one shot, CNN +
+# CTR) from one run with the same CNN before the layout refactor (paper-bn12500-ep3/).
 TABLE1 = {
     "isolation": {"ctr": ("layout-2026-12-07/isolation", "ctr"),
                   "gpd": ("layout-2026-12-07/isolation", "gpd")},
@@ -56,11 +57,11 @@ TABLE1 = {
                       "gpd": ("layout-2026-12-07/clutter-shift", "gpd")},
 }
 FIGURE5 = {
-    "init": ("paper-grid/sim-distance", "init"),
-    "ctr": ("paper-bn12500-ep3/sim-distance-ctr-seed0", "ctr"),
-    "ctr_noise": ("paper-bn12500-ep3/simdist-noise-400-seed0", "ctr_noise"),
-    "gpd": ("gpd-fallback/sim-distance-gpd-seed0", "gpd"),
-    "gpd_noise": ("gpd-fallback/sim-distance-gpd-seed0", "gpd_noise"),
+    "init": ("figure5-2026-12-07/sim-distance", "init"),
+    "ctr": ("figure5-2026-12-07/sim-distance", "ctr"),
+    "ctr_noise": ("figure5-2026-12-07/sim-distance", "ctr_noise"),
+    "gpd": ("figure5-2026-12-07/sim-distance", "gpd"),
+    "gpd_noise": ("figure5-2026-12-07/sim-distance", "gpd_noise"),
     "cnn-only": ("paper-bn12500-ep3/perception", "cnn-only"),
     "cnn-ctr": ("paper-bn12500-ep3/perception", "cnn-ctr"),
 }
@@ -96,6 +97,9 @@ COMMANDS = {
         "drake-grasp evaluate --experiment clutter-shift --conditions gpd --workers 2 --seed 8 --gpd-fallback --out clutter-shift-seed8-gpd-fallback"],
     "gpd-fallback/sim-distance-gpd-seed0": [
         "drake-grasp evaluate --experiment sim-distance --conditions gpd,gpd_noise --trials 400 --workers 2 --seed 0 --gpd-fallback --out sim-distance-gpd-seed0"],
+    "figure5-2026-12-07/sim-distance": [
+        "drake-grasp evaluate --experiment sim-distance --trials 400 --seed 0 --workers 2 "
+        "--out figure5-2026-12-07/sim-distance (from a worktree of 4e97cd8a1; README there)"],
     "paper-grid/sim-distance": [
         "drake-grasp evaluate --experiment sim-distance --workers 2 --seed 0 --out paper-grid/sim-distance "
         "(begun at 0.1.0+tree.95a84cd6aba7 and resumed from a worktree of 9ab6fd4; README there)"],
