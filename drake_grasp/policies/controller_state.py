@@ -105,20 +105,19 @@ def _segment_ends(a: tuple, b: tuple) -> tuple:
     return X_a.translation(), X_b.translation(), qa, qb
 
 
+def _segment_pose(a: tuple, b: tuple, s: float) -> RigidTransform:
+    pa, pb, qa, qb = _segment_ends(a, b)
+    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), (1.0 - s) * pa + s * pb)
+
+
+_segment_end = functools.lru_cache(maxsize=32)(_segment_pose)
+
+
 def hand_segment_pose(a: tuple, b: tuple, s: float) -> RigidTransform:
     """`supervisor.interpolate_pose(hand_pose_memo(a), hand_pose_memo(b), s)`, the same
     arithmetic on end points memoized for `_CalcPose` (every plant step); at s = 0 or 1
     (before or after the move) the pose itself is memoized. Shared: never modify it."""
-    if s == 0.0 or s == 1.0:
-        return _segment_end(a, b, s)
-    pa, pb, qa, qb = _segment_ends(a, b)
-    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), (1.0 - s) * pa + s * pb)
-
-
-@functools.lru_cache(maxsize=32)
-def _segment_end(a: tuple, b: tuple, s: float) -> RigidTransform:
-    pa, pb, qa, qb = _segment_ends(a, b)
-    return RigidTransform(RotationMatrix(qa.slerp(s, qb)), (1.0 - s) * pa + s * pb)
+    return _segment_end(a, b, s) if s == 0.0 or s == 1.0 else _segment_pose(a, b, s)
 
 
 def pose_to_hand(X_WG) -> tuple:
