@@ -12,6 +12,7 @@ from drake_grasp.evaluation.episode import simulate_episode
 from drake_grasp.evaluation.records import GRASP_FAILURES
 from drake_grasp.config.scenario import load_scenario
 from drake_grasp.config.sections import JudgeConfig
+from drake_grasp.policies.decisions import SENSOR_POLICIES
 from drake_grasp.systems.judge import GraspJudge
 from drake_grasp.systems.supervisor import motion_phase_code
 
@@ -194,7 +195,7 @@ def _systems_reading(diagram, names=PRIVILEGED) -> set[str]:
     return out
 
 
-@pytest.mark.parametrize("policy", ["ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init"])
+@pytest.mark.parametrize("policy", SENSOR_POLICIES)
 def test_no_controller_policy_has_privileged_ports(policy):
     from drake_grasp.world.station import gripper_frame_offsets, topdown_pose
     from drake_grasp.policies.controllers import make_controller

@@ -60,10 +60,11 @@ def _parser_demo(sub) -> None:
                                     "replay.html and depth.png")
     add_scenario_flags(p)
     p.add_argument("--policy", default=None, type=policy_arg,
-                   metavar="{ctr,gpd,gpd-geometric,cnn-only,cnn-ctr,init,scripted,MODULE:FACTORY}",
+                   metavar="{ctr,gpd,gpd-track,gpd-geometric,cnn-only,cnn-ctr,init,scripted,MODULE:FACTORY}",
                    help="ctr: the paper's closed-loop controller (shipped CNN); gpd: the "
                         "paper's baseline: learned GPD on one image from the Structure-IO-like "
                         "sensor at a fixed viewpoint, a 6-DOF grasp executed open loop; "
+                        "gpd-track: gpd's grasp, followed in the wrist camera on the way down; "
                         "gpd-geometric: the older hand-tuned geometric score on the 64x64 "
                         "wrist image at the start, top-down, open loop; cnn-only: the CNN's "
                         "global best action, open loop; cnn-ctr: cnn-only then ctr; init: no "

@@ -29,9 +29,9 @@ from drake_grasp.config.scenario_checks import (
 )
 from drake_grasp.config.sections import (
     CONTROLLER_PROFILES, PHYSICS_PROFILES, POLICIES, ArmConfig, CalibrationConfig,
-    ControllerConfig, DisturbanceConfig, FailureMemoryConfig, GpdConfig, GripperConfig,
-    JudgeConfig, NoiseConfig, PhysicsConfig, SceneConfig, ScriptedGraspConfig, TimingConfig,
-    WristCameraConfig, _default_plant,
+    ControllerConfig, DisturbanceConfig, FailureMemoryConfig, GpdConfig, GpdTrackConfig,
+    GripperConfig, JudgeConfig, NoiseConfig, PhysicsConfig, SceneConfig, ScriptedGraspConfig,
+    TimingConfig, WristCameraConfig, _default_plant,
 )
 from drake_grasp.geometry.sensing import DepthNoiseConfig
 
@@ -49,6 +49,7 @@ class Scenario:
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     camera: WristCameraConfig = field(default_factory=WristCameraConfig)
     gpd: GpdConfig = field(default_factory=GpdConfig)
+    gpd_track: GpdTrackConfig = field(default_factory=GpdTrackConfig)
     depth_noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     gripper: GripperConfig = field(default_factory=GripperConfig)
     arm: ArmConfig = field(default_factory=ArmConfig)

@@ -52,6 +52,17 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "gpd.view_camera_height_m": (0, _INF, True, True, "m"),
     "gpd.view_settle_s": (0, _INF, False, True, "s"),
     "gpd.approach_max_tilt_deg": (0, 60, False, False, "deg"),
+    "gpd_track.template_half_m": (0, 0.5, True, False, "m"),
+    "gpd_track.search_m": (0, 0.5, True, False, "m"),
+    "gpd_track.yaw_range_deg": (0, 180, False, False, "deg"),
+    "gpd_track.yaw_step_deg": (0, 90, True, False, "deg"),
+    "gpd_track.cell_m": (0, 0.05, True, False, "m"),
+    "gpd_track.min_overlap": (0, 1, False, False, ""),
+    "gpd_track.step_max_m": (0, 0.2, True, False, "m"),
+    "gpd_track.step_max_yaw_deg": (0, 90, True, False, "deg"),
+    "gpd_track.settled_m": (0, _INF, False, True, "m"),
+    "gpd_track.settled_iterations": (1, 1000, False, False, ""),
+    "gpd_track.max_iterations": (1, 10000, False, False, ""),
     # Robotiq 2F-85 datasheet: 20-235 N; lower forces are allowed for slip studies.
     "gripper.grip_force_n": (0, 235, True, False, "N"),
     "gripper.closing_speed_m_s": (0, _INF, True, True, "m/s"),
@@ -126,7 +137,8 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
 _INTEGER_KEYS = {"seed", "camera.width", "camera.height", "scene.num_objects_min",
                  "scene.num_objects_max", "scene.clutter_objects", "controller.iterations",
                  "controller.num_candidates", "controller.global_candidates",
-                 "controller.torch_threads", "disturbance.after_iterations"}
+                 "controller.torch_threads", "disturbance.after_iterations",
+                 "gpd_track.settled_iterations", "gpd_track.max_iterations"}
 _CHOICES: dict[str, tuple[str, ...]] = {
     "scene.kind": SCENE_KINDS,
     "noise.kind": NOISE_KINDS,

@@ -14,7 +14,8 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 from drake_grasp.geometry.sensing import DepthNoiseConfig
 
 SCENE_KINDS = ("isolation", "random", "clutter")
-POLICIES = ("scripted", "ctr", "gpd", "gpd-geometric", "cnn-only", "cnn-ctr", "init")
+POLICIES = ("scripted", "ctr", "gpd", "gpd-track", "gpd-geometric", "cnn-only", "cnn-ctr",
+            "init")
 NOISE_KINDS = ("none", "gaussian", "offset")
 DISTURBANCE_KINDS = ("none", "shift", "moving")
 
@@ -89,6 +90,36 @@ class GpdConfig:
     # grasped 89.7% there, the paper's GPD 94.8% (README, *Remembering failed grasps;
     # GPD's fallback*); false is the strict-threshold GPD of the earlier records.
     fallback_best: bool = True
+
+
+@dataclass
+class GpdTrackConfig:
+    """gpd-track: GPD's grasp from its viewpoint, followed in the wrist camera on the way
+    down (`drake_grasp.policies.gpd_track`). Every control period the wrist image is
+    registered against the GPD image around the grasp (`policies.scene_tracking`), the
+    grasp moved with the scene, and the hand moved toward its pre-grasp."""
+
+    # Half side of the square around the grasp matched in each wrist image [m].
+    template_half_m: float = 0.07
+    # Largest translation searched per axis, and turn searched either side of the last
+    # estimate [m, deg], on a grid of `yaw_step_deg`.
+    search_m: float = 0.10
+    yaw_range_deg: float = 40.0
+    yaw_step_deg: float = 3.0
+    # Height-map cell of the fine search [m] (the coarse search's is twice that).
+    cell_m: float = 0.003
+    # A registration whose new view shares fewer of its cells with the GPD image is not
+    # used (the grasp keeps its last estimate).
+    min_overlap: float = 0.3
+    # Largest move of the hand per control period [m, deg].
+    step_max_m: float = 0.025
+    step_max_yaw_deg: float = 8.0
+    # The hand descends to the grasp once it is at the pre-grasp and the estimate has
+    # moved less than `settled_m` (the paper's metric, 1 mm per degree) for
+    # `settled_iterations` control periods in a row, or after `max_iterations`.
+    settled_m: float = 0.003
+    settled_iterations: int = 3
+    max_iterations: int = 60
 
 
 # `GripperConfig.force_mode`'s values (`systems.gripper.gripper_pd_target`).

@@ -15,6 +15,7 @@ import numpy as np
 
 from drake_grasp import __version__
 from drake_grasp.objects import load_library
+from drake_grasp.policies.decisions import GPD_POLICIES
 from drake_grasp.policies.plugins import is_policy_spec
 from drake_grasp.evaluation.records import classify_failure
 from drake_grasp.config.scenario import Scenario, dump_scenario
@@ -251,7 +252,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
         if distance is None and (mode == "close" or (mode == "done" and scenario.policy == "init")):
             distance = final_distance(plant, plant_context, station, scene, library, scenario.seed,
                                       num_samples=scenario.judge.distance_grasp_samples)
-        if detection is None and scenario.policy == "gpd":
+        if detection is None and scenario.policy in GPD_POLICIES:
             X_det = policy.get_controller_state(policy_context).outcome.get("gpd_detection")
             if X_det is not None:
                 detection = detection_check(_scene_now(plant, plant_context, station, scene),
@@ -305,6 +306,8 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  **({"policy_inputs": ed.user_policy_inputs}
                     if ed.user_policy_inputs is not None else {}),
                  **({"gpd_detection": detection} if detection is not None else {}),
+                 **({key: outcome[key] for key in ("tracked_motion", "tracked_rms_m",
+                                                   "registrations") if key in outcome}),
                  **({"camera_mount_error": _pose_dict(station.X_CC_actual)}
                     if scenario.calibration.active() else {}),
                  "judge": verdict.details},

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drake_grasp.objects import ObjectLibrary, visual_mesh
+from drake_grasp.policies.decisions import GPD_POLICIES
 from drake_grasp.policies.plugins import is_policy_spec
 from drake_grasp.config.scenario import Scenario
 from drake_grasp.world.scene import SceneSpec
@@ -138,9 +139,10 @@ def _geometric_detector(scenario: Scenario):
 
 
 def _detector(scenario: Scenario, detect_fn):
-    """The controller's detect_fn: the injected one, else gpd's learned detector
-    (`drake_grasp.policies.gpd.make_detector`) or gpd-geometric's; None for other policies."""
-    if detect_fn is not None or scenario.policy not in ("gpd", "gpd-geometric"):
+    """The controller's detect_fn: the injected one, else GPD's learned detector
+    (`drake_grasp.policies.gpd.make_detector`: gpd, gpd-track) or gpd-geometric's; None
+    for other policies."""
+    if detect_fn is not None or scenario.policy not in (*GPD_POLICIES, "gpd-geometric"):
         return detect_fn
     if scenario.policy == "gpd-geometric":
         return _geometric_detector(scenario)
@@ -390,7 +392,7 @@ def policy_image_ports(builder, scenario, station_diagram) -> dict:
         "depth": _sensor(builder, scenario, sd, "depth_image"),
         "label": _sensor(builder, scenario, sd, "label_image") if scenario.target else None,
         "gpd_depth": (_sensor(builder, scenario, sd, "gpd_depth_image")
-                      if scenario.policy == "gpd" else sd.GetOutputPort("gpd_depth_image")),
+                      if scenario.policy in GPD_POLICIES else sd.GetOutputPort("gpd_depth_image")),
     }
 
 

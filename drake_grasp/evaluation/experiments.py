@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drake_grasp.policies.decisions import CLOSED_LOOP_POLICIES, SENSOR_POLICIES
+from drake_grasp.policies.decisions import CLOSED_LOOP_POLICIES, GPD_POLICIES, SENSOR_POLICIES
 from drake_grasp.config.scenario import Scenario, apply_scenario_text, load_scenario
 
 
@@ -25,7 +25,7 @@ CNN_POLICIES = ("ctr", "cnn-only", "cnn-ctr")
 # The groups of conditions a scenario patch names (`ScenarioPatch.group`), by policy:
 # every condition, those that run the distance CNN, the closed-loop ones, GPD.
 PATCH_GROUPS = {"all": None, "cnn": CNN_POLICIES, "closed-loop": CLOSED_LOOP_POLICIES,
-                "gpd": ("gpd",)}
+                "gpd": GPD_POLICIES}
 
 
 @dataclass(frozen=True)

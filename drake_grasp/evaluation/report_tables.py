@@ -189,6 +189,9 @@ POLICY_SENSING = {
     "cnn-only": ("wrist depth camera (`camera`)", "one depth image at the start pose", "1"),
     "gpd": ("GPD sensor on the wrist (`gpd`), at a fixed viewpoint",
             "one depth image, the believed camera pose", "1"),
+    "gpd-track": ("GPD sensor on the wrist (`gpd`) at a fixed viewpoint, then the wrist "
+                  "depth camera (`camera`)", "one GPD image, then wrist depth images, the "
+                  "believed camera poses", "1 + one per control step"),
     "gpd-geometric": ("wrist depth camera (`camera`)",
                       "one depth image at the start pose, the believed camera pose", "1"),
     "scripted": ("none", "the object's true pose (privileged: a reference, not a policy)", "0"),
@@ -217,7 +220,8 @@ def _sensor_size(policy: str, scenario_yaml: str, cameras: tuple | None = None) 
     (`cameras`: the scenario keys of a user policy's sensors)."""
     if cameras is None:
         cameras = (() if POLICY_SENSING.get(policy, ("none",))[0] == "none"
-                   else ("gpd",) if policy == "gpd" else ("camera",))
+                   else ("gpd",) if policy == "gpd" else ("gpd", "camera") if policy == "gpd-track"
+                   else ("camera",))
     if not cameras or not scenario_yaml:
         return "-"
     try:

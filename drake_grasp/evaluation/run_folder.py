@@ -17,6 +17,7 @@ from pathlib import Path
 from drake_grasp.evaluation.experiments import (CNN_POLICIES, EXTRA_POLICIES, Condition, Experiment,
                                      condition_scenario, plugin_condition)
 from drake_grasp.core.provenance import code_tree, file_sha256
+from drake_grasp.policies.decisions import GPD_POLICIES
 
 
 _SEED_LINE = re.compile(r"^seed:[^\n]*$", re.MULTILINE)
@@ -48,7 +49,7 @@ def weights_path(scenario) -> str | None:
 def gpd_weights_path(scenario) -> str | None:
     """The GPD classifier weights file a scenario's policy loads (`gpd.weights`, "" = the
     shipped file), None for policies without it."""
-    if scenario.policy != "gpd":
+    if scenario.policy not in GPD_POLICIES:
         return None
     from drake_grasp.policies.gpd import default_weights_path
 

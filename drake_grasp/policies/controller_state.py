@@ -80,6 +80,9 @@ class ControllerState:
     converging: int = 0
     stop_near_m: float = 0.0
     calm: int = 0
+    # A policy's own memory between control periods, frozen like this state (gpd-track:
+    # its `gpd_track.Track`); None for the others.
+    memory: object = None
 
 
 def hand_to_pose(hand) -> RigidTransform:

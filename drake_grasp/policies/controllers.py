@@ -18,6 +18,7 @@ from drake_grasp.policies.controller import GraspController
 from drake_grasp.policies.controller_state import ControllerState, Phase
 from drake_grasp.policies.ctr import CTRController
 from drake_grasp.policies.detector_controllers import GeometricController, GPDController
+from drake_grasp.policies.gpd_track import GPDTrackController
 
 
 class InitController(GraspController):
@@ -31,8 +32,8 @@ class InitController(GraspController):
 
 
 CONTROLLERS: dict[str, type] = {cls.policy: cls for cls in (
-    CTRController, CNNOnlyController, CNNCTRController, GPDController, GeometricController,
-    InitController)}
+    CTRController, CNNOnlyController, CNNCTRController, GPDController, GPDTrackController,
+    GeometricController, InitController)}
 
 
 def make_controller(policy: str, *, scenario: Scenario, X_WG_start: RigidTransform,
@@ -45,8 +46,8 @@ def make_controller(policy: str, *, scenario: Scenario, X_WG_start: RigidTransfo
         policy: a key of `CONTROLLERS`.
         scenario, X_WG_start, X_GC, target_label: as `GraspController`.
         score_fn, score_needs_height: the CNN's scoring (cnn-only, cnn-ctr).
-        detect_fn: the detector (gpd, gpd-geometric).
-        X_GC_gpd: the GPD sensor in the grasp frame (gpd).
+        detect_fn: the detector (gpd, gpd-track, gpd-geometric).
+        X_GC_gpd: the GPD sensor in the grasp frame (gpd, gpd-track).
 
     Raises:
         ValueError: an unknown policy.

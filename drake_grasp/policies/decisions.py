@@ -23,7 +23,10 @@ CLOSED_LOOP_POLICIES = ("ctr", "cnn-ctr")
 # The built-in policies that act on the station's sensors alone: all of
 # `scenario.POLICIES` but `scripted`, which reads the true object poses. The bridge runs
 # these across a process boundary; `evaluate --conditions` may add them to an experiment.
-SENSOR_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-geometric", "init")
+SENSOR_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-track", "gpd-geometric", "init")
+# The policies that take GPD's one look from its sensor at the viewpoint (its classifier
+# weights, its image, its detection's record).
+GPD_POLICIES = ("gpd", "gpd-track")
 
 
 def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,
