@@ -371,7 +371,10 @@ def test_clutter_runs_attempts_per_run_and_how_they_ended(tmp_path):
         "attempts_per_run": {"mean": 8 / 3, "min": 2, "max": 4},
         "grasped_per_run_mean": 4 / 3,
         "run_ends": {"3 consecutive failed grasps": 1, "no objects left in view": 1,
-                     "unfinished": 1}}
+                     "unfinished": 1},
+        # the clutter-removal figures: no attempt found no grasp; no record holds its scene
+        "grasps_attempted": 8, "no_grasp_found": 0, "grasp_success_rate": 4 / 8,
+        "objects": None, "cleared": 4, "percent_cleared": None}
     assert st["trial_wall_time_s"] == {"sum": 210.0, "median": 20.0, "n": 9}
     md = (d / "report.md").read_text()
     assert ("| ctr | 3 | 8 | 2.7 (2-4) | 7.4 (74 in 10 runs) | 1.3 | 3 consecutive failed "

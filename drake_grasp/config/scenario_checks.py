@@ -58,6 +58,7 @@ _RANGES: dict[str, tuple[float, float, bool, bool, str]] = {
     "gpd_track.yaw_step_deg": (0, 90, True, False, "deg"),
     "gpd_track.cell_m": (0, 0.05, True, False, "m"),
     "gpd_track.min_overlap": (0, 1, False, False, ""),
+    "gpd_track.max_rms_m": (0, _INF, True, True, "m"),
     "gpd_track.step_max_m": (0, 0.2, True, False, "m"),
     "gpd_track.step_max_yaw_deg": (0, 90, True, False, "deg"),
     "gpd_track.settled_m": (0, _INF, False, True, "m"),

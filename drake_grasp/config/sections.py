@@ -13,7 +13,7 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 
 from drake_grasp.geometry.sensing import DepthNoiseConfig
 
-SCENE_KINDS = ("isolation", "random", "clutter")
+SCENE_KINDS = ("isolation", "random", "clutter", "packed")
 POLICIES = ("scripted", "ctr", "gpd", "gpd-track", "gpd-geometric", "cnn-only", "cnn-ctr",
             "init")
 NOISE_KINDS = ("none", "gaussian", "offset")
@@ -108,9 +108,11 @@ class GpdTrackConfig:
     yaw_step_deg: float = 3.0
     # Height-map cell of the fine search [m] (the coarse search's is twice that).
     cell_m: float = 0.003
-    # A registration whose new view shares fewer of its cells with the GPD image is not
-    # used (the grasp keeps its last estimate).
+    # A registration whose new view shares fewer of its cells with the GPD image, or
+    # whose heights differ from it by more than `max_rms_m` (root mean square, the mean
+    # difference taken out), is not used: the grasp keeps its last estimate.
     min_overlap: float = 0.3
+    max_rms_m: float = 0.02
     # Largest move of the hand per control period [m, deg].
     step_max_m: float = 0.025
     step_max_yaw_deg: float = 8.0
@@ -172,7 +174,8 @@ class SceneConfig:
     # Random scenes: number of objects drawn uniformly in [min, max].
     num_objects_min: int = 1
     num_objects_max: int = 5
-    # Clutter: number of objects poured into a pile, and how: "column" drops them from a
+    # Clutter (and packed scenes: the number standing side by side): number of objects
+    # poured into a pile, and how: "column" drops them from a
     # column (each above the last), "sequential" releases them one at a time just above
     # the pile (`scene.pour_scene`).
     clutter_objects: int = 5

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from drake_grasp.policies.decisions import NO_GRASP_FOUND
 from drake_grasp.evaluation.records import (FAILURE_CLASSES, TABLE_FILE, TrialRecord,
     load_records, read_run_info, wilson_interval)
 
@@ -30,6 +31,7 @@ CONDITION_LABELS = {
     "init": "INIT", "ctr": "CTR no noise", "ctr_noise": "CTR with noise",
     "gpd": "GPD no noise", "gpd_noise": "GPD with noise",
     "cnn-only": "CNN only", "cnn-ctr": "CNN+CTR",
+    "gpd-track": "GPD-track no noise", "gpd-track_noise": "GPD-track with noise",
 }
 # Spellings other modules or people may use for the same arms.
 _CONDITION_ALIASES = {
@@ -260,8 +262,13 @@ def clutter_runs(records: Sequence[TrialRecord]) -> dict | None:
     Returns:
         {"runs", "attempts" (simulation errors excluded, as in the success table),
         "attempts_per_run": {"mean", "min", "max"}, "grasped_per_run_mean",
-        "run_ends": {reason: runs}} - a run without an ending record (interrupted; a
-        resume finishes it) counts as "unfinished".
+        "run_ends": {reason: runs}, and the clutter-removal protocol's two figures:
+        "grasp_success_rate" (grasped over attempted grasps: an attempt in which the
+        policy found no grasp is not one) and "percent_cleared" (objects grasped over the
+        objects the runs started with, from each run's first attempt's scene; None when
+        no record holds it), with "grasps_attempted", "no_grasp_found", "objects",
+        "cleared"} - a run without an ending record (interrupted; a resume finishes it)
+        counts as "unfinished".
     """
     by_run: dict[int, list[TrialRecord]] = {}
     for r in records:
@@ -270,19 +277,29 @@ def clutter_runs(records: Sequence[TrialRecord]) -> dict | None:
         by_run.setdefault(int(r.run_index), []).append(r)
     if not by_run:
         return None
-    attempts, grasped, ends = [], [], {}
+    attempts, grasped, ends, started, none_found = [], [], {}, [], 0
     for recs in by_run.values():
         real = [r for r in recs if r.failure_class != "simulation-error"]
         attempts.append(len(real))
         grasped.append(sum(1 for r in real if r.success))
+        none_found += sum(1 for r in real if r.failure_reason == NO_GRASP_FOUND)
         end = next((r.extra["run_end"] for r in recs if (r.extra or {}).get("run_end")),
                    "unfinished")
         ends[end] = ends.get(end, 0) + 1
+        first = min(recs, key=lambda r: r.attempt_index or 0)
+        scene = (first.extra or {}).get("scene")
+        started.append(len(scene.get("objects", [])) if isinstance(scene, dict) else None)
+    tried = sum(attempts) - none_found
+    objects = None if None in started else sum(started)
     return {"runs": len(by_run), "attempts": sum(attempts),
             "attempts_per_run": {"mean": statistics.fmean(attempts), "min": min(attempts),
                                  "max": max(attempts)},
             "grasped_per_run_mean": statistics.fmean(grasped),
-            "run_ends": dict(sorted(ends.items(), key=lambda kv: (-kv[1], kv[0])))}
+            "run_ends": dict(sorted(ends.items(), key=lambda kv: (-kv[1], kv[0]))),
+            "grasps_attempted": tried, "no_grasp_found": none_found,
+            "grasp_success_rate": sum(grasped) / tried if tried else None,
+            "objects": objects, "cleared": sum(grasped),
+            "percent_cleared": (100.0 * sum(grasped) / objects) if objects else None}
 
 
 def median_interval(values: Sequence[float], z: float = 1.959964) -> list[float] | None:

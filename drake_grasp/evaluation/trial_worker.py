@@ -25,6 +25,7 @@ from drake_grasp.evaluation.experiments import (CNN_POLICIES, Condition, Experim
 from drake_grasp.evaluation.run_folder import config_hash
 from drake_grasp.evaluation.trial_plan import TrialTask, task_condition, task_experiment
 from drake_grasp.core.provenance import code_version
+from drake_grasp.policies.decisions import NO_GRASP_FOUND
 
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
@@ -159,6 +160,9 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
                   if "policy_inputs" in r.details else {}),
                **({"gpd_detection": r.details["gpd_detection"]}
                   if "gpd_detection" in r.details else {}),
+               # gpd-track's last estimate of the scene's motion (`policies.gpd_track`).
+               **{key: r.details[key] for key in ("tracked_motion", "tracked_rms_m",
+                                                  "registrations") if key in r.details},
                **(extra or {})})
 
 
@@ -313,7 +317,8 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
     - simulation errors (failure_class "simulation-error") neither count towards nor reset
       the run of consecutive failed grasps: they are failures of the simulator, not of the
       policy, and the attempt is retried on the same pile (with the next attempt's seed);
-    - the run ends after `experiment.max_consecutive_failures` failed grasps in a row;
+    - the run ends after `experiment.max_consecutive_failures` failed grasps in a row,
+      and, with `experiment.end_on_no_detection`, when the policy found no grasp;
     - so that a pile on which every attempt raises cannot loop for ever, it ends after
       `MAX_CONSECUTIVE_SIMULATION_ERRORS` (3) simulation errors in a row;
     - it ends when no object is left, or none is left in view;
@@ -340,6 +345,8 @@ def clutter_run_status(records, experiment: Experiment) -> str | None:
     nxt = records[-1].extra.get("next_scene")
     if nxt is None:
         return "scene could not be built"
+    if experiment.end_on_no_detection and records[-1].failure_reason == NO_GRASP_FOUND:
+        return "no grasp found"
     if failures >= experiment.max_consecutive_failures:
         return f"{experiment.max_consecutive_failures} consecutive failed grasps"
     if errors >= MAX_CONSECUTIVE_SIMULATION_ERRORS:

@@ -27,6 +27,9 @@ SENSOR_POLICIES = ("ctr", "cnn-ctr", "cnn-only", "gpd", "gpd-track", "gpd-geomet
 # The policies that take GPD's one look from its sensor at the viewpoint (its classifier
 # weights, its image, its detection's record).
 GPD_POLICIES = ("gpd", "gpd-track")
+# The failure reason of a policy that found no grasp to attempt (a one-shot detector);
+# clutter-removal rounds end on it (`evaluation.experiments.Experiment.end_on_no_detection`).
+NO_GRASP_FOUND = "missed: no grasp detected"
 
 
 def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,

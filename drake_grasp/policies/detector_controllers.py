@@ -23,13 +23,14 @@ from pydrake.math import RigidTransform
 
 from drake_grasp.geometry.actions import action_between, apply_actions
 from drake_grasp.policies.controller import GraspController
+from drake_grasp.policies.decisions import NO_GRASP_FOUND
 from drake_grasp.policies.controller_state import (ControllerState, Phase, hand_to_pose,
                                                    pose_from_tuple, pose_to_hand, pose_tuple,
                                                    rot_z)
 from drake_grasp.systems.supervisor import interpolate_pose, min_jerk
 
 # What a one-shot policy records when its detector finds nothing.
-NO_DETECTION = {"failure_reason": "missed: no grasp detected", "iterations": 0}
+NO_DETECTION = {"failure_reason": NO_GRASP_FOUND, "iterations": 0}
 
 
 class GPDController(GraspController):

@@ -123,7 +123,7 @@ class GPDTrackController(GPDController):
         motion = track.reference.register(P_W, prior=track.motion, yaw_range_deg=c.yaw_range_deg,
                                           yaw_step_deg=c.yaw_step_deg,
                                           min_overlap=c.min_overlap)
-        if motion is None:
+        if motion is None or motion.rms_m > c.max_rms_m:
             return s
         steady = motion_change_m(motion, track.motion) < c.settled_m
         return replace(s, memory=replace(track, motion=motion,

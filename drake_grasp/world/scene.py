@@ -188,7 +188,9 @@ def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary, *,
 
     isolation: one object, lying (rotated 90 deg about a horizontal axis) or upright,
     random yaw; random: 1-5 objects spread over the region; clutter: objects stacked in a
-    column above a small region, so they pour into a pile when settled. The random and
+    column above a small region, so they pour into a pile when settled; packed:
+    `clutter_objects` objects standing upright side by side over the region, random yaw
+    (the clutter-removal benchmarks' "packed" scenes: VGN, Breyer et al. 2020). The random and
     clutter objects' orientation (`initial_pose`): "uniform", uniformly random (they
     tumble when dropped); "stable", one of the object's resting poses on a plane drawn
     with its probability, random yaw (`objects.stable_poses`; an object that does not
@@ -204,10 +206,11 @@ def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary, *,
         count = 1
     elif config.kind == "random":
         count = int(rng.integers(config.num_objects_min, config.num_objects_max + 1))
-    elif config.kind == "clutter":
+    elif config.kind in ("clutter", "packed"):
         count = int(config.clutter_objects)
     else:
-        raise ValueError(f"scene.kind: got {config.kind!r}, expected isolation|random|clutter")
+        raise ValueError(f"scene.kind: got {config.kind!r}, expected isolation|random|clutter"
+                         "|packed")
     if config.object_ids and config.kind == "isolation":
         count = 1
     ids = _pick_ids(config, library, count, rng)
@@ -225,6 +228,8 @@ def sample_scene(config: SceneConfig, seed: int, library: ObjectLibrary, *,
             if pose == "lying":
                 tilt = _rot_x(np.pi / 2) if rng.random() < 0.5 else _rot_y(np.pi / 2)
                 R = R @ tilt
+        elif config.kind == "packed":
+            R = _rot_z(rng.uniform(-np.pi, np.pi))
         elif initial_pose == "stable":
             R = stable_poses(library.get(object_id)).sample(rng)
         else:
