@@ -33,7 +33,7 @@ def _view(motion: Motion, *, half: float, centre=(0.0, 0.0), side: int) -> np.nd
 
 @pytest.fixture(scope="module")
 def reference():
-    return SceneReference(_view(Motion(), half=0.3, side=600), ANCHOR, template_half_m=0.07,
+    return SceneReference(_view(Motion(), half=0.3, side=400), ANCHOR, template_half_m=0.07,
                           search_m=0.1, cell_m=0.003)
 
 
