@@ -41,34 +41,47 @@ DEFAULT_OUT = RESULTS / "reference"
 COMMAND = "python analysis/make_reference.py"
 
 # --------------------------------------------------------------------------- what comes from where
-# (folder under analysis/results/, condition). Table 1: CTR and GPD (with its fallback; GPD
-# does not use the CNN) on Table 1's seeds, re-run with the package after the layout
-# refactor, whose start height comes from the wrist camera (layout-2026-12-07/). Figure 5:
-# the left panel's five arms (INIT, CTR and GPD with and without kinematic noise) from one
-# run at one code version (figure5-2026-12-07/, 4e97cd8a1, the default CNN
-# models/cnn-grid-bn12500-ep3/); the right panel's two arms (the CNN's one shot, CNN +
-# CTR) from one run with the same CNN before the layout refactor (paper-bn12500-ep3/).
+# (folder under analysis/results/, condition). The CNN's arms run the shipped default, the
+# net stored in float16 (models/cnn-grid-bn12500-ep3-fp16/), from one code version
+# (fp16-default/, a worktree of 1621b9d37): Table 1's CTR on Table 1's seeds, Figure 5's
+# CTR with and without kinematic noise, and its right panel (the CNN's one shot, CNN +
+# CTR). GPD (with its fallback) and INIT do not use the CNN: Table 1's GPD on Table 1's
+# seeds with the package after the layout refactor (layout-2026-12-07/), Figure 5's INIT
+# and GPD arms from the run that made the left panel at one code version
+# (figure5-2026-12-07/, 4e97cd8a1), on the same trials as fp16-default/sim-distance.
 TABLE1 = {
-    "isolation": {"ctr": ("layout-2026-12-07/isolation", "ctr"),
+    "isolation": {"ctr": ("fp16-default/isolation", "ctr"),
                   "gpd": ("layout-2026-12-07/isolation", "gpd")},
-    "clutter": {"ctr": ("layout-2026-12-07/clutter", "ctr"),
+    "clutter": {"ctr": ("fp16-default/clutter", "ctr"),
                 "gpd": ("layout-2026-12-07/clutter-gpd", "gpd")},
-    "clutter-shift": {"ctr": ("layout-2026-12-07/clutter-shift", "ctr"),
+    "clutter-shift": {"ctr": ("fp16-default/clutter-shift", "ctr"),
                       "gpd": ("layout-2026-12-07/clutter-shift", "gpd")},
 }
 FIGURE5 = {
     "init": ("figure5-2026-12-07/sim-distance", "init"),
-    "ctr": ("figure5-2026-12-07/sim-distance", "ctr"),
-    "ctr_noise": ("figure5-2026-12-07/sim-distance", "ctr_noise"),
+    "ctr": ("fp16-default/sim-distance", "ctr"),
+    "ctr_noise": ("fp16-default/sim-distance", "ctr_noise"),
     "gpd": ("figure5-2026-12-07/sim-distance", "gpd"),
     "gpd_noise": ("figure5-2026-12-07/sim-distance", "gpd_noise"),
-    "cnn-only": ("paper-bn12500-ep3/perception", "cnn-only"),
-    "cnn-ctr": ("paper-bn12500-ep3/perception", "cnn-ctr"),
+    "cnn-only": ("fp16-default/perception", "cnn-only"),
+    "cnn-ctr": ("fp16-default/perception", "cnn-ctr"),
 }
 # The commands that made each folder's records, from the folder's (or its parent's)
 # README: run.json records no command line. Used only where run.json has none.
 _W = "--weights models/cnn-grid-bn12500-ep3/weights.safetensors"
+_W16 = "--weights models/cnn-grid-bn12500-ep3-fp16/weights.safetensors"
+_FP16 = "(from a worktree of 1621b9d37; README there)"
 COMMANDS = {
+    "fp16-default/isolation": [
+        f"drake-grasp evaluate --experiment isolation --trials 120 --seed 11 --conditions ctr {_W16} --workers 2 --out isolation {_FP16}"],
+    "fp16-default/clutter": [
+        f"drake-grasp evaluate --experiment clutter --trials 10 --seed 16 --conditions ctr {_W16} --workers 2 --out clutter {_FP16}"],
+    "fp16-default/clutter-shift": [
+        f"drake-grasp evaluate --experiment clutter-shift --trials 10 --seed 8 --conditions ctr {_W16} --workers 2 --out clutter-shift {_FP16}"],
+    "fp16-default/sim-distance": [
+        f"drake-grasp evaluate --experiment sim-distance --trials 400 --seed 0 --conditions ctr,ctr_noise {_W16} --workers 2 --out sim-distance {_FP16}"],
+    "fp16-default/perception": [
+        f"drake-grasp evaluate --experiment perception --seed 0 --conditions cnn-only,cnn-ctr {_W16} --workers 2 --out perception {_FP16}"],
     "layout-2026-12-07/isolation": [
         "drake-grasp evaluate --experiment isolation --trials 120 --seed 11 --conditions ctr,gpd --workers 2 --out isolation"],
     "layout-2026-12-07/clutter": [
@@ -270,7 +283,8 @@ def _table1_text(loaded: dict[str, Results]) -> str:
 
 def _readme_text(summary: dict) -> str:
     lines = ["# Reference results: today's headline numbers", "",
-             "Table 1 and Figure 5 with the shipped default CNN (`models/cnn-grid-bn12500-ep3/`) "
+             "Table 1 and Figure 5 with the shipped default CNN (`models/cnn-grid-bn12500-ep3-fp16/`, "
+             "the 3-epoch grid head stored in float16) "
              "and GPD with its fallback, each number taken from the trial records of the "
              "folder named beside it (under `analysis/results/`). Every file here is written "
              "by one command, from the repository root:", "", f"    {COMMAND}", "",

@@ -48,6 +48,7 @@ GRID_BN12 = models_dir() / "cnn-grid-bn12"
 GRID_BN12_EP5 = models_dir() / "cnn-grid-bn12-ep5"
 GRID_BN12500 = models_dir() / "cnn-grid-bn12500"
 GRID_BN12500_EP3 = models_dir() / "cnn-grid-bn12500-ep3"
+GRID_BN12500_EP3_FP16 = models_dir() / "cnn-grid-bn12500-ep3-fp16"
 
 
 @pytest.mark.parametrize("folder", [GRID, GRID_BN, GRID_BN12, GRID_BN12_EP5, GRID_BN12500,
@@ -67,10 +68,12 @@ def test_the_episodes_default_cnn_is_the_batchnorm_grid_head_and_the_others_stay
     from drake_grasp.evaluation.run_folder import weights_path
     from drake_grasp.config.scenario import load_scenario
     from drake_grasp.policies.evaluator import (BN12_WEIGHTS, BN12500_WEIGHTS, BN_WEIGHTS,
-                                               DEFAULT_WEIGHTS, EP5_WEIGHTS, GRID_WEIGHTS,
-                                               PAPER_WEIGHTS, load_cnn)
+                                               DEFAULT_WEIGHTS, EP3_FLOAT32_WEIGHTS,
+                                               EP5_WEIGHTS, GRID_WEIGHTS, PAPER_WEIGHTS,
+                                               load_cnn)
 
-    assert models_dir() / DEFAULT_WEIGHTS == GRID_BN12500_EP3 / "weights.safetensors"
+    assert models_dir() / DEFAULT_WEIGHTS == GRID_BN12500_EP3_FP16 / "weights.safetensors"
+    assert models_dir() / EP3_FLOAT32_WEIGHTS == GRID_BN12500_EP3 / "weights.safetensors"
     assert models_dir() / BN12500_WEIGHTS == GRID_BN12500 / "weights.safetensors"
     assert models_dir() / EP5_WEIGHTS == GRID_BN12_EP5 / "weights.safetensors"
     assert models_dir() / BN12_WEIGHTS == GRID_BN12 / "weights.safetensors"
@@ -84,7 +87,21 @@ def test_the_episodes_default_cnn_is_the_batchnorm_grid_head_and_the_others_stay
     assert load_cnn(str(models_dir() / GRID_WEIGHTS)).config.action_fusion == "grid"
     assert load_cnn(str(models_dir() / PAPER_WEIGHTS)).config.action_fusion == "tiled"
     ctr = load_scenario(scenario_text="{policy: ctr}")
-    assert weights_path(ctr) == str(GRID_BN12500_EP3 / "weights.safetensors")
+    assert weights_path(ctr) == str(GRID_BN12500_EP3_FP16 / "weights.safetensors")
+
+
+def test_the_default_is_the_float32_net_rounded_to_float16():
+    """The shipped default is `cnn-grid-bn12500-ep3` stored in float16: the same training
+    metadata, every weight within float16's rounding of its source."""
+    import torch
+
+    half, half_meta = load_weights(GRID_BN12500_EP3_FP16 / "weights.safetensors")
+    full, full_meta = load_weights(GRID_BN12500_EP3 / "weights.safetensors")
+    assert half_meta["identity"] == full_meta["identity"]
+    assert half_meta["epoch"] == full_meta["epoch"]
+    for (name, a), (_, b) in zip(half.state_dict().items(), full.state_dict().items()):
+        assert a.dtype == torch.float32, name
+        assert torch.allclose(a, b, rtol=1e-3, atol=1e-4), name
 
 def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path):
     """A trial recorded with `controller.weights: ""` ran the default of its day; its
@@ -106,11 +123,13 @@ def test_a_record_of_an_earlier_default_replays_with_the_weights_it_ran(tmp_path
 
     for earlier in (GRID / "weights.safetensors", GRID_BN / "weights.safetensors",
                     GRID_BN12 / "weights.safetensors", GRID_BN12_EP5 / "weights.safetensors",
-                    GRID_BN12500 / "weights.safetensors"):
+                    GRID_BN12500 / "weights.safetensors",
+                    GRID_BN12500_EP3 / "weights.safetensors"):
         got = recorded_weights(ctr, run_info(earlier), "ctr")
         assert got.controller.weights == str(earlier)
     grid = GRID / "weights.safetensors"
-    assert recorded_weights(ctr, run_info(GRID_BN12500_EP3 / "weights.safetensors"), "ctr") is ctr
+    assert recorded_weights(ctr, run_info(GRID_BN12500_EP3_FP16 / "weights.safetensors"),
+                            "ctr") is ctr
     explicit = dataclasses.replace(ctr, controller=dataclasses.replace(
         ctr.controller, weights=str(GRID_BN12 / "weights.safetensors")))
     assert recorded_weights(explicit, run_info(grid), "ctr") is explicit

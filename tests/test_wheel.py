@@ -69,8 +69,8 @@ def _says_where(message: str, net: str) -> None:
 
 
 def test_model_path_names_a_net_that_is_not_installed(installed):
-    assert assets.model_path("cnn-grid-bn12500-ep3/weights.safetensors") == \
-        installed / "cnn-grid-bn12500-ep3" / "weights.safetensors"
+    assert assets.model_path("cnn-grid-bn12500-ep3-fp16/weights.safetensors") == \
+        installed / "cnn-grid-bn12500-ep3-fp16" / "weights.safetensors"
     with pytest.raises(FileNotFoundError) as e:
         assets.model_path("cnn-grid-bn12/weights.safetensors")
     _says_where(str(e.value), "cnn-grid-bn12")
@@ -113,7 +113,7 @@ def test_wheel_carries_the_default_net_and_not_the_earlier_ones(tmp_path):
     (wheel,) = tmp_path.glob("drake_grasp-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     for present in ("drake_grasp/_models/package.xml",
-                    "drake_grasp/_models/cnn-grid-bn12500-ep3/weights.safetensors",
+                    "drake_grasp/_models/cnn-grid-bn12500-ep3-fp16/weights.safetensors",
                     "drake_grasp/_models/gpd/weights.safetensors",
                     "drake_grasp/_models/ur5/ur5.urdf",
                     "drake_grasp/_models/robotiq_2f85/robotiq_2f85.urdf",

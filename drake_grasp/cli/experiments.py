@@ -103,7 +103,8 @@ def _parser_evaluate(sub) -> None:
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="distance-CNN weights (safetensors or ONNX) for the conditions that "
                         "use the CNN (ctr, cnn-only, cnn-ctr); default: the shipped grid head "
-                        "models/cnn-grid-bn12500-ep3/weights.safetensors (the grid heads "
+                        "models/cnn-grid-bn12500-ep3-fp16/weights.safetensors (stored in "
+                        "float16; in float32: models/cnn-grid-bn12500-ep3/; the grid heads "
                         "before it: models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
                         "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/; "
                         "the paper's net: "

@@ -78,8 +78,9 @@ def _parser_demo(sub) -> None:
     p.add_argument("--target", default=None, metavar="OBJECT_ID",
                    help="grasp this object: candidates restricted to its image region")
     p.add_argument("--weights", default=None,
-                   help="CNN weights file (default: models/cnn-grid-bn12500-ep3/, the "
-                   "grid head trained with BatchNorm, last on the paper's 12,500 scenes; "
+                   help="CNN weights file (default: models/cnn-grid-bn12500-ep3-fp16/, the "
+                   "grid head trained with BatchNorm, last on the paper's 12,500 scenes, "
+                   "stored in float16; in float32: models/cnn-grid-bn12500-ep3/; "
                    "models/cnn-grid-bn12500/, models/cnn-grid-bn12-ep5/, "
                    "models/cnn-grid-bn12/, models/cnn-grid-bn/ and models/cnn-grid/ are the "
                    "grid heads before it, models/cnn/ the paper's "

@@ -55,7 +55,8 @@ def make_parser(plant, model_name_prefix: str | None = None):
 
 # --------------------------------------------------------------------------- what the wheel carries
 
-SHIPPED_MODELS = ("package.xml", "ur5", "robotiq_2f85", "scene", "cnn-grid-bn12500-ep3", "gpd")
+SHIPPED_MODELS = (
+    "package.xml", "ur5", "robotiq_2f85", "scene", "cnn-grid-bn12500-ep3-fp16", "gpd")
 """The entries of `models/` a built wheel carries under `drake_grasp/_models`: what runs by
 default (the robot, hand and scene models, the default distance CNN, GPD's classifier).
 pyproject.toml's force-include names the same entries (tests/test_wheel.py checks both)."""
@@ -67,13 +68,13 @@ REPOSITORY_WEIGHTS_SHA256 = {
     "cnn-grid-bn12": "0362b4e1942b6f2283a1f573224f4109c1849866bfad8d43e488a4e44f6d81bd",
     "cnn-grid-bn12-ep5": "41d0885009829c97d1badf53725f0e5d4ab1845926353ec66ebb7aec736b0f43",
     "cnn-grid-bn12500": "77321f152100d513c4a583433f6cb28ca10d74de1602ff33f0a5fc1837fedf69",
-    "cnn-grid-bn12500-ep3-fp16": "fd02e253c25f8c9e88954abb4282164c5ec0e6ac547772b254172e026e055363",
+    "cnn-grid-bn12500-ep3": "5b5777859799bfb9e6db379ce2a297f4b8a17ebd6a880fd5b51148c52ffc215d",
     "fcn-heightmap": "c31a4da57619a3deaee599b8130d03441141bb7f3209bd4d433debf2807323a5",
     "fcn-heightmap-all": "e3bd49ace502228d42550ac631dcafc46993f8b732797f32f2bf85cc3d80bfec",
 }
 """The nets kept in the repository's `models/` only (earlier defaults and other heads,
-selectable with `--weights`, and the default's float16 copy on trial; 6 x 54 MB + 28 MB +
-17 MB, not in the wheel): folder -> sha256 of its
+selectable with `--weights`, among them the default in float32; 7 x 54 MB + 17 MB, not in
+the wheel): folder -> sha256 of its
 `weights.safetensors`, so that a record made with one names where it is
 (`evaluation.replay.recorded_weights`)."""
 

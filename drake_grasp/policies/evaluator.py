@@ -28,14 +28,18 @@ if TYPE_CHECKING:
 # (folded into its layers), last on the paper's 12,500 scenes for 3 epochs
 # (models/cnn-grid-bn12500-ep3/README.md: BN12500_WEIGHTS trained one epoch more; against
 # it on fresh seeds, clutter and clutter-shift pooled 262/287 vs 241/278, isolation 117 vs
-# 117 of 120: the rule of analysis/results/bn-paper-scale-ep3/PLAN.md).
+# 117 of 120: the rule of analysis/results/bn-paper-scale-ep3/PLAN.md), its weights stored
+# in float16 and computed in float32 (models/cnn-grid-bn12500-ep3-fp16/README.md; no
+# headline cell worse than with EP3_FLOAT32_WEIGHTS: analysis/results/fp16-default/).
+# EP3_FLOAT32_WEIGHTS (the same net in float32, the default until 2026-12-08),
 # BN12500_WEIGHTS (2 epochs on 12,500 scenes), EP5_WEIGHTS (5 epochs on 7,500 scenes),
 # BN12_WEIGHTS (2 epochs on those scenes), BN_WEIGHTS (on 2,500 scenes), the grid head
 # trained without BatchNorm (GRID_WEIGHTS) and the paper's tiled net (PAPER_WEIGHTS) stay
 # in the repository's models/ and selectable (the wheel carries the default only,
 # `core.assets.SHIPPED_MODELS`); records made with an earlier default replay with it
 # (`replay.recorded_weights`).
-DEFAULT_WEIGHTS = "cnn-grid-bn12500-ep3/weights.safetensors"
+DEFAULT_WEIGHTS = "cnn-grid-bn12500-ep3-fp16/weights.safetensors"
+EP3_FLOAT32_WEIGHTS = "cnn-grid-bn12500-ep3/weights.safetensors"
 BN12500_WEIGHTS = "cnn-grid-bn12500/weights.safetensors"
 EP5_WEIGHTS = "cnn-grid-bn12-ep5/weights.safetensors"
 BN12_WEIGHTS = "cnn-grid-bn12/weights.safetensors"
