@@ -111,7 +111,7 @@ class GpdTrackConfig:
     # A registration whose new view shares fewer of its cells with the GPD image, or
     # whose heights differ from it by more than `max_rms_m` (root mean square, the mean
     # difference taken out), is not used: the grasp keeps its last estimate.
-    min_overlap: float = 0.3
+    min_overlap: float = 0.5
     max_rms_m: float = 0.02
     # Largest move of the hand per control period [m, deg].
     step_max_m: float = 0.025

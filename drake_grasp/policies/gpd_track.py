@@ -154,6 +154,17 @@ class GPDTrackController(GPDController):
         return replace(s, phase_start_s=t, iteration=s.iteration + 1, memory=memory,
                        segment_from=s.hand, hand=pose_to_hand(nxt))
 
+    def _goal(self, s: ControllerState) -> RigidTransform:
+        """While tracking, every control period's step is a commanded move (as CTR's): it
+        ends at the grasp that the step's pre-grasp leads to, so that the descent from the
+        last one is no new move (as gpd's pre-grasp and grasp are one)."""
+        if s.phase == Phase.SERVO:
+            step = pose_from_tuple(s.memory.pose_to)
+            z_G = step.rotation().matrix()[:, 2]
+            return RigidTransform(step.rotation(),
+                                  step.translation() + self._s.scripted.pregrasp_height_m * z_G)
+        return super()._goal(s)
+
     def _pose(self, s: ControllerState, elapsed: float) -> RigidTransform:
         if s.phase == Phase.SERVO:
             # Each move within 0.8 control periods, as CTR's.

@@ -53,8 +53,9 @@ def height_map(P_W: np.ndarray, centre_xy, half_m: float, cell_m: float) -> Heig
 class Motion:
     """The scene's planar motion since the reference view: a point r of the scene then is
     at R(yaw) (r - anchor) + anchor + xy now (xy in the world's x, y [m]). `rms_m`: the
-    height mismatch of the best match; `overlap`: its share of the new view's cells that
-    the reference also saw."""
+    root of the best match's score (its height mismatch, a cell the reference did not see
+    counted as `miss_m`); `overlap`: its share of the new view's cells that the reference
+    also saw."""
 
     xy_m: tuple = (0.0, 0.0)
     yaw_deg: float = 0.0
@@ -108,8 +109,9 @@ class _Grid:
     """One search: the reference's height map at one cell size and translation window."""
 
     def __init__(self, P_W: np.ndarray, anchor: np.ndarray, template_half_m: float,
-                 search_m: float, cell_m: float):
+                 search_m: float, cell_m: float, miss_m: float, lag_m: float):
         self.anchor, self.template_half_m, self.cell_m = anchor, template_half_m, cell_m
+        self.miss_m, self.lag_m = miss_m, lag_m
         ref = height_map(P_W, anchor, template_half_m + search_m, cell_m)
         self._n_ref = ref.heights.shape[0]
         self._n_tpl = max(1, int(round(2.0 * template_half_m / cell_m)))
@@ -149,7 +151,16 @@ class _Grid:
                     - _correlate(t_fft[0], self._ref_fft[1], self._shape))[:valid, :valid]
             ok = overlap >= max(1.0, min_overlap * cells)
             n = np.maximum(overlap, 1.0)
-            score = np.where(ok, np.maximum(ssd - diff * diff / n, 0.0) / n, np.inf)
+            # Per cell of the new view: the squared mismatch where the reference saw it,
+            # `miss_m`**2 where it did not (a match that overlaps little is not a good
+            # one), and the part of the mean difference beyond `lag_m` (a lag explains a
+            # few centimetres; a flat patch matched to another flat patch far below it is
+            # not one).
+            offset = diff / n
+            beyond = np.maximum(np.abs(offset) - self.lag_m, 0.0)
+            score = np.where(ok, (np.maximum(ssd - diff * offset, 0.0)
+                                  + (cells - overlap) * self.miss_m ** 2) / cells
+                             + beyond ** 2, np.inf)
             # Ties (a featureless window): the motion nearest the prior.
             moved = -np.stack(np.meshgrid(u, u, indexing="ij"), -1) @ R.T
             tie = np.linalg.norm(moved - np.asarray(prior.xy_m), axis=-1) + 1e-3 * abs(
@@ -182,18 +193,23 @@ class SceneReference:
     around its result."""
 
     def __init__(self, P_W: np.ndarray, anchor_xy, *, template_half_m: float,
-                 search_m: float, cell_m: float):
+                 search_m: float, cell_m: float, miss_m: float = 0.02, lag_m: float = 0.03):
         """Args:
             P_W: the reference view's world points ((3 or 4, N)).
             anchor_xy: the grasp's position on the table (x, y) [m]; turns are about it.
             template_half_m: half side of the square of a new view matched [m].
             search_m: the largest translation searched, per axis [m].
             cell_m: the fine search's cell [m] (the coarse search's is twice that).
+            miss_m: what a cell of the new view that the reference did not see costs, as a
+                height mismatch [m].
+            lag_m: the mean height difference taken out at no cost [m]; beyond it, it
+                counts as mismatch.
         """
         self.anchor = np.asarray(anchor_xy, float)[:2].copy()
         P = np.asarray(P_W, float)[:3]
-        self._coarse = _Grid(P, self.anchor, template_half_m, search_m, 2.0 * cell_m)
-        self._fine = _Grid(P, self.anchor, template_half_m, 3.0 * cell_m, cell_m)
+        self._coarse = _Grid(P, self.anchor, template_half_m, search_m, 2.0 * cell_m,
+                             miss_m, lag_m)
+        self._fine = _Grid(P, self.anchor, template_half_m, 3.0 * cell_m, cell_m, miss_m, lag_m)
         self.known_fraction = self._fine.known_fraction
 
     def register(self, P_W: np.ndarray, *, prior: Motion, yaw_range_deg: float,
