@@ -15,7 +15,7 @@ import numpy as np
 
 from drake_grasp import __version__
 from drake_grasp.objects import load_library
-from drake_grasp.policies.decisions import GPD_POLICIES
+from drake_grasp.policies.decisions import GPD_POLICIES, TRACK_RECORD_KEYS
 from drake_grasp.policies.plugins import is_policy_spec
 from drake_grasp.evaluation.records import classify_failure
 from drake_grasp.config.scenario import Scenario, dump_scenario
@@ -230,8 +230,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
     plant = station.plant
     plant_context = plant.GetMyContextFromRoot(root)
     depth_port = station.diagram.GetOutputPort("depth_image")
-    frames, steps = [], []
-    distance = None
+    frames, steps, distance = [], [], None
     closed = False  # whether the policy closed the gripper
     detection = None  # gpd: the judge's check of its detection (`detection_check`)
     dt = 1.0 / scenario.camera.fps
@@ -306,8 +305,7 @@ def _run(ed: EpisodeDiagram, scenario, scenario_name, scene, library, meshcat, r
                  **({"policy_inputs": ed.user_policy_inputs}
                     if ed.user_policy_inputs is not None else {}),
                  **({"gpd_detection": detection} if detection is not None else {}),
-                 **({key: outcome[key] for key in ("tracked_motion", "tracked_rms_m",
-                                                   "registrations") if key in outcome}),
+                 **{key: outcome[key] for key in TRACK_RECORD_KEYS if key in outcome},
                  **({"camera_mount_error": _pose_dict(station.X_CC_actual)}
                     if scenario.calibration.active() else {}),
                  "judge": verdict.details},

@@ -25,7 +25,7 @@ from drake_grasp.evaluation.experiments import (CNN_POLICIES, Condition, Experim
 from drake_grasp.evaluation.run_folder import config_hash
 from drake_grasp.evaluation.trial_plan import TrialTask, task_condition, task_experiment
 from drake_grasp.core.provenance import code_version
-from drake_grasp.policies.decisions import NO_GRASP_FOUND
+from drake_grasp.policies.decisions import NO_GRASP_FOUND, TRACK_RECORD_KEYS
 
 # A clutter run ends after this many simulation errors in a row (see `clutter_run_status`).
 MAX_CONSECUTIVE_SIMULATION_ERRORS = 3
@@ -161,8 +161,7 @@ def _record_for(task: TrialTask, condition: Condition, scenario, result=None, *,
                **({"gpd_detection": r.details["gpd_detection"]}
                   if "gpd_detection" in r.details else {}),
                # gpd-track's last estimate of the scene's motion (`policies.gpd_track`).
-               **{key: r.details[key] for key in ("tracked_motion", "tracked_rms_m",
-                                                  "registrations") if key in r.details},
+               **{key: r.details[key] for key in TRACK_RECORD_KEYS if key in r.details},
                **(extra or {})})
 
 

@@ -30,6 +30,8 @@ GPD_POLICIES = ("gpd", "gpd-track")
 # The failure reason of a policy that found no grasp to attempt (a one-shot detector);
 # clutter-removal rounds end on it (`evaluation.experiments.Experiment.end_on_no_detection`).
 NO_GRASP_FOUND = "missed: no grasp detected"
+# What gpd-track's record keeps of its tracking (`gpd_track.GPDTrackController` outcome).
+TRACK_RECORD_KEYS = ("tracked_motion", "tracked_rms_m", "registrations")
 
 
 def sample_candidates(rng: np.random.Generator, count: int, *, xy_m: float,
