@@ -48,7 +48,8 @@ COMMAND = "python analysis/make_reference.py"
 # CTR). GPD (with its fallback) and INIT do not use the CNN: Table 1's GPD on Table 1's
 # seeds with the package after the layout refactor (layout-2026-12-07/), Figure 5's INIT
 # and GPD arms from the run that made the left panel at one code version
-# (figure5-2026-12-07/, 4e97cd8a1), on the same trials as fp16-default/sim-distance.
+# (figure5-2026-12-07/, 4e97cd8a1), on the same trials as fp16-default/sim-distance; the
+# two commits run INIT and GPD identically (fp16-default/figure5-same-code-check/).
 TABLE1 = {
     "isolation": {"ctr": ("fp16-default/isolation", "ctr"),
                   "gpd": ("layout-2026-12-07/isolation", "gpd")},
