@@ -95,3 +95,13 @@ def test_height_map_keeps_the_highest_point_per_cell():
     assert hm.heights[2, 2] == pytest.approx(0.03) and hm.known[2, 2]
     assert hm.heights[3, 2] == pytest.approx(0.02)
     assert hm.known.sum() == 2
+
+
+def test_the_turns_searched_do_not_follow_a_wrong_prior(reference):
+    """An estimate that wandered off (whole turns, on an elongated object) does not carry
+    the search window with it: turns are searched within the range of none."""
+    truth = Motion(xy_m=(0.02, -0.01), yaw_deg=10.0)
+    view = _view(truth, half=0.1, side=64)
+    found = reference.register(view, prior=Motion(yaw_deg=300.0), yaw_range_deg=40,
+                               yaw_step_deg=3)
+    assert abs(found.yaw_deg - 10.0) < 3.0 and np.hypot(*np.subtract(found.xy_m, truth.xy_m)) < 0.002

@@ -101,8 +101,8 @@ class GpdTrackConfig:
 
     # Half side of the square around the grasp matched in each wrist image [m].
     template_half_m: float = 0.07
-    # Largest translation searched per axis, and turn searched either side of the last
-    # estimate [m, deg], on a grid of `yaw_step_deg`.
+    # Largest translation searched per axis, and turn searched either side of none
+    # [m, deg], on a grid of `yaw_step_deg`.
     search_m: float = 0.10
     yaw_range_deg: float = 40.0
     yaw_step_deg: float = 3.0

@@ -216,12 +216,13 @@ class SceneReference:
                  yaw_step_deg: float, min_overlap: float = 0.3) -> Motion | None:
         """The scene's motion that best explains the new view `P_W` ((3 or 4, N) world
         points): every translation within the search window (not only near `prior`'s),
-        turns within `yaw_range_deg` of `prior.yaw_deg` on a `yaw_step_deg` grid, then
-        refined within one coarse step, to a fifth of it. Ties go to the motion nearest
-        `prior`. None when no candidate overlaps the reference in `min_overlap` of the new
-        view's cells."""
+        turns within `yaw_range_deg` of none (not of `prior`'s: an elongated object, whose
+        turn its image hardly shows, would let a window that follows the estimate wander
+        off by whole turns) on a `yaw_step_deg` grid, then refined within one coarse step,
+        to a fifth of it. Ties go to the motion nearest `prior`. None when no candidate
+        overlaps the reference in `min_overlap` of the new view's cells."""
         P = np.asarray(P_W, float)[:3]
-        yaws = prior.yaw_deg + np.arange(-yaw_range_deg, yaw_range_deg + 1e-9, yaw_step_deg)
+        yaws = np.arange(-yaw_range_deg, yaw_range_deg + 1e-9, yaw_step_deg)
         coarse = self._coarse.search(P, yaws, prior, min_overlap)
         if coarse is None:
             return None
