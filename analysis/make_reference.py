@@ -2,12 +2,15 @@
 
 Table 1 (isolation, clutter, clutter-shift; CTR and GPD) and Figure 5 (INIT, CTR and GPD
 with and without kinematic noise; the CNN's one shot and CNN + CTR) are each taken from the
-results folder and condition that `TABLE1` and `FIGURE5` below name, read with
+results folder and condition that `TABLE1` and `FIGURE5` below name (and Table 1 again with
+robot-like depth sensing, `TABLE1_SENSOR_NOISE`, beside the noiseless cells), read with
 drake_grasp's own loaders (`report_stats.load_results`) and summarised with the report's
 statistics (`summarize`, `table1_rows`, `check_targets`, `write_figure5`). It writes:
 
 - `summary.json`: the keys `drake-grasp report` writes for several experiments
-  (`experiments`, `table1`, `figures`, `paper`, `targets`), plus `figure5` (per arm the
+  (`experiments`, `table1`, `figures`, `paper`, `targets`), plus `table1_sensor_noise`
+  (per cell: the success with sensor noise, the noiseless cell's, the difference and its
+  exact test), `figure5` (per arm the
   fraction within 3 cm with its Wilson 95% interval, and the success rate where the arm
   grasps) and `sources` (per folder: the records' code versions, run.json's code version,
   tree, creation time and `evaluate` sessions with their wall times, and the commands that
@@ -19,7 +22,8 @@ Regenerate (from the repository root)::
 
     python analysis/make_reference.py
 
-When a default changes, edit `TABLE1`, `FIGURE5` and `COMMANDS` and run it again.
+When a default changes, edit `TABLE1`, `TABLE1_SENSOR_NOISE`, `FIGURE5` and `COMMANDS` and
+run it again.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from pathlib import Path
 from typing import Sequence
 
 from drake_grasp.core.files import atomic_write_text
+from drake_grasp.evaluation.proportions import mcnemar_exact_p
 from drake_grasp.evaluation.report import table1_markdown, table1_rows, write_figure5
 from drake_grasp.evaluation.report_stats import (CONDITION_LABELS, PAPER_FIGURE5, PAPER_TABLE1,
     Results, canonical_experiment, check_targets, load_results, summarize)
@@ -67,11 +72,24 @@ FIGURE5 = {
     "cnn-only": ("fp16-default/perception", "cnn-only"),
     "cnn-ctr": ("fp16-default/perception", "cnn-ctr"),
 }
+# Table 1 with robot-like sensing (issue 69 item 3, `table1-sensor-noise/PLAN.md`): the same
+# policies on the same seeds with the depth noise model and hole filling on for the wrist
+# camera and GPD's sensor; each cell is reported beside its noiseless cell of `TABLE1`.
+TABLE1_SENSOR_NOISE = {
+    "isolation": {"ctr": ("table1-sensor-noise/isolation", "ctr"),
+                  "gpd": ("table1-sensor-noise/isolation", "gpd")},
+    "clutter": {"ctr": ("table1-sensor-noise/clutter", "ctr"),
+                "gpd": ("table1-sensor-noise/clutter", "gpd")},
+    "clutter-shift": {"ctr": ("table1-sensor-noise/clutter-shift", "ctr"),
+                      "gpd": ("table1-sensor-noise/clutter-shift", "gpd")},
+}
 # The commands that made each folder's records, from the folder's (or its parent's)
 # README: run.json records no command line. Used only where run.json has none.
 _W = "--weights models/cnn-grid-bn12500-ep3/weights.safetensors"
 _W16 = "--weights models/cnn-grid-bn12500-ep3-fp16/weights.safetensors"
 _FP16 = "(from a worktree of 1621b9d37; README there)"
+_NOISY = "'all={depth_noise: {enabled: true}, gpd: {noise: {enabled: true}}}'"
+_T1SN = "(from a worktree of 3fe05ecae; PLAN.md there)"
 COMMANDS = {
     "fp16-default/isolation": [
         f"drake-grasp evaluate --experiment isolation --trials 120 --seed 11 --conditions ctr {_W16} --workers 2 --out isolation {_FP16}"],
@@ -111,6 +129,12 @@ COMMANDS = {
         "drake-grasp evaluate --experiment clutter-shift --conditions gpd --workers 2 --seed 8 --gpd-fallback --out clutter-shift-seed8-gpd-fallback"],
     "gpd-fallback/sim-distance-gpd-seed0": [
         "drake-grasp evaluate --experiment sim-distance --conditions gpd,gpd_noise --trials 400 --workers 2 --seed 0 --gpd-fallback --out sim-distance-gpd-seed0"],
+    "table1-sensor-noise/isolation": [
+        f"drake-grasp evaluate --experiment isolation --trials 120 --seed 11 --conditions ctr,gpd --patch {_NOISY} --workers 2 --out isolation {_T1SN}"],
+    "table1-sensor-noise/clutter": [
+        f"drake-grasp evaluate --experiment clutter --trials 10 --seed 16 --conditions ctr,gpd --patch {_NOISY} --workers 2 --out clutter {_T1SN}"],
+    "table1-sensor-noise/clutter-shift": [
+        f"drake-grasp evaluate --experiment clutter-shift --trials 10 --seed 8 --conditions ctr,gpd --patch {_NOISY} --workers 2 --out clutter-shift {_T1SN}"],
     "figure5-2026-12-07/sim-distance": [
         "drake-grasp evaluate --experiment sim-distance --trials 400 --seed 0 --workers 2 "
         "--out figure5-2026-12-07/sim-distance (from a worktree of 4e97cd8a1; README there)"],
@@ -125,9 +149,10 @@ COMMANDS = {
 def _folders() -> list[str]:
     """Every folder the tables name, in table order, each once."""
     seen: dict[str, None] = {}
-    for row in TABLE1.values():
-        for folder, _ in row.values():
-            seen[folder] = None
+    for table in (TABLE1, TABLE1_SENSOR_NOISE):
+        for row in table.values():
+            for folder, _ in row.values():
+                seen[folder] = None
     for folder, _ in FIGURE5.values():
         seen[folder] = None
     return list(seen)
@@ -199,6 +224,52 @@ def table1_block(loaded: dict[str, Results]) -> dict:
     return rows
 
 
+def _paired_mcnemar(noisy: Results, noiseless: Results) -> dict:
+    """Exact McNemar test of two runs of the same trials, paired by trial id."""
+    a = {r.trial_id.split("/", 1)[-1]: bool(r.success) for r in noisy.records}
+    b = {r.trial_id.split("/", 1)[-1]: bool(r.success) for r in noiseless.records}
+    ids = sorted(set(a) & set(b))
+    only_noisy = sum(a[i] and not b[i] for i in ids)
+    only_noiseless = sum(b[i] and not a[i] for i in ids)
+    return {"test": "exact McNemar, paired by trial", "paired_trials": len(ids),
+            "only_with_noise": only_noisy, "only_without_noise": only_noiseless,
+            "p": mcnemar_exact_p(only_noisy, only_noiseless)}
+
+
+def _fisher(noisy: dict, noiseless: dict) -> dict:
+    """Fisher's exact test (two-sided) of two success proportions."""
+    from scipy.stats import fisher_exact
+
+    table = [[noisy["successes"], noisy["n"] - noisy["successes"]],
+             [noiseless["successes"], noiseless["n"] - noiseless["successes"]]]
+    return {"test": "Fisher's exact, two-sided", "p": float(fisher_exact(table)[1])}
+
+
+def table1_sensor_noise_block(loaded: dict[str, Results], table1: dict) -> dict:
+    """Per Table 1 cell: the success with sensor noise (`TABLE1_SENSOR_NOISE`), the
+    noiseless cell's (`table1`), their difference and its test (isolation: the same
+    trials, paired; clutter: new attempts on the same piles, unpaired)."""
+    rows: dict = {}
+    for exp, row in TABLE1_SENSOR_NOISE.items():
+        rows[exp] = {}
+        for cond, (folder, name) in row.items():
+            noisy = _only(loaded[folder], [name])
+            stats = summarize(noisy.records)[name]
+            sim = {k: stats[k] for k in ("successes", "n", "success_rate", "ci95")}
+            clean = table1[exp][cond]["sim"]
+            clean_folder, clean_name = TABLE1[exp][cond]
+            test = (_paired_mcnemar(noisy, _only(loaded[clean_folder], [clean_name]))
+                    if exp == "isolation" else _fisher(sim, clean))
+            rows[exp][cond] = {
+                "sim": sim, "noiseless": {k: clean[k] for k in ("successes", "n", "success_rate")},
+                "difference_points": round(100 * (sim["success_rate"] - clean["success_rate"]), 2),
+                "comparison": test, "source": _source(folder, name),
+                "noiseless_source": _source(clean_folder, clean_name),
+                "code_versions": stats["code_versions"],
+                "trial_wall_time_s": stats["trial_wall_time_s"]}
+    return rows
+
+
 def figure5_block(loaded: dict[str, Results]) -> dict:
     """Per arm: the fraction of trials within 3 cm (the report's `fraction_within_3cm`
     over the trials that are not simulation errors) with its Wilson 95% interval, the
@@ -247,10 +318,12 @@ def make_summary(results: Path = RESULTS) -> tuple[dict, dict[str, Results]]:
     """The summary.json content (no file written) and the loaded folders."""
     loaded = _load(results)
     experiments, targets = experiments_block(loaded)
+    table1 = table1_block(loaded)
     summary = {
         "generated_by": COMMAND,
         "experiments": experiments,
-        "table1": table1_block(loaded),
+        "table1": table1,
+        "table1_sensor_noise": table1_sensor_noise_block(loaded, table1),
         "figure5": figure5_block(loaded),
         "figures": ["figure5.png"],
         "paper": {"table1": PAPER_TABLE1, "figure5": PAPER_FIGURE5},
@@ -307,6 +380,22 @@ def _readme_text(summary: dict) -> str:
             lines.append(f"| {exp} | {cond.upper()} | {_pct(sim['success_rate'])} "
                          f"({sim['successes']}/{sim['n']}) | {_ci(sim['ci95'])} | "
                          f"{paper['rate_percent']:.1f}% | `{src['folder']}` `{src['condition']}` |")
+    lines += ["", "## Table 1 with sensor noise", "",
+              "The same policies and seeds with the depth noise model and hole filling on for "
+              "the wrist camera and GPD's sensor (`table1-sensor-noise/PLAN.md`). Isolation "
+              "pairs each trial with its noiseless twin (exact McNemar); clutter compares "
+              "attempts (Fisher's exact test).", "",
+              "| experiment | policy | with noise | 95% CI | without | difference | p | from |",
+              "|---|---|---|---|---|---|---|---|"]
+    for exp, row in summary["table1_sensor_noise"].items():
+        for cond in ("ctr", "gpd"):
+            c = row[cond]
+            sim, clean = c["sim"], c["noiseless"]
+            lines.append(f"| {exp} | {cond.upper()} | {_pct(sim['success_rate'])} "
+                         f"({sim['successes']}/{sim['n']}) | {_ci(sim['ci95'])} | "
+                         f"{_pct(clean['success_rate'])} ({clean['successes']}/{clean['n']}) | "
+                         f"{c['difference_points']:+.1f} points | {c['comparison']['p']:.2f} | "
+                         f"`{c['source']['folder']}` `{c['source']['condition']}` |")
     lines += ["", "## Figure 5", "",
               "| arm | within 3 cm | 95% CI | grasped | median final distance | from |",
               "|---|---|---|---|---|---|"]
@@ -369,9 +458,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         summary = write_reference(Path(args.out), results=Path(args.results))
     except ValueError as e:
         parser.exit(2, f"make_reference: error: {e}\n")
-    for exp, row in summary["table1"].items():
-        print(f"{exp}: " + ", ".join(f"{c} {row[c]['sim']['successes']}/{row[c]['sim']['n']}"
-                                    for c in ("ctr", "gpd")))
+    for key in ("table1", "table1_sensor_noise"):
+        for exp, row in summary[key].items():
+            print(f"{key} {exp}: " + ", ".join(
+                f"{c} {row[c]['sim']['successes']}/{row[c]['sim']['n']}" for c in ("ctr", "gpd")))
     print("figure5 within 3 cm: " + ", ".join(f"{a} {v['within_3cm_count']}/{v['within_3cm_n']}"
                                                for a, v in summary["figure5"].items()))
     print(args.out)

@@ -16,6 +16,10 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 README_ROWS = {"Table 1: objects in isolation": ("table1", "isolation"),
                "Table 1: clutter,": ("table1", "clutter"),
                "Table 1: clutter, sheet shifted": ("table1", "clutter-shift"),
+               "Table 1 with depth noise: objects in isolation": ("table1_sensor_noise", "isolation"),
+               "Table 1 with depth noise: clutter,": ("table1_sensor_noise", "clutter"),
+               "Table 1 with depth noise: clutter, sheet shifted": ("table1_sensor_noise",
+                                                                    "clutter-shift"),
                "Figure 5: within 3 cm with kinematic noise": ("figure5", ("ctr_noise", "gpd_noise")),
                "Figure 5: within 3 cm without noise": ("figure5", ("ctr", "gpd")),
                "Figure 5 (right): CNN only / CNN + CTR": ("figure5", ("cnn-only", "cnn-ctr"))}
@@ -44,9 +48,9 @@ def test_the_readme_headline_table_shows_the_committed_numbers(committed):
     for prefix, (block, key) in README_ROWS.items():
         label = min((r for r in rows if r.startswith(prefix)), key=len)
         ctr, gpd = rows[label]
-        if block == "table1":
-            want = [[(committed["table1"][key][c]["sim"]["successes"],
-                      committed["table1"][key][c]["sim"]["n"])] for c in ("ctr", "gpd")]
+        if block.startswith("table1"):
+            want = [[(committed[block][key][c]["sim"]["successes"],
+                      committed[block][key][c]["sim"]["n"])] for c in ("ctr", "gpd")]
         else:
             arms = [committed["figure5"][a] for a in key]
             pairs = [(a["within_3cm_count"], a["within_3cm_n"]) for a in arms]
@@ -79,12 +83,15 @@ def test_committed_folder_is_what_the_script_writes(regenerated, committed):
 
 
 def test_summary_has_the_report_keys_and_every_source(committed):
-    for key in ("experiments", "table1", "figures", "paper", "targets", "figure5", "sources"):
+    for key in ("experiments", "table1", "table1_sensor_noise", "figures", "paper", "targets",
+                "figure5", "sources"):
         assert key in committed, key
     assert set(committed["table1"]) == {"isolation", "clutter", "clutter-shift"}
+    assert set(committed["table1_sensor_noise"]) == {"isolation", "clutter", "clutter-shift"}
     assert set(committed["figure5"]) == {"init", "ctr", "ctr_noise", "gpd", "gpd_noise",
                                          "cnn-only", "cnn-ctr"}
-    cells = [row[c] for row in committed["table1"].values() for c in ("ctr", "gpd")]
+    cells = [row[c] for key in ("table1", "table1_sensor_noise")
+             for row in committed[key].values() for c in ("ctr", "gpd")]
     for entry in cells + list(committed["figure5"].values()):
         folder = entry["source"]["folder"]
         # its records: per-trial files, or packed into the folder's trials.parquet
@@ -106,6 +113,30 @@ def test_table1_rates_counts_and_intervals_agree(committed):
         for cond in ("ctr", "gpd"):
             sim = row[cond]["sim"]
             _check_rate(sim["successes"], sim["n"], sim["success_rate"], sim["ci95"])
+
+
+def test_sensor_noise_cells_sit_beside_their_noiseless_cells(committed):
+    from drake_grasp.evaluation.proportions import mcnemar_exact_p
+
+    for exp, row in committed["table1_sensor_noise"].items():
+        for cond in ("ctr", "gpd"):
+            cell, clean = row[cond], committed["table1"][exp][cond]
+            sim = cell["sim"]
+            _check_rate(sim["successes"], sim["n"], sim["success_rate"], sim["ci95"])
+            assert cell["noiseless"] == {k: clean["sim"][k]
+                                         for k in ("successes", "n", "success_rate")}
+            assert cell["noiseless_source"] == clean["source"]
+            assert cell["source"]["folder"].startswith("table1-sensor-noise/")
+            assert cell["difference_points"] == pytest.approx(
+                100 * (sim["success_rate"] - clean["sim"]["success_rate"]), abs=0.01)
+            test = cell["comparison"]
+            assert 0 < test["p"] <= 1
+            if exp == "isolation":  # the same 120 trials, paired
+                assert test["paired_trials"] == 120
+                assert (test["only_with_noise"] - test["only_without_noise"]
+                        == sim["successes"] - clean["sim"]["successes"])
+                assert test["p"] == mcnemar_exact_p(test["only_with_noise"],
+                                                    test["only_without_noise"])
 
 
 def test_figure5_within_3cm_rates_agree(committed):
