@@ -272,6 +272,33 @@ def test_import_nonconvex_scene_uses_coacd(tmp_path):
     assert 2 <= meta["num_collision_pieces"] <= 12
 
 
+def test_import_turns_gltf_y_up_to_z_up_as_drake_does(tmp_path):
+    # A box tallest along y, as a glTF scanned object stands (glTF is y-up).
+    box = trimesh.creation.box([0.03, 0.08, 0.05])
+    trimesh.Scene([box]).export(tmp_path / "tall.glb")
+    info = import_mesh(tmp_path / "tall.glb", name="tall", library_dir=tmp_path / "lib")
+    assert list(info.extents_m) == pytest.approx([0.03, 0.05, 0.08])
+    assert info.read_meta()["up_axis"] == "y"
+    # Drake's own reading of the same scene (as .gltf, which it reads) stands it the same way.
+    from pydrake.geometry import Mesh
+
+    for name, data in trimesh.Scene([box]).export(file_type="gltf").items():
+        (tmp_path / name).write_bytes(data)
+    hull = Mesh(str(tmp_path / "model.gltf")).GetConvexHull()
+    V = np.array([hull.vertex(i) for i in range(hull.num_vertices())])
+    assert list(V.max(axis=0) - V.min(axis=0)) == pytest.approx([0.03, 0.05, 0.08])
+    # The file's own axes kept when asked; OBJ/STL/PLY are z-up unless told.
+    kept = import_mesh(tmp_path / "tall.glb", name="kept", library_dir=tmp_path / "lib",
+                       up_axis="z")
+    assert list(kept.extents_m) == pytest.approx([0.03, 0.08, 0.05])
+    box.export(tmp_path / "tall.stl")
+    stl = import_mesh(tmp_path / "tall.stl", name="stl", library_dir=tmp_path / "lib")
+    assert list(stl.extents_m) == pytest.approx([0.03, 0.08, 0.05])
+    assert stl.read_meta()["up_axis"] == "z"
+    with pytest.raises(ValueError, match="up_axis 'x' is not one of"):
+        import_mesh(tmp_path / "tall.stl", name="bad", library_dir=tmp_path / "lib", up_axis="x")
+
+
 def test_import_millimetres_fails_with_scale_hint(tmp_path):
     mesh_file = tmp_path / "part_mm.stl"
     trimesh.creation.box((600.0, 400.0, 1000.0)).export(mesh_file)

@@ -61,7 +61,8 @@ def _cmd_objects_import(args) -> int:
     from drake_grasp.objects import import_mesh
 
     info = import_mesh(args.mesh, name=args.name, library_dir=args.library, scale=args.scale,
-                       density_kg_m3=args.density, overwrite=args.overwrite)
+                       density_kg_m3=args.density, overwrite=args.overwrite,
+                       up_axis=args.up_axis)
     print(json.dumps({"id": info.id, "mass_kg": info.mass_kg,
                       "extents_m": list(info.extents_m), "model": str(info.model_path)}))
     for warning in info.read_meta().get("warnings", []):
@@ -149,6 +150,9 @@ def _parser_objects(sub) -> None:
     p.add_argument("--scale", type=float, default=1.0,
                    help="multiply coordinates by this (e.g. 0.001 for millimetres)")
     p.add_argument("--density", type=float, default=500.0, help="density in kg/m^3")
+    p.add_argument("--up-axis", choices=("z", "y"), default=None,
+                   help="the file's up axis, turned to z (default: y for glTF/GLB, as their "
+                        "specification and Drake have it; z for OBJ, STL and PLY)")
     p.add_argument("--overwrite", action="store_true", help="replace an object of that name")
     p.set_defaults(func=_cmd_objects_import)
     p = osub.add_parser("list", help="list object ids")

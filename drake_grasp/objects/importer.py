@@ -36,6 +36,13 @@ MAX_FACES = 20_000
 # Larger files are refused rather than simplified (loading alone takes long).
 MAX_INPUT_FACES = 2_000_000
 USER_RGBA = (0.7, 0.7, 0.72, 1.0)
+# The file's up axis -> the rotation that makes it z (the world's up here, as in Drake).
+# glTF is y-up by specification; Drake's own glTF loading turns +y to +z the same way.
+UP_AXIS_ROTATIONS = {
+    "z": np.eye(3),
+    "y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),  # R_x(+90 deg)
+}
+Y_UP_SUFFIXES = (".gltf", ".glb")
 
 
 def _mass_of(path: Path, mesh, watertight: bool, density_kg_m3: float,
@@ -83,12 +90,12 @@ def import_mesh(
     seed: int = 0,
     overwrite: bool = False,
     hydroelastic_modulus_pa: float = 1e7,
+    up_axis: str | None = None,
 ) -> ObjectInfo:
     """Imports a mesh file into `library_dir/<name>/`.
 
-    The mesh keeps its orientation (z up as in the file; note that glTF is
-    y-up by specification and is not rotated here); it is translated so the
-    bottom centre of its bounding box is the origin.
+    The mesh is turned so that the file's up axis (`up_axis`) becomes z, and
+    translated so the bottom centre of its bounding box is the origin.
 
     Args:
         mesh_path: OBJ, STL, PLY, glTF or GLB file (a glTF scene's meshes are
@@ -104,6 +111,9 @@ def import_mesh(
         seed: CoACD seed (the decomposition is deterministic given it).
         overwrite: Replace an existing object of that name.
         hydroelastic_modulus_pa: Compliant-hydroelastic modulus of the pieces.
+        up_axis: The file's up axis, "z" or "y" (turned to z by +90 degrees about
+            x). None: "y" for glTF/GLB (their specification's, as Drake reads
+            them), "z" for OBJ, STL and PLY.
 
     Returns:
         The new object's info.
@@ -121,6 +131,10 @@ def import_mesh(
     path = Path(mesh_path).expanduser()
     _check_args(name, category, split, scale, density_kg_m3, max_convex_hulls, seed,
                 hydroelastic_modulus_pa)
+    if up_axis is None:
+        up_axis = "y" if path.suffix.lower() in Y_UP_SUFFIXES else "z"
+    if up_axis not in UP_AXIS_ROTATIONS:
+        raise ValueError(f"up_axis {up_axis!r} is not one of {list(UP_AXIS_ROTATIONS)}")
     target = Path(library_dir).expanduser() / name
     if target.exists() and not overwrite:
         raise FileExistsError(
@@ -128,8 +142,11 @@ def import_mesh(
         )
 
     geometries = _load(path)
+    turn = np.eye(4)
+    turn[:3, :3] = UP_AXIS_ROTATIONS[up_axis]
     for geometry in geometries:
         geometry.apply_scale(scale)
+        geometry.apply_transform(turn)
     _check_size(path, geometries, scale)
     warnings: list[str] = []
     mesh, watertight = _repair_all(path, geometries, warnings)
@@ -149,6 +166,7 @@ def import_mesh(
         "source_path": str(path.resolve()),
         "generator_version": cat.GENERATOR_VERSION,
         "scale": scale,
+        "up_axis": up_axis,
         "density_kg_m3": density_kg_m3,
         "mass_kg": mass.mass_kg,
         "extents_m": g.extents_of([mesh]),
