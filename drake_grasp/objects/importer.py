@@ -131,10 +131,7 @@ def import_mesh(
     path = Path(mesh_path).expanduser()
     _check_args(name, category, split, scale, density_kg_m3, max_convex_hulls, seed,
                 hydroelastic_modulus_pa)
-    if up_axis is None:
-        up_axis = "y" if path.suffix.lower() in Y_UP_SUFFIXES else "z"
-    if up_axis not in UP_AXIS_ROTATIONS:
-        raise ValueError(f"up_axis {up_axis!r} is not one of {list(UP_AXIS_ROTATIONS)}")
+    up_axis = _up_axis_of(path, up_axis)
     target = Path(library_dir).expanduser() / name
     if target.exists() and not overwrite:
         raise FileExistsError(
@@ -142,11 +139,9 @@ def import_mesh(
         )
 
     geometries = _load(path)
-    turn = np.eye(4)
-    turn[:3, :3] = UP_AXIS_ROTATIONS[up_axis]
     for geometry in geometries:
         geometry.apply_scale(scale)
-        geometry.apply_transform(turn)
+        geometry.apply_transform(_up_turn(up_axis))
     _check_size(path, geometries, scale)
     warnings: list[str] = []
     mesh, watertight = _repair_all(path, geometries, warnings)
@@ -159,26 +154,17 @@ def import_mesh(
     pieces = _decompose(mesh, watertight, max_convex_hulls, seed, warnings)
     contact = ContactMaterial(hydroelastic_modulus_pa, mu_static=0.6, mu_dynamic=0.5)
     meta = {
-        "id": name,
-        "category": category,
-        "split": split,
-        "source": path.name,
-        "source_path": str(path.resolve()),
+        "id": name, "category": category, "split": split,
+        "source": path.name, "source_path": str(path.resolve()),
         "generator_version": cat.GENERATOR_VERSION,
-        "scale": scale,
-        "up_axis": up_axis,
-        "density_kg_m3": density_kg_m3,
-        "mass_kg": mass.mass_kg,
-        "extents_m": g.extents_of([mesh]),
-        "volume_m3": mass.volume_m3,
-        "volume_basis": volume_basis,
-        "com_m": mass.com_m,
+        "scale": scale, "up_axis": up_axis, "density_kg_m3": density_kg_m3,
+        "mass_kg": mass.mass_kg, "extents_m": g.extents_of([mesh]),
+        "volume_m3": mass.volume_m3, "volume_basis": volume_basis, "com_m": mass.com_m,
         "num_collision_pieces": len(pieces),
         "coacd": {"max_convex_hulls": max_convex_hulls, "seed": seed},
         "rgba": USER_RGBA,
         "hydroelastic_modulus_pa": contact.hydroelastic_modulus_pa,
-        "mu_static": contact.mu_static,
-        "mu_dynamic": contact.mu_dynamic,
+        "mu_static": contact.mu_static, "mu_dynamic": contact.mu_dynamic,
         "relaxation_time_s": contact.relaxation_time_s,
         "warnings": warnings,
     }
@@ -188,6 +174,22 @@ def import_mesh(
         raise FileExistsError(f"object {name!r} was created at {target} by someone else "
                               "meanwhile; not replaced")
     return ObjectInfo.from_dir(target)
+
+
+def _up_axis_of(path: Path, up_axis: str | None) -> str:
+    """The file's up axis: `up_axis`, or by default "y" for glTF/GLB and "z" otherwise."""
+    if up_axis is None:
+        return "y" if path.suffix.lower() in Y_UP_SUFFIXES else "z"
+    if up_axis not in UP_AXIS_ROTATIONS:
+        raise ValueError(f"up_axis {up_axis!r} is not one of {list(UP_AXIS_ROTATIONS)}")
+    return up_axis
+
+
+def _up_turn(up_axis: str) -> np.ndarray:
+    """The 4x4 transform that turns `up_axis` to z."""
+    turn = np.eye(4)
+    turn[:3, :3] = UP_AXIS_ROTATIONS[up_axis]
+    return turn
 
 
 def _check_args(name, category, split, scale, density, max_hulls, seed, modulus) -> None:
